@@ -1,0 +1,1 @@
+// Stands in for a src/ folder that has no sources yet.

@@ -1,0 +1,61 @@
+#!/usr/bin/env bash
+# Brings a fresh Debian 12 machine to a configured and built tree.
+# Idempotent: every step checks first and stays quiet when nothing is to do.
+#   scripts/setup.sh            install what is missing, configure, build
+#   scripts/setup.sh --deps     install only (no configure/build)
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+
+# Pinned versions (Debian 12 "bookworm" pins the system packages; these are checked).
+TORCH_VERSION="2.11.0"          # same as the GPU machine's PyTorch 2.11.0+cu130
+MUJOCO_VERSION_PREFIX="2.2.2"
+DEPS="$ROOT/.deps"
+VENV="$DEPS/venv"
+BUILD="${BUILD_DIR:-$ROOT/build}"
+
+log() { printf '[setup] %s\n' "$*"; }
+
+# Debian packages the build and the tests need.
+APT_PKGS=(
+  build-essential cmake ninja-build ccache pkg-config
+  libmujoco-dev libqhull-dev
+  libhdf5-dev
+  libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev
+  libeigen3-dev libyaml-cpp-dev libgtest-dev libgmock-dev
+  libcli11-dev nlohmann-json3-dev libassimp-dev
+  python3-venv
+)
+missing=()
+for p in "${APT_PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  log "installing Debian packages: ${missing[*]}"
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+mj="$(dpkg-query -W -f='${Version}' libmujoco-dev)"
+case "$mj" in "$MUJOCO_VERSION_PREFIX"*) ;; *) echo "[setup] error: libmujoco-dev $mj found, $MUJOCO_VERSION_PREFIX expected" >&2; exit 1;; esac
+
+# LibTorch from PyPI's torch wheel, in a git-ignored virtual environment of the project.
+if ! [ -f "$VENV/.torch-$TORCH_VERSION" ]; then
+  log "installing torch==$TORCH_VERSION (PyPI wheel, CUDA 13 build) into $VENV"
+  mkdir -p "$DEPS"
+  python3 -m venv "$VENV"
+  "$VENV/bin/python" -m pip install -q --upgrade pip
+  "$VENV/bin/python" -m pip install -q "torch==$TORCH_VERSION" "numpy<3" "safetensors==0.7.0" "h5py==3.15.1" "tensorboard==2.20.0"
+  touch "$VENV/.torch-$TORCH_VERSION"
+fi
+
+[ "${1:-}" = "--deps" ] && exit 0
+
+# Configure (once) and build.
+TORCH_PREFIX="$("$VENV/bin/python" -c 'import torch.utils; print(torch.utils.cmake_prefix_path)')"
+if ! [ -f "$BUILD/build.ninja" ]; then
+  log "configuring $BUILD"
+  cmake -S "$ROOT" -B "$BUILD" -G Ninja -DCMAKE_BUILD_TYPE=Release \
+    -DCMAKE_PREFIX_PATH="$TORCH_PREFIX" -DSIMU_PYTHON="$VENV/bin/python" >/dev/null
+fi
+cmake --build "$BUILD" -- -j"${JOBS:-$(nproc)}" >"$BUILD/build.log" 2>&1 || { tail -n 60 "$BUILD/build.log" >&2; echo "[setup] build failed: full log in $BUILD/build.log" >&2; exit 1; }

@@ -1,0 +1,19 @@
+// File helpers: atomic writes (temporary file, fsync, rename) so a crash never leaves a half file.
+#pragma once
+
+#include <string>
+#include <string_view>
+
+namespace simu::fs {
+
+// Writes bytes to path atomically: path.tmp-<pid> is written, fsynced, renamed over path, and the
+// directory fsynced. Creates parent directories. Throws simu::Error naming the path on failure.
+void atomic_write(const std::string& path, std::string_view bytes);
+// Reads a whole file; throws simu::Error naming the path if it cannot.
+std::string read_file(const std::string& path);
+// Fsyncs a directory (after renames inside it).
+void fsync_dir(const std::string& dir);
+// Renames src to dst atomically and fsyncs dst's directory.
+void atomic_rename(const std::string& src, const std::string& dst);
+
+}  // namespace simu::fs
