@@ -1,0 +1,23 @@
+#include "models/linear.h"
+
+#include <cmath>
+
+namespace simu::models {
+
+LinearImpl::LinearImpl(int64_t in, int64_t out, bool with_bias) : in_features(in), out_features(out) {
+  // torch.nn.Linear's default initialisation (kaiming_uniform a=sqrt(5), bias U(-1/sqrt(in), 1/sqrt(in))).
+  weight = register_parameter("weight", torch::empty({out, in}));
+  torch::nn::init::kaiming_uniform_(weight, std::sqrt(5.0));
+  if (with_bias) {
+    const double bound = in > 0 ? 1.0 / std::sqrt(static_cast<double>(in)) : 0.0;
+    bias = register_parameter("bias", torch::empty({out}).uniform_(-bound, bound));
+  }
+}
+
+torch::Tensor LinearImpl::forward(const torch::Tensor& x) {
+  auto y = torch::linear(x, weight, bias);
+  if (adapter_ && adapter_enabled_) y = y + adapter_->delta(x);
+  return y;
+}
+
+}  // namespace simu::models

@@ -1,0 +1,45 @@
+// Linear layer of the Stage-1 model with an optional adapter hook (LoRA lives in src/lora).
+//
+// Official checkpoints name the parameters `<path>.weight` / `<path>.bias`, exactly like
+// torch.nn.Linear, so state dicts line up. An adapter adds a term to the output:
+//   y = x W^T + b + adapter(x)   (when an adapter is set and enabled)
+#pragma once
+
+#include <torch/torch.h>
+
+#include <memory>
+
+namespace simu::models {
+
+// Something that adds to a Linear's output given its input; src/lora implements it.
+class LinearAdapter {
+ public:
+  virtual ~LinearAdapter() = default;
+  // x: [..., in_features] -> [..., out_features]
+  virtual torch::Tensor delta(const torch::Tensor& x) = 0;
+};
+
+class LinearImpl : public torch::nn::Module {
+ public:
+  LinearImpl(int64_t in_features, int64_t out_features, bool with_bias = true);
+  // x: [..., in] -> [..., out]
+  torch::Tensor forward(const torch::Tensor& x);
+
+  // Installs (or, with nullptr, removes) the adapter; its parameters are registered by the caller.
+  void set_adapter(std::shared_ptr<LinearAdapter> adapter) { adapter_ = std::move(adapter); }
+  const std::shared_ptr<LinearAdapter>& adapter() const { return adapter_; }
+  // Switches the adapter term on or off without removing it (reference model = adapters off).
+  void set_adapter_enabled(bool enabled) { adapter_enabled_ = enabled; }
+  bool adapter_enabled() const { return adapter_enabled_; }
+
+  int64_t in_features, out_features;
+  torch::Tensor weight;  // [out, in]
+  torch::Tensor bias;    // [out] or undefined
+
+ private:
+  std::shared_ptr<LinearAdapter> adapter_;
+  bool adapter_enabled_ = true;
+};
+TORCH_MODULE(Linear);
+
+}  // namespace simu::models
