@@ -215,3 +215,37 @@ TEST(Generator, TimeGridIsOfficial) {
   EXPECT_NEAR(rev.front(), 1.0, 1e-12);
   EXPECT_NEAR(rev.back(), 0.0, 1e-12);
 }
+
+// The project config layout (configs/stage1_small.yaml) builds the same model as the official JSON.
+TEST(FlowModel, ProjectConfigMatchesOfficialLayout) {
+  auto gen = simu::models::load_generator(simu::testing::source_dir() + "/configs/stage1_small.yaml",
+                                          simu::testing::fixture("ss_generator_small.safetensors"), torch::kCPU);
+  Fixture f{gen, simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"))};
+  expect_close(forward_fixture(f, true), f.io, "out.forward.", "small.forward(project yaml)");
+  auto o = simu::models::SampleOptions::from(gen->config());
+  EXPECT_EQ(o.steps, 4);
+  EXPECT_DOUBLE_EQ(o.cfg_strength, 7.0);
+  EXPECT_FALSE(o.shortcut);
+}
+
+// The real-size config parses into the documented model (no weights built: 1.3 B parameters).
+TEST(FlowModel, RealConfigDescribesTheReleasedModel) {
+  auto c = simu::models::GeneratorConfig::from_official_file(simu::testing::source_dir() + "/configs/stage1_real.yaml");
+  EXPECT_EQ(c.kind, "ShortCut");
+  EXPECT_EQ(c.inference_steps, 25);
+  EXPECT_EQ(c.backbone.model_channels, 1024);
+  EXPECT_EQ(c.backbone.num_blocks, 24);
+  EXPECT_EQ(c.backbone.num_heads, 16);
+  EXPECT_EQ(c.backbone.cond_channels, 1024);
+  EXPECT_EQ(c.backbone.latent("shape").tokens(), 4096);
+  EXPECT_EQ(c.backbone.stream_names(), (std::vector<std::string>{"shape", "6drotation_normalized"}));
+  // FLOPs of one sample at 2800 condition tokens, counted by hand: C = 1024, shape T = 4096 (attends to
+  // itself), pose T = 4 (attends to 4100 keys), hidden 4096, 24 blocks, + io and adaLN.
+  const double C = 1024, L = 2800, H = 4096;
+  auto stream = [&](double T, double keys) {
+    return 8 * T * C * C + 4 * T * keys * C + 4 * T * C * C + 4 * L * C * C + 4 * T * L * C + 4 * T * C * H;
+  };
+  const double io = 4 * C * (4096 * 8 + 6 + 3 + 3 + 1);
+  const double want = 24 * (stream(4096, 4096) + stream(4, 4100)) + io + 24 * 2 * C * 6 * C;
+  EXPECT_NEAR(simu::models::flow_forward_flops(c.backbone, 1, 2800) / want, 1.0, 1e-12);
+}
