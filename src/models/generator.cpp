@@ -155,10 +155,12 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, c
   // The official compares the float32 time tensor with the interval bounds.
   const double tf = static_cast<float>(t_scaled);
   const bool guided = strength > 0.0 && interval.first <= tf && tf <= interval.second;
+  // t (and d) as one value for the whole batch ([1], like the official ShortCut): the modulation is
+  // then computed once and broadcast, which lets the blocks fuse it into the LayerNorms.
   if (!guided) {
     c10::optional<torch::Tensor> d;
-    if (d_scaled) d = torch::full({B}, *d_scaled, opts);
-    return backbone->forward(x, torch::full({B}, t_scaled, opts), cond, d);
+    if (d_scaled) d = torch::full({1}, *d_scaled, opts);
+    return backbone->forward(x, torch::full({1}, t_scaled, opts), cond, d);
   }
   // One batched forward: first half conditional, second half unconditional.
   Latents x2;
@@ -167,10 +169,12 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, c
   if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) cond_u = cond * 0;
   c10::optional<torch::Tensor> d2;
   if (d_scaled) {
-    const double du = unconditional_handling == "zeros" ? 0.0 : *d_scaled;
-    d2 = torch::cat({torch::full({B}, *d_scaled, opts), torch::full({B}, du, opts)});
+    if (unconditional_handling == "zeros")  // zero_out also zeroes d in the unconditional half
+      d2 = torch::cat({torch::full({B}, *d_scaled, opts), torch::zeros({B}, opts)});
+    else
+      d2 = torch::full({1}, *d_scaled, opts);
   }
-  auto y = backbone->forward(x2, torch::full({2 * B}, t_scaled, opts), torch::cat({cond, cond_u}, 0), d2);
+  auto y = backbone->forward(x2, torch::full({1}, t_scaled, opts), torch::cat({cond, cond_u}, 0), d2);
   Latents out;
   for (const auto& [k, v] : y) {
     auto yc = v.narrow(0, 0, B), yu = v.narrow(0, B, B);
