@@ -43,7 +43,7 @@ struct H5Lock {
 std::string h5_error() {
   std::string text;
   H5Ewalk2(
-      H5E_DEFAULT, H5E_WALK_DOWNWARD,
+      H5E_DEFAULT, H5E_WALK_UPWARD,  // upward: entry 0 is the innermost (most specific) error
       [](unsigned n, const H5E_error2_t* e, void* data) -> herr_t {
         auto* s = static_cast<std::string*>(data);
         if (n == 0 && e->desc) *s = e->desc;

@@ -408,7 +408,10 @@ TEST(PairStream, CollateStacksAndMasks) {
 class DamagedCache : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir = simu::testing::temp_dir("pc_damaged");
+    // One directory per test: temp_dir's remove_all of a non-empty directory crashes here (it binds to
+    // the std::filesystem copy inside libtorch.so), so never reuse a name.
+    dir = simu::testing::temp_dir(std::string("pc_damaged_") +
+                                  ::testing::UnitTest::GetInstance()->current_test_info()->name());
     good = dir + "/good.h5";
     make_synthetic_cache(good, 6, {16, 4}, {5, 3}, 11, torch::kFloat32);
   }
