@@ -374,6 +374,17 @@ struct CacheHandles {
   }
 };
 
+// File access properties of every read-only open. Readers skip HDF5's flock: many ranks read one
+// file, often on network file systems where flock fails, and writers never modify a file in place
+// (they rename a finished temporary over it). All read-only opens must agree on this flag.
+H5Id reader_fapl() {
+  H5Id fapl(H5Pcreate(H5P_FILE_ACCESS));
+#if H5_VERSION_GE(1, 10, 7)
+  H5Pset_file_locking(fapl.get(), false, true);
+#endif
+  return fapl;
+}
+
 // Opens a dataset that must exist, naming the file if it does not.
 H5Id open_dataset(hid_t file, const char* name, const std::string& path) {
   if (H5Lexists(file, name, H5P_DEFAULT) <= 0)
@@ -405,7 +416,8 @@ void open_cache(CacheHandles& h, const std::string& path, bool writable) {
     fail_hint("the file may be truncated or corrupt; recreate it or restore a copy",
               "pair cache '{}' is not a readable HDF5 file", path);
   }
-  hid_t f = H5Fopen(path.c_str(), writable ? H5F_ACC_RDWR : H5F_ACC_RDONLY, H5P_DEFAULT);
+  H5Id fapl = writable ? H5Id(H5Pcreate(H5P_FILE_ACCESS)) : reader_fapl();
+  hid_t f = H5Fopen(path.c_str(), writable ? H5F_ACC_RDWR : H5F_ACC_RDONLY, fapl.get());
   if (f < 0)
     fail_hint("the file may be truncated (an interrupted copy?) or corrupt; recreate it or restore a copy",
               "pair cache '{}' cannot be opened: {}", path, h5_error());
@@ -745,7 +757,7 @@ torch::Tensor PairCacheReader::weights() const {
 std::vector<DatasetInfo> describe_datasets(const std::string& path) {
   H5Lock lock;
   if (H5Fis_hdf5(path.c_str()) <= 0) fail("pair cache '{}' is not a readable HDF5 file", path);
-  H5Id file(check_id(H5Fopen(path.c_str(), H5F_ACC_RDONLY, H5P_DEFAULT), path, "open"));
+  H5Id file(check_id(H5Fopen(path.c_str(), H5F_ACC_RDONLY, reader_fapl().get()), path, "open"));
   // Names of the root's members.
   std::vector<std::string> names;
   H5Literate(

@@ -598,3 +598,32 @@ TEST(PairCacheWriter, RejectsBadRecords) {
 }
 
 }  // namespace
+
+namespace {
+
+// The pairs tool end to end: make, inspect, validate; a truncated copy fails validation with exit 1.
+TEST(PairsTool, MakeInspectValidate) {
+  const std::string exe = std::string(SIMU_BUILD_DIR) + "/pairs";
+  if (!std::filesystem::exists(exe)) GTEST_SKIP() << "pairs not built at " << exe;
+  const auto dir = simu::testing::temp_dir("pairs_tool");
+  const auto f = dir + "/p.h5";
+  auto run = [&](const std::string& args) {
+    return WEXITSTATUS(std::system((exe + " " + args + " >" + dir + "/out.txt 2>&1").c_str()));
+  };
+  ASSERT_EQ(run("make --out " + f + " --n 6 --tokens 32 --channels 4 --cond-len 5 --cond-channels 3 --dtype f32 --seed 1"), 0);
+  ASSERT_EQ(run("inspect " + f), 0);
+  const auto out = simu::fs::read_file(dir + "/out.txt");
+  EXPECT_NE(out.find("pairs           6"), std::string::npos) << out;
+  EXPECT_NE(out.find("latent_shape    [32, 4] float32"), std::string::npos) << out;
+  EXPECT_NE(out.find("occlusion_completion"), std::string::npos) << out;
+  EXPECT_EQ(run("validate " + f), 0);
+  std::filesystem::copy_file(f, dir + "/t.h5");
+  std::filesystem::resize_file(dir + "/t.h5", std::filesystem::file_size(f) / 2);
+  EXPECT_EQ(run("validate " + dir + "/t.h5"), 1);
+  const auto err = simu::fs::read_file(dir + "/out.txt");
+  EXPECT_NE(err.find("error: pair cache '" + dir + "/t.h5'"), std::string::npos) << err;
+  EXPECT_NE(run("make --out " + dir + "/x.h5 --n 2 --dtype bf16"), 0);
+  EXPECT_FALSE(std::filesystem::exists(dir + "/x.h5"));
+}
+
+}  // namespace
