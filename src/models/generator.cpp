@@ -288,6 +288,9 @@ Generator load_generator(const std::string& config_path, const std::string& weig
   Generator g(cfg);
   if (!weights_path.empty()) {
     LoadOptions lo;
+    // A condition embedder passed into the wrapper (official `condition_embedder` kwarg) is another
+    // component (loaded by the condition-embedder code), not part of this flow model.
+    lo.ignore_prefixes = {"reverse_fn.backbone.condition_embedder."};
     // The official checkpoint prefixes generator weights with "_base_models.generator."; other
     // sub-models (condition embedder) live under other prefixes and are skipped by the prefix filter.
     const std::string ext = ".safetensors";
