@@ -101,6 +101,12 @@ torch::Tensor pointmap_transform(const torch::Tensor& p, const PreprocessConfig&
 
 }  // namespace
 
+torch::Tensor pointmap_from_opencv_camera(const torch::Tensor& pointmap) {
+  SIMU_CHECK(pointmap.dim() == 3 && pointmap.size(0) == 3, "pointmap: shape {} expected [3, H, W]", shape(pointmap));
+  auto flip = torch::tensor({-1.f, -1.f, 1.f}, pointmap.options()).view({3, 1, 1});
+  return pointmap * flip;
+}
+
 CropBox compute_mask_bbox(const torch::Tensor& mask_in, double box_size_factor) {
   auto mask = as_mask(mask_in, "mask");
   auto idx = torch::nonzero(mask);  // [K, 2] (y, x)

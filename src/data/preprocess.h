@@ -71,6 +71,11 @@ struct ConditionInputs {
   torch::Tensor pointmap_shift;          // [3]
 };
 
+// SAM 3D reads point maps in the PyTorch3D camera frame (x left, y up, z forward). Depth models such
+// as MoGe give OpenCV-frame points (x right, y down, z forward); the official pipeline rotates them by
+// diag(-1, -1, 1) (camera_to_pytorch3d_camera). This does that: pointmap [3,H,W] -> (-x, -y, z).
+torch::Tensor pointmap_from_opencv_camera(const torch::Tensor& pointmap);
+
 // compute_mask_bbox: box around mask != 0 (see step 2). Throws for an empty mask or a box thinner
 // than 2 pixels.
 CropBox compute_mask_bbox(const torch::Tensor& mask, double box_size_factor = 1.0);
@@ -82,7 +87,8 @@ std::pair<torch::Tensor, torch::Tensor> object_centric_scale_shift(const torch::
                                                                    const PreprocessConfig& config = {});
 
 // rgb: [3,H,W] float in [0,1]; mask: [H,W] (or [1,H,W]) in [0,1], object where > 0;
-// pointmap: [3,Hp,Wp] or [Hp,Wp,3] camera-space points (NaN/inf = invalid), or undefined for none;
+// pointmap: [3,Hp,Wp] or [Hp,Wp,3] points in the PyTorch3D camera frame (see
+//   pointmap_from_opencv_camera; NaN/inf = invalid), or undefined for none;
 // crop_mask: optional [H,W] mask that defines the crop box (and the background removal) instead of mask.
 // Errors: empty mask / crop mask, size mismatches, a point map with no finite point under the mask.
 ConditionInputs prepare_condition_inputs(const torch::Tensor& rgb, const torch::Tensor& mask,

@@ -8,6 +8,7 @@
 #include "common/error.h"
 #include "data/preprocess.h"
 #include "models/cond_embedder.h"
+#include "models/weights.h"
 #include "test_util.h"
 
 #ifdef SIMU_HAVE_OPENCV
@@ -161,10 +162,15 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
   EXPECT_FALSE(torch::isfinite(rp[2][10][259]).item<bool>());  // padding row
   EXPECT_TRUE(torch::isfinite(rp[2][259][30]).item<bool>());   // background pixel with depth
 
-  // Through the (small) condition embedder: 2 x (1 + 37^2) + 2 x (1 + 5^2) + 2 x 4^2 tokens.
+  // Through the (small) condition embedder: 2 x (1 + 37^2) + 2 x (1 + 5^2) + 2 x 4^2 tokens. Its point
+  // embedder is switched to the real model's `linear` remap: with the fixture's `exp` remap, normalised
+  // depths below -1 (here the near background) give log1p(z) = NaN, in the official code as well.
   torch::NoGradGuard ng;
-  auto emb = simu::models::load_cond_embedder(simu::testing::fixture("cond_embedder_small.json"),
-                                              simu::testing::fixture("cond_embedder_small.safetensors"), "");
+  auto ecfg = simu::models::CondEmbedderConfig::load(simu::testing::fixture("cond_embedder_small.json"));
+  ecfg.embedders[2].point.remap_output = "linear";
+  simu::models::CondEmbedder emb(ecfg);
+  simu::models::load_safetensors_into(*emb, simu::testing::fixture("cond_embedder_small.safetensors"), {});
+  emb->eval();
   auto tokens = emb->forward(out.tensors);
   EXPECT_EQ(tokens.sizes(), torch::IntArrayRef({1, 2 * 1370 + 2 * 26 + 2 * 16, 64}));
   EXPECT_TRUE(torch::isfinite(tokens).all().item<bool>());
@@ -258,4 +264,13 @@ TEST(Preprocess, CropPastTheImageEdge) {
   auto img = out8.tensors.at("image")[0][0];  // 8 x 8: 7 wide crop padded 0 left / 1 right; rows 8
   EXPECT_EQ(img.slice(1, 0, 2).abs().max().item<float>(), 0.f);
   EXPECT_EQ(img.slice(1, 2, 7).min().item<float>(), 1.f);
+}
+
+// OpenCV camera frame (x right, y down) -> PyTorch3D frame (x left, y up): diag(-1, -1, 1).
+TEST(Preprocess, OpenCvToPyTorch3dPoints) {
+  auto p = torch::tensor({1.f, 2.f, 3.f}).view({3, 1, 1});
+  auto q = sd::pointmap_from_opencv_camera(p);
+  EXPECT_EQ(q[0][0][0].item<float>(), -1.f);
+  EXPECT_EQ(q[1][0][0].item<float>(), -2.f);
+  EXPECT_EQ(q[2][0][0].item<float>(), 3.f);
 }
