@@ -365,18 +365,42 @@ std::vector<std::string> CondEmbedderImpl::input_names() const {
 torch::Tensor CondEmbedderImpl::forward(const std::map<std::string, torch::Tensor>& inputs) {
   std::vector<torch::Tensor> tokens;
   std::vector<std::string> names;
+  // Looks up one input; a missing one is an error naming what was given.
+  auto input = [&](size_t i, const std::string& kwarg) -> const torch::Tensor& {
+    const auto it = inputs.find(kwarg);
+    if (it == inputs.end()) {
+      std::vector<std::string> given;
+      for (const auto& [k, _] : inputs) given.push_back(k);
+      fail("condition embedder: input '{}' (for {}) is missing; given: [{}]; expected: [{}]", kwarg,
+           config.embedders[i].name, fmt::join(given, ", "), fmt::join(input_names(), ", "));
+    }
+    return it->second;
+  };
+  auto project = [&](size_t i, torch::Tensor t) {
+    return config.projection_net_hidden_dim_multiplier > 0 ? projection_nets[i]->as<ProjectionNetImpl>()->forward(t)
+                                                           : t;
+  };
   // Embed every input in config order: embedder -> projection -> + group embedding.
   for (size_t i = 0; i < config.embedders.size(); ++i) {
-    for (const auto& [kwarg, group] : config.embedders[i].inputs) {
-      const auto it = inputs.find(kwarg);
-      if (it == inputs.end()) {
-        std::vector<std::string> given;
-        for (const auto& [k, _] : inputs) given.push_back(k);
-        fail("condition embedder: input '{}' (for {}) is missing; given: [{}]; expected: [{}]", kwarg,
-             config.embedders[i].name, fmt::join(given, ", "), fmt::join(input_names(), ", "));
+    const auto& entry = config.embedders[i];
+    std::vector<torch::Tensor> embedded;
+    if (batch_dino_inputs && dinos_[i] && entry.inputs.size() > 1) {
+      // Fast path: preprocess each input, then one ViT + projection pass over the stacked batch.
+      std::vector<torch::Tensor> pre;
+      std::vector<int64_t> sizes;
+      const auto out_dtype = input(i, entry.inputs[0].first).scalar_type();
+      for (const auto& [kwarg, group] : entry.inputs) {
+        pre.push_back(dinos_[i]->preprocess_input(input(i, kwarg)));
+        sizes.push_back(pre.back().size(0));
       }
-      auto t = embed(i, it->second);
-      if (config.projection_net_hidden_dim_multiplier > 0) t = projection_nets[i]->as<ProjectionNetImpl>()->forward(t);
+      auto t = project(i, dinos_[i]->forward_preprocessed(torch::cat(pre, 0), out_dtype));
+      embedded = t.split_with_sizes(sizes, 0);
+    } else {
+      for (const auto& [kwarg, group] : entry.inputs) embedded.push_back(project(i, embed(i, input(i, kwarg))));
+    }
+    for (size_t k = 0; k < entry.inputs.size(); ++k) {
+      const auto& [kwarg, group] = entry.inputs[k];
+      auto t = embedded[k];
       if (!group.empty()) {
         const int64_t row = positional_embed_map.at(group);
         auto e = config.use_pos_embedding == "learned" ? idx_emb.slice(0, row, row + 1).unsqueeze(1)  // [1, 1, C]

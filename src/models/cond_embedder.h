@@ -122,6 +122,11 @@ class CondEmbedderImpl : public torch::nn::Module {
   std::vector<std::string> input_names() const;
   int64_t embed_dims() const { return embed_dims_; }
 
+  // Fast path (default on): the inputs of one Dino (e.g. image and rgb_image) are resized and
+  // normalised separately, then run through the ViT and the projection net as one batch. Same math as
+  // the official one-input-at-a-time loop (off), which stays as the reference.
+  bool batch_dino_inputs = true;
+
   CondEmbedderConfig config;
   torch::nn::ModuleList module_list;
   torch::nn::ModuleList projection_nets;

@@ -259,8 +259,10 @@ torch::Tensor DinoImpl::preprocess_input(const torch::Tensor& x) const {
   return r;
 }
 
-torch::Tensor DinoImpl::forward(const torch::Tensor& x) {
-  auto f = backbone->forward_features(preprocess_input(x));
+torch::Tensor DinoImpl::forward(const torch::Tensor& x) { return forward_preprocessed(preprocess_input(x), x.scalar_type()); }
+
+torch::Tensor DinoImpl::forward_preprocessed(const torch::Tensor& pre, torch::ScalarType out_dtype) {
+  auto f = backbone->forward_features(pre);
   torch::Tensor tokens;
   if (config.prenorm_features) {
     // Plain layer norm (no affine, eps 1e-5) of every pre-norm token.
@@ -269,7 +271,7 @@ torch::Tensor DinoImpl::forward(const torch::Tensor& x) {
     // [cls, patch tokens]: [B, 1+N, C]
     tokens = torch::cat({f.x_norm_clstoken.unsqueeze(1), f.x_norm_patchtokens}, 1);
   }
-  return tokens.to(x.scalar_type());
+  return tokens.to(out_dtype);
 }
 
 }  // namespace simu::models

@@ -156,6 +156,10 @@ class DinoImpl : public torch::nn::Module {
   torch::Tensor forward(const torch::Tensor& x);
   // The resized, channel-expanded, normalised input fed to the ViT: [B, 3, S, S].
   torch::Tensor preprocess_input(const torch::Tensor& x) const;
+  // Tokens of already preprocessed inputs ([B, 3, S, S]), cast to out_dtype. forward(x) ==
+  // forward_preprocessed(preprocess_input(x), x.dtype); preprocessed inputs of several images can be
+  // concatenated along the batch and run at once.
+  torch::Tensor forward_preprocessed(const torch::Tensor& pre, torch::ScalarType out_dtype);
   int64_t embed_dim() const { return config.vit.embed_dim; }
   // Tokens per input: 1 + (S/p)^2 (+R with prenorm_features).
   int64_t num_tokens() const;

@@ -74,8 +74,14 @@ TEST(CondEmbedder, FusedMatchesFixture) {
   auto t = io();
   EXPECT_EQ(m->num_tokens(), t.at("out.fused").size(1));
   EXPECT_EQ(m->embed_dims(), t.at("out.fused").size(2));
-  auto got = m->forward(fused_inputs(t));
-  EXPECT_TRUE(parity(got, t.at("out.fused"), "out.fused"));
+  // Reference path (one input at a time, as upstream) and the batched-Dino fast path.
+  m->batch_dino_inputs = false;
+  auto ref = m->forward(fused_inputs(t));
+  EXPECT_TRUE(parity(ref, t.at("out.fused"), "out.fused (one input at a time)"));
+  m->batch_dino_inputs = true;
+  auto fast = m->forward(fused_inputs(t));
+  EXPECT_TRUE(parity(fast, t.at("out.fused"), "out.fused (batched Dino inputs)"));
+  EXPECT_TRUE(close(fast, ref, 1e-5, "batched vs one at a time"));
 }
 
 // The same model written in the official Hydra layout (ss_generator.yaml: module.condition_embedder.
@@ -291,4 +297,23 @@ TEST(CondEmbedder, DinoPrenormFeatures) {
   auto w = dino->backbone->norm->weight, b = dino->backbone->norm->bias;
   auto cls_patch = torch::cat({out.slice(1, 0, 1), out.slice(1, 5)}, 1) * w + b;
   EXPECT_TRUE(close(cls_patch, t.at("out.dino_image"), 5e-4, "prenorm features + affine"));
+}
+
+// Training-time modality dropout: with dropout_prob 1 and a single configuration, the listed kwargs
+// are zeroed for every sample; in eval mode nothing is dropped.
+TEST(CondEmbedder, TrainingModalityDropout) {
+  torch::NoGradGuard ng;
+  auto cfg = sm::CondEmbedderConfig::load(fixture("cond_embedder_small.json"));
+  cfg.dropout_prob = 1.0;
+  cfg.drop_modalities_weight = {{{"mask", "rgb_image_mask"}, 1.0}};
+  sm::CondEmbedder m(cfg);
+  sm::load_safetensors_into(*m, fixture("cond_embedder_small.safetensors"), {});
+  auto t = io();
+  m->eval();
+  EXPECT_TRUE(close(m->forward(fused_inputs(t)), t.at("out.fused"), 1e-4, "eval: no dropout"));
+  m->train();
+  auto got = m->forward(fused_inputs(t));
+  // image 1370 + rgb_image 1370, then mask 26 + rgb_image_mask 26.
+  EXPECT_EQ(got.slice(1, 2740, 2792).abs().max().item<double>(), 0.0);
+  EXPECT_TRUE(close(got.slice(1, 0, 2740), t.at("out.fused").slice(1, 0, 2740), 1e-4, "kept"));
 }
