@@ -104,4 +104,9 @@ AdapterSource read_adapter_source(const std::string& dir, const std::optional<Lo
   return src;
 }
 
+void apply_adapter(const AdapterSource& source, torch::nn::Module& root) {
+  ensure_lora(root, source.cfg);
+  load_lora_tensors(root, source.tensors, source.dir);
+}
+
 }  // namespace simu::lora

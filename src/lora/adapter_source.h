@@ -28,4 +28,8 @@ struct AdapterSource {
 // The rank in the config must agree with the tensors. Throws simu::Error naming the file.
 AdapterSource read_adapter_source(const std::string& dir, const std::optional<LoraConfig>& fallback = std::nullopt);
 
+// Puts the source's adapters into root: injects with source.cfg when root has none (otherwise the
+// existing adapters take its scale/dropout), then loads the tensors strictly (see load_lora_tensors).
+void apply_adapter(const AdapterSource& source, torch::nn::Module& root);
+
 }  // namespace simu::lora

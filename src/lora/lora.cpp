@@ -217,6 +217,19 @@ InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg) {
   return report;
 }
 
+void ensure_lora(torch::nn::Module& root, const LoraConfig& cfg) {
+  auto layers = lora_layers(root);
+  if (layers.empty()) {
+    inject_lora(root, cfg);
+    return;
+  }
+  for (auto& [path, linear] : layers) {
+    auto adapter = lora_adapter(*linear);
+    adapter->scale = cfg.scale();
+    adapter->dropout = cfg.dropout;
+  }
+}
+
 void remove_lora(torch::nn::Module& root) {
   unmerge_lora(root);
   for (auto& [path, linear] : lora_layers(root)) {

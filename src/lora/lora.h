@@ -97,6 +97,10 @@ std::shared_ptr<LoraAdapter> lora_adapter(const models::LinearImpl& linear);
 // targeted module that is not a models::Linear, a Linear already wrapped. Logs the report.
 InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg);
 
+// Injects with cfg when root has no adapters yet; otherwise gives the existing adapters cfg's scale
+// and dropout (their rank and targets stay; a mismatch shows when tensors are loaded).
+void ensure_lora(torch::nn::Module& root, const LoraConfig& cfg);
+
 // Removes every adapter (unmerging first) and its parameters; base parameters stay frozen.
 void remove_lora(torch::nn::Module& root);
 

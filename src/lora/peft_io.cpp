@@ -175,16 +175,7 @@ LoraConfig load_peft(const std::string& dir, torch::nn::Module& root) {
   const auto file = data::SafeTensorsFile::open(weights);
 
   // Inject with the file's config, or give existing adapters the file's scale and dropout.
-  auto layers = lora_layers(root);
-  if (layers.empty()) {
-    inject_lora(root, cfg);
-  } else {
-    for (auto& [path, linear] : layers) {
-      auto adapter = lora_adapter(*linear);
-      adapter->scale = cfg.scale();
-      adapter->dropout = cfg.dropout;
-    }
-  }
+  ensure_lora(root, cfg);
   load_lora_tensors(root, file.all(), weights);
   log::info("lora: loaded PEFT adapter {} ({} tensors, r={}, alpha={})", dir, file.keys().size(), cfg.r, cfg.alpha);
   return cfg;
