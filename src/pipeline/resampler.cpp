@@ -9,6 +9,7 @@
 
 #include "common/error.h"
 #include "common/log.h"
+#include "lora/lora.h"
 #include "models/weights.h"
 
 namespace simu::pipeline {
@@ -36,6 +37,9 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   r.field("decoder_config", c.decoder_config);
   r.field("decoder_weights", c.decoder_weights);
   r.field("adapter_dir", c.adapter_dir);
+  r.field("generator_overrides", c.generator_overrides);
+  r.field("embedder_config", c.embedder_config);
+  r.field("embedder_weights", c.embedder_weights);
   r.field("device", c.device);
   r.field("steps", c.steps);
   r.field("rescale_t", c.rescale_t);
@@ -60,12 +64,13 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
 Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
     : config_(std::move(config)), device_(pick_device(config_.device)) {
   // Generator (official names), then the adapter on top of the base weights.
-  generator_ = models::load_generator(config_.generator_config, config_.generator_weights, device_);
+  generator_ = models::load_generator(config_.generator_config, config_.generator_weights, device_,
+                                      config_.generator_overrides);
   if (!config_.adapter_dir.empty()) {
-    if (!adapter_loader)
-      fail_hint("pass simu::lora::load_peft as the Resampler's adapter loader once the LoRA library is linked",
-                "resampler: adapter_dir '{}' given but no adapter loader is installed", config_.adapter_dir);
-    adapter_loader(config_.adapter_dir, *generator_);
+    if (adapter_loader)
+      adapter_loader(config_.adapter_dir, *generator_);
+    else
+      simu::lora::load_peft(config_.adapter_dir, *generator_);
     generator_->to(device_);
     generator_->eval();
     has_adapter_ = true;
@@ -81,6 +86,13 @@ Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
   decoder->to(device_);
   decoder->eval();
   decoder_ = decoder;
+  // Condition embedder (optional).
+  if (!config_.embedder_config.empty()) {
+    embedder_ = models::load_cond_embedder(config_.embedder_config, config_.embedder_weights, "auto", device_);
+    SIMU_CHECK(embedder_->embed_dims() == generator_->config().backbone.cond_channels,
+               "resampler: embedder {} gives {} channels, the generator expects {}", config_.embedder_config,
+               embedder_->embed_dims(), generator_->config().backbone.cond_channels);
+  }
   // The decoder must read what the generator writes.
   const auto& shape = generator_->config().backbone.latent("shape");
   SIMU_CHECK(shape.in_channels == decoder_->config().latent_channels,
@@ -136,6 +148,38 @@ void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out) {
   if (!out.ok) out.message = "marching cubes produced no triangles";
 }
 
+std::vector<torch::Tensor> Resampler::conditions(const std::vector<ResampleRequest>& requests) {
+  torch::NoGradGuard no_grad;
+  std::vector<torch::Tensor> conds(requests.size());
+  // Requests given as embedder inputs: stack each kwarg over them and embed in one forward.
+  std::vector<size_t> to_embed;
+  for (size_t i = 0; i < requests.size(); ++i) {
+    if (requests[i].cond.defined()) {
+      conds[i] = requests[i].cond;
+    } else {
+      SIMU_CHECK(!requests[i].inputs.empty(), "resampler: request {} has neither condition tokens nor embedder inputs", i);
+      SIMU_CHECK(embedder_, "resampler: request {} gives embedder inputs but no embedder_config is set", i);
+      to_embed.push_back(i);
+    }
+  }
+  if (to_embed.empty()) return conds;
+  std::map<std::string, torch::Tensor> batch;
+  for (const auto& name : embedder_->input_names()) {
+    std::vector<torch::Tensor> parts;
+    for (size_t i : to_embed) {
+      auto it = requests[i].inputs.find(name);
+      SIMU_CHECK(it != requests[i].inputs.end(), "resampler: request {} lacks embedder input '{}'", i, name);
+      const int64_t image_dims = 3;  // [ch, H, W] unbatched
+      parts.push_back(it->second.dim() == image_dims ? it->second.unsqueeze(0) : it->second);
+    }
+    batch[name] = torch::cat(parts, 0).to(device_, torch::kFloat32);
+  }
+  models::Bf16Autocast autocast(config_.bf16 && device_.is_cuda());
+  const auto tokens = embedder_->forward(batch).to(torch::kCPU, torch::kFloat32);  // [n, L, C]
+  for (size_t k = 0; k < to_embed.size(); ++k) conds[to_embed[k]] = tokens[static_cast<int64_t>(k)];
+  return conds;
+}
+
 ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests, uint64_t seed) {
   torch::NoGradGuard no_grad;
   ResampleResult result;
@@ -144,10 +188,13 @@ ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests,
   result.objects.assign(requests.size(), std::vector<ResampledShape>(static_cast<size_t>(S)));
   if (n == 0) return result;
   const auto& mc = generator_->config().backbone;
-  // Check the requests; group them by condition length.
+  // Condition tokens (embedding where needed); check them; group by condition length.
+  auto t_embed = std::chrono::steady_clock::now();
+  const auto conds_all = conditions(requests);
+  result.seconds_embed = seconds_since(t_embed);
   std::map<int64_t, std::vector<int64_t>> groups;
   for (int64_t i = 0; i < n; ++i) {
-    const auto& c = requests[i].cond;
+    const auto& c = conds_all[i];
     SIMU_CHECK(c.defined() && c.dim() == 2 && c.size(1) == mc.cond_channels,
                "resampler: request {} condition must be [L, {}], got {}", i, mc.cond_channels,
                c.defined() ? fmt::format("{}", c.sizes()) : std::string("nothing"));
@@ -165,7 +212,7 @@ ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests,
       for (int64_t s = 0; s < S; ++s) rows.push_back(r * S + s);
     const auto row_index = torch::tensor(rows, torch::kLong);
     std::vector<torch::Tensor> conds;
-    for (int64_t r : members) conds.push_back(requests[r].cond.to(torch::kFloat32).unsqueeze(0).expand({S, L, mc.cond_channels}));
+    for (int64_t r : members) conds.push_back(conds_all[r].to(torch::kFloat32).unsqueeze(0).expand({S, L, mc.cond_channels}));
     const auto cond = torch::cat(conds, 0).to(device_);  // [rows, L, C]
     models::Latents x0;
     for (const auto& [name, v] : noise) x0[name] = v.index_select(0, row_index).to(device_);

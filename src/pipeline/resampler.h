@@ -12,9 +12,10 @@
 //   auto result = resampler.resample({{cond_tokens /*[L, C]*/}}, /*seed=*/42);
 //   result.objects[0][0].mesh  // canonical mesh; .rotation, .scale_canonical, ...
 //
-// Condition: each request carries condition tokens [L, C] (the condition embedder's output). Raw
-// image / mask / crop / point-map inputs are embedded by the caller (models/cond_embedder.h when it
-// lands); the resampler does not run the embedder itself yet.
+// Condition: each request carries either condition tokens [L, C] (an embedder's output) or the
+// embedder's inputs (official kwarg names: image, rgb_image, mask, rgb_image_mask, pointmap,
+// rgb_pointmap, each [1, ...] or unbatched, already preprocessed); the latter run through the
+// condition embedder (embedder_config / embedder_weights) in one batched forward per call.
 #pragma once
 
 #include <torch/torch.h>
@@ -23,11 +24,13 @@
 
 #include <array>
 #include <functional>
+#include <map>
 #include <string>
 #include <utility>
 #include <vector>
 
 #include "common/config.h"
+#include "models/cond_embedder.h"
 #include "models/generator.h"
 #include "models/pose.h"
 #include "models/ss_decoder.h"
@@ -41,6 +44,9 @@ struct ResamplerConfig {
   std::string decoder_config = std::string(SIMU_SOURCE_DIR) + "/configs/ss_decoder.yaml";
   std::string decoder_weights;    // safetensors; "" keeps the random init (benchmarks only)
   std::string adapter_dir;        // PEFT adapter directory; "" = base model
+  std::vector<std::string> generator_overrides;  // "a.b=v" edits of the generator config
+  std::string embedder_config;    // condition embedder config; "" = requests must carry tokens
+  std::string embedder_weights;   // its safetensors (official prefix stripped when present)
   std::string device = "auto";    // auto (CUDA when present, else CPU) | cpu | cuda | cuda:N
   // Stage-1 sampling, official inference defaults (inference_pipeline.py).
   int steps = 25;
@@ -60,7 +66,8 @@ struct ResamplerConfig {
 
 // One object to resample.
 struct ResampleRequest {
-  torch::Tensor cond;                          // [L, C] condition tokens
+  torch::Tensor cond;                          // [L, C] condition tokens, or undefined and:
+  std::map<std::string, torch::Tensor> inputs;  // embedder inputs by official kwarg name
   double scene_scale = 1.0;                    // point-map scale for the pose convention
   std::array<double, 3> scene_shift{0, 0, 0};  // point-map shift for the pose convention
 };
@@ -86,18 +93,17 @@ struct ResampledShape {
 struct ResampleResult {
   std::vector<std::vector<ResampledShape>> objects;  // [request][sample]
   int sampling_calls = 0;                            // batched generator calls made
-  double seconds_sample = 0, seconds_decode = 0, seconds_mesh = 0;
+  double seconds_embed = 0, seconds_sample = 0, seconds_decode = 0, seconds_mesh = 0;
 };
 
 // Loads a PEFT adapter directory into the generator module tree (root = the Generator, whose PEFT keys
-// read base_model.model.reverse_fn.backbone...). Default: none installed (the LoRA library is not in
-// this branch yet); pass simu::lora::load_peft once it is.
+// read base_model.model.reverse_fn.backbone...). Default (nullptr): simu::lora::load_peft.
 using AdapterLoader = std::function<void(const std::string& dir, torch::nn::Module& generator)>;
 
 class Resampler {
  public:
-  // Loads generator, decoder and (if cfg.adapter_dir is set) the adapter through `adapter_loader`;
-  // an adapter_dir without a loader is an error saying so.
+  // Loads generator, decoder, the embedder when configured, and (if cfg.adapter_dir is set) the
+  // adapter through `adapter_loader` (default simu::lora::load_peft).
   explicit Resampler(ResamplerConfig config, AdapterLoader adapter_loader = nullptr);
 
   // Samples num_samples shapes per request in one batched call per condition length, decodes them.
@@ -110,6 +116,10 @@ class Resampler {
 
   models::Generator& generator() { return generator_; }
   models::SparseStructureDecoder& decoder() { return decoder_; }
+  // The condition embedder (null when embedder_config is empty).
+  models::CondEmbedder& embedder() { return embedder_; }
+  // Condition tokens of every request [L, C] (embedding the ones given as inputs, batched).
+  std::vector<torch::Tensor> conditions(const std::vector<ResampleRequest>& requests);
   const torch::Device& device() const { return device_; }
   const ResamplerConfig& config() const { return config_; }
   bool has_adapter() const { return has_adapter_; }
@@ -120,6 +130,7 @@ class Resampler {
   torch::Device device_;
   models::Generator generator_{nullptr};
   models::SparseStructureDecoder decoder_{nullptr};
+  models::CondEmbedder embedder_{nullptr};
   bool has_adapter_ = false;
 };
 

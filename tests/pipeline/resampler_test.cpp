@@ -95,21 +95,53 @@ TEST(Resampler, Seeded) {
   EXPECT_FALSE(torch::equal(a.objects[1][0].latents.at("shape"), c.objects[1][0].latents.at("shape")));
 }
 
-// Adapter hook: an adapter_dir without a loader is an error; with one, the loader gets the generator tree.
-TEST(Resampler, AdapterHook) {
+// Adapter: the PEFT fixture loads through the default loader (simu::lora::load_peft) and changes the
+// shape; a custom loader receives the generator tree.
+TEST(Resampler, AdapterLoads) {
   auto cfg = small_config();
+  cfg.num_samples = 1;
+  const auto reqs = small_requests();
+  Resampler base(cfg);
   cfg.adapter_dir = simu::testing::fixture("lora_small");
-  EXPECT_THROW(Resampler bad(cfg), simu::Error);
+  Resampler tuned(cfg);
+  EXPECT_FALSE(base.has_adapter());
+  EXPECT_TRUE(tuned.has_adapter());
+  const auto a = base.resample({reqs[0]}, 5), b = tuned.resample({reqs[0]}, 5);
+  EXPECT_GT(simu::testing::rel_err(b.objects[0][0].latents.at("shape"), a.objects[0][0].latents.at("shape")), 1e-3);
   std::string seen_dir;
   bool has_backbone = false;
-  Resampler rs(cfg, [&](const std::string& dir, torch::nn::Module& gen) {
+  Resampler custom(cfg, [&](const std::string& dir, torch::nn::Module& gen) {
     seen_dir = dir;
     for (const auto& p : gen.named_parameters())
       if (p.key().rfind("reverse_fn.backbone.blocks.0.", 0) == 0) has_backbone = true;
   });
   EXPECT_EQ(seen_dir, cfg.adapter_dir);
   EXPECT_TRUE(has_backbone);
-  EXPECT_TRUE(rs.has_adapter());
+}
+
+// Requests given as embedder inputs give the same result as requests carrying the embedder's tokens.
+TEST(Resampler, EmbedsConditionInputs) {
+  ResamplerConfig cfg = small_config();
+  cfg.generator_config = simu::testing::source_dir() + "/configs/stage1_small.yaml";
+  cfg.generator_weights = "";  // random init (fixture embedder gives 64 channels)
+  cfg.generator_overrides = {"flow_model.cond_channels=64"};
+  cfg.embedder_config = simu::testing::fixture("cond_embedder_small.json");
+  cfg.embedder_weights = simu::testing::fixture("cond_embedder_small.safetensors");
+  cfg.num_samples = 1;
+  Resampler rs(cfg);
+  auto io = simu::data::SafeTensorsFile::open(simu::testing::fixture("cond_embedder_small_io.safetensors"));
+  std::vector<ResampleRequest> by_inputs(2), by_tokens(2);
+  const auto fused = io.get("out.fused").clone();  // [2, L, 64], the official embedder output
+  for (int i = 0; i < 2; ++i) {
+    for (const auto& name : rs.embedder()->input_names()) by_inputs[i].inputs[name] = io.get("in." + name)[i].clone();
+    by_tokens[i].cond = fused[i];
+  }
+  const auto conds = rs.conditions(by_inputs);
+  for (int i = 0; i < 2; ++i) EXPECT_TRUE(simu::testing::close(conds[i], fused[i], 1e-4, "embedded condition"));
+  const auto a = rs.resample(by_inputs, 3), b = rs.resample(by_tokens, 3);
+  for (int i = 0; i < 2; ++i)
+    EXPECT_TRUE(simu::testing::close(a.objects[i][0].latents.at("shape"), b.objects[i][0].latents.at("shape"), 1e-3,
+                                     "shape from inputs vs tokens"));
 }
 
 // Bad requests are reported with their index.
