@@ -1,5 +1,6 @@
 // Sparse-structure decoder: parity with the official module (fixture), token->grid order, occupancy.
 #include <fstream>
+#include <map>
 #include <set>
 #include <tuple>
 
@@ -124,4 +125,30 @@ TEST(SSDecoder, PixelShuffle3dLayout) {
             for (int w = 0; w < W; ++w)
               for (int d = 0; d < D; ++d)
                 ASSERT_EQ(ya[0][c][2 * h + i][2 * w + j][2 * d + l], xa[0][c * 8 + i * 4 + j * 2 + l][h][w][d]);
+}
+
+// The real-size config (configs/ss_decoder.yaml) builds the TRELLIS ss_dec_conv3d_16l8 layout:
+// 16^3 -> 64^3, and a size matching its released use_fp16 safetensors (147,591,972 bytes: the torso,
+// middle_block + blocks, in float16 = 2 bytes, input_layer and out_layer in float32 = 4 bytes, plus a
+// JSON header of a few KB).
+TEST(SSDecoder, RealConfigLayout) {
+  auto cfg = SSDecoderConfig::load(simu::testing::source_dir() + "/configs/ss_decoder.yaml");
+  SparseStructureDecoder dec(cfg);
+  int64_t params = 0, bytes = 0;
+  std::map<std::string, std::vector<int64_t>> shapes;
+  for (const auto& p : dec->named_parameters()) {
+    params += p.value().numel();
+    const bool torso = p.key().rfind("blocks.", 0) == 0 || p.key().rfind("middle_block.", 0) == 0;
+    bytes += p.value().numel() * (torso ? 2 : 4);
+    shapes[p.key()] = p.value().sizes().vec();
+  }
+  EXPECT_EQ(cfg.upsample_factor(), 4);
+  EXPECT_EQ(shapes.at("blocks.2.conv.weight"), (std::vector<int64_t>{1024, 512, 3, 3, 3}));
+  EXPECT_EQ(shapes.at("blocks.5.conv.weight"), (std::vector<int64_t>{256, 128, 3, 3, 3}));
+  EXPECT_EQ(shapes.at("blocks.7.conv2.weight"), (std::vector<int64_t>{32, 32, 3, 3, 3}));
+  EXPECT_EQ(shapes.at("out_layer.2.weight"), (std::vector<int64_t>{1, 32, 3, 3, 3}));
+  EXPECT_EQ(shapes.count("blocks.8.conv1.weight"), 0u);
+  std::printf("real ss decoder parameters: %ld\n", static_cast<long>(params));
+  EXPECT_LT(bytes, 147591972);
+  EXPECT_GT(bytes, 147591972 - 64 * 1024);
 }
