@@ -105,8 +105,13 @@ AdapterSource read_adapter_source(const std::string& dir, const std::optional<Lo
 }
 
 void apply_adapter(const AdapterSource& source, torch::nn::Module& root) {
-  ensure_lora(root, source.cfg);
-  load_lora_tensors(root, source.tensors, source.dir);
+  const bool injected = ensure_lora(root, source.cfg);
+  try {
+    load_lora_tensors(root, source.tensors, source.dir);
+  } catch (...) {
+    if (injected) remove_lora(root);
+    throw;
+  }
 }
 
 }  // namespace simu::lora

@@ -29,7 +29,8 @@ struct AdapterSource {
 AdapterSource read_adapter_source(const std::string& dir, const std::optional<LoraConfig>& fallback = std::nullopt);
 
 // Puts the source's adapters into root: injects with source.cfg when root has none (otherwise the
-// existing adapters take its scale/dropout), then loads the tensors strictly (see load_lora_tensors).
+// existing adapters take its scale/dropout), then loads the tensors strictly (see load_lora_tensors);
+// on an error the adapters this call injected are removed again.
 void apply_adapter(const AdapterSource& source, torch::nn::Module& root);
 
 }  // namespace simu::lora

@@ -217,17 +217,18 @@ InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg) {
   return report;
 }
 
-void ensure_lora(torch::nn::Module& root, const LoraConfig& cfg) {
+bool ensure_lora(torch::nn::Module& root, const LoraConfig& cfg) {
   auto layers = lora_layers(root);
   if (layers.empty()) {
     inject_lora(root, cfg);
-    return;
+    return true;
   }
   for (auto& [path, linear] : layers) {
     auto adapter = lora_adapter(*linear);
     adapter->scale = cfg.scale();
     adapter->dropout = cfg.dropout;
   }
+  return false;
 }
 
 void remove_lora(torch::nn::Module& root) {

@@ -99,7 +99,8 @@ InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg);
 
 // Injects with cfg when root has no adapters yet; otherwise gives the existing adapters cfg's scale
 // and dropout (their rank and targets stay; a mismatch shows when tensors are loaded).
-void ensure_lora(torch::nn::Module& root, const LoraConfig& cfg);
+// Returns true when it injected.
+bool ensure_lora(torch::nn::Module& root, const LoraConfig& cfg);
 
 // Removes every adapter (unmerging first) and its parameters; base parameters stay frozen.
 void remove_lora(torch::nn::Module& root);
@@ -142,7 +143,8 @@ void save_peft_tensors(const std::string& dir, const std::map<std::string, torch
 LoraConfig read_peft_config(const std::string& dir);
 // Loads a PEFT directory into root: injects with the file's config when root has no adapters yet
 // (otherwise the existing adapters get the file's scale/dropout), then loads strictly: one error
-// lists every missing key, unexpected key, and shape mismatch (file [..] vs model [..]).
+// lists every missing key, unexpected key, and shape mismatch (file [..] vs model [..]). On an error
+// the adapters this call injected are removed again.
 LoraConfig load_peft(const std::string& dir, torch::nn::Module& root);
 // Strict load of adapter tensors (PEFT file or in-memory names, or model names) into the existing
 // adapters of root; source names the file for messages.

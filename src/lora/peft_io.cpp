@@ -175,8 +175,13 @@ LoraConfig load_peft(const std::string& dir, torch::nn::Module& root) {
   const auto file = data::SafeTensorsFile::open(weights);
 
   // Inject with the file's config, or give existing adapters the file's scale and dropout.
-  ensure_lora(root, cfg);
-  load_lora_tensors(root, file.all(), weights);
+  const bool injected = ensure_lora(root, cfg);
+  try {
+    load_lora_tensors(root, file.all(), weights);
+  } catch (...) {
+    if (injected) remove_lora(root);
+    throw;
+  }
   log::info("lora: loaded PEFT adapter {} ({} tensors, r={}, alpha={})", dir, file.keys().size(), cfg.r, cfg.alpha);
   return cfg;
 }

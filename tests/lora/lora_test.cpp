@@ -384,7 +384,13 @@ TEST(Lora, ImportMismatchNamesKeyAndBothShapes) {
   // A model without such layers (1 block): blocks.1 keys are unexpected.
   {
     Toy toy(1);
+    auto base = toy.run();
     EXPECT_THROW(simu::lora::load_peft(dir, *toy.root), simu::Error);
+    // The failed load removed the adapters it had injected: the model is as before.
+    EXPECT_TRUE(simu::lora::lora_layers(*toy.root).empty());
+    for (auto& p : toy.root->named_parameters()) EXPECT_EQ(p.key().find("lora_"), std::string::npos) << p.key();
+    auto after = toy.run();
+    for (auto& [path, y] : base) EXPECT_TRUE(torch::equal(after[path], y)) << path;
   }
 }
 
