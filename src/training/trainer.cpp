@@ -259,7 +259,10 @@ void Trainer::resume(const std::string& dir) {
   opt_->load_state_dict(opt_state, dir + "/optimizer.safetensors");
   // RNG states.
   if (auto it = ck.optimizer.find("rng.torch_cpu"); it != ck.optimizer.end())
-    at::detail::getDefaultCPUGenerator().set_state(it->second);
+  {
+    at::Generator g = at::detail::getDefaultCPUGenerator();
+    g.set_state(it->second);
+  }
   if (device_.is_cuda())
     if (auto it = ck.optimizer.find("rng.torch_cuda"); it != ck.optimizer.end())
     {

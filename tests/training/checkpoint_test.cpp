@@ -65,32 +65,49 @@ TEST(Checkpoint, ClearErrors) {
 TEST(CheckpointChild, WriteForever) {
   const char* root = std::getenv("SIMU_TEST_CKPT_ROOT");
   if (!root) GTEST_SKIP() << "helper for Checkpoint.KillDuringWriteLeavesPreviousLoadable";
-  for (int64_t s = 1;; ++s) save_checkpoint(root, sample(s, 1 << 16), 2);
+  for (int64_t s = std::atoll(std::getenv("SIMU_TEST_CKPT_START"));; ++s) save_checkpoint(root, sample(s, 1 << 16), 2);
 }
 
-// kill -9 at several moments during writes: every visible checkpoint loads, the newest included.
+// kill -9 at several moments during writes (the writer pauses 20 ms between its files): every
+// visible checkpoint loads and holds what was written for its step.
 TEST(Checkpoint, KillDuringWriteLeavesPreviousLoadable) {
   const std::string root = simu::testing::temp_dir("ckpt_kill");
   save_checkpoint(root, sample(0, 1 << 16), 2);
-  for (int delay_ms : {35, 80, 130, 190}) {
+  auto newest = [&] { return load_checkpoint(*latest_checkpoint(root)).step; };
+  for (int delay_ms : {5, 25, 45, 65, 85}) {
+    const int64_t before = newest();
     const pid_t pid = ::fork();
     ASSERT_GE(pid, 0);
     if (pid == 0) {
       ::setenv("SIMU_TEST_CKPT_ROOT", root.c_str(), 1);
+      ::setenv("SIMU_TEST_CKPT_START", std::to_string(before + 1).c_str(), 1);
       ::setenv("SIMU_CHECKPOINT_STALL_MS", "20", 1);
       ::execl("/proc/self/exe", "test_training", "--gtest_filter=CheckpointChild.WriteForever", nullptr);
       ::_exit(127);
     }
-    std::this_thread::sleep_for(std::chrono::milliseconds(400 + delay_ms));
+    // Wait until the child has completed one checkpoint, then kill it `delay_ms` into the next.
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+    while (std::chrono::steady_clock::now() < until) {
+      auto l = latest_checkpoint(root);
+      if (l && std::filesystem::path(*l).filename().string() > fmt::format("step_{:08d}", before)) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms));
     ::kill(pid, SIGKILL);
     int status = 0;
     ::waitpid(pid, &status, 0);
     ASSERT_TRUE(WIFSIGNALED(status)) << "child ended by itself (status " << status << ")";
     auto all = list_checkpoints(root);
     ASSERT_FALSE(all.empty());
+    EXPECT_GT(newest(), before);
     for (const auto& dir : all) {
       auto d = load_checkpoint(dir);
       EXPECT_EQ(d.adapter.at("base_model.model.x.lora_A.weight")[0][0].item<float>(), static_cast<float>(d.step)) << dir;
+      EXPECT_EQ(d.optimizer.at("base_model.model.x.lora_A.weight.exp_avg")[5][1].item<float>(), 0.5f * d.step) << dir;
     }
   }
+  // The next writer clears the killed writer's temporary directory.
+  save_checkpoint(root, sample(1000, 4), 2);
+  for (const auto& e : std::filesystem::directory_iterator(root))
+    EXPECT_NE(e.path().filename().string().rfind(".tmp-", 0), 0u) << e.path();
 }
