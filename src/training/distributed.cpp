@@ -25,6 +25,7 @@
 
 #include "common/error.h"
 #include "common/log.h"
+#include "training/checkpoint.h"
 
 namespace simu::training {
 
@@ -315,7 +316,7 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
         ::waitpid(p, nullptr, 0);
         p = -1;
       }
-    std::filesystem::remove_all(beat_dir);
+    remove_tree(beat_dir);
   };
 
   // Watch: exits, signals, heartbeats.
@@ -351,7 +352,7 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
-  std::filesystem::remove_all(beat_dir);
+  remove_tree(beat_dir);
 }
 
 }  // namespace simu::training

@@ -61,8 +61,9 @@ struct AutocastState {
 
 struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction> {
   static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx,
-                                                torch::autograd::variable_list all, int64_t n_inputs,
+                                                at::TensorList all_list, int64_t n_inputs,
                                                 c10::intrusive_ptr<SegmentHolder> holder) {
+    const torch::autograd::variable_list all(all_list.begin(), all_list.end());
     const auto ac = AutocastState::capture();
     ctx->saved_data["n_inputs"] = n_inputs;
     ctx->saved_data["fn"] = c10::IValue::make_capsule(c10::intrusive_ptr<torch::CustomClassHolder>(holder));
@@ -142,7 +143,8 @@ torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<t
   holder->fn = fn;
   torch::autograd::variable_list all(inputs.begin(), inputs.end());
   all.insert(all.end(), params.begin(), params.end());
-  return CheckpointFunction::apply(all, static_cast<int64_t>(inputs.size()), holder)[0];
+  // Passed as a TensorList so that autograd sees every tensor as an input (a std::vector is not).
+  return CheckpointFunction::apply(at::TensorList(all), static_cast<int64_t>(inputs.size()), holder)[0];
 }
 
 PairNoise draw_pair_noise(uint64_t seed, int64_t step, int64_t pair_id, at::IntArrayRef latent_shape, double t_mean,

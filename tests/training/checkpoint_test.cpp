@@ -8,6 +8,7 @@
 #include <filesystem>
 #include <thread>
 
+#include "common/error.h"
 #include "test_util.h"
 #include "training/checkpoint.h"
 

@@ -3,6 +3,7 @@
 #include <future>
 #include <thread>
 
+#include "common/error.h"
 #include "test_util.h"
 #include "training/distributed.h"
 

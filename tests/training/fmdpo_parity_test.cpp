@@ -4,6 +4,7 @@
 #include <cstring>
 
 #include "data/safetensors.h"
+#include "common/error.h"
 #include "test_util.h"
 #include "training/generator_policy.h"
 #include "training/optim.h"

@@ -6,6 +6,7 @@
 #include <string>
 #include <thread>
 
+#include "common/error.h"
 #include "test_util.h"
 #include "training/distributed.h"
 

@@ -4,6 +4,7 @@
 #include <fstream>
 
 #include "common/fs.h"
+#include "common/error.h"
 #include "test_util.h"
 #include "training/observe.h"
 

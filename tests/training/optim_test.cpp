@@ -2,6 +2,7 @@
 #include <cmath>
 
 #include "data/safetensors.h"
+#include "common/error.h"
 #include "test_util.h"
 #include "training/optim.h"
 

@@ -4,6 +4,7 @@
 #include <fstream>
 #include <future>
 
+#include "common/error.h"
 #include "test_util.h"
 #include "toy_policy.h"
 #include "training/trainer.h"
@@ -108,7 +109,7 @@ TEST(Trainer, AccumulationMatchesOneMicroBatch) {
   std::vector<std::vector<torch::Tensor>> results;
   for (int64_t micro : {1, 4}) {
     ToyPolicy m(C, Cc, R, 3);
-    Trainer tr(toy_config(simu::testing::temp_dir("accum"), 3, 4, micro), m, memory_source(pairs), comm, torch::kCPU);
+    Trainer tr(toy_config(simu::testing::temp_dir("accum" + std::to_string(micro)), 3, 4, micro), m, memory_source(pairs), comm, torch::kCPU);
     for (int s = 0; s < 3; ++s) tr.step();
     results.push_back(adapter_values(m));
   }
