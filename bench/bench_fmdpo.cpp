@@ -41,10 +41,10 @@ struct Row {
 
 int main(int argc, char** argv) {
   CLI::App app{"FM-DPO training-step benchmark (GPU, real-size generator with random weights)"};
-  std::string generator = "configs/ss_generator_real.json";
+  std::string generator = "configs/stage1_real.yaml";
   std::vector<int64_t> micros = {1, 2, 4};
   int steps = 10, warmup = 3, nproc = 0;
-  int64_t cond_len = 2740;
+  int64_t cond_len = 2800;
   double peak_tflops = 989.4;
   bool checkpointing = false;
   app.add_option("--generator", generator, "generator config (official layout)");
