@@ -5,6 +5,7 @@
 #include <future>
 
 #include "common/error.h"
+#include "common/fs.h"
 #include "test_util.h"
 #include "toy_policy.h"
 #include "training/trainer.h"
@@ -236,3 +237,50 @@ TEST(TrainConfig, BadConfigsAreClearErrors) {
     EXPECT_NE(std::string(e.what()).find("global_batch 6 is not divisible by micro_batch 4"), std::string::npos) << e.what();
   }
 }
+
+#if __has_include("data/pair_cache.h")
+#include "data/pair_cache.h"
+#include "training/generator_policy.h"
+
+// The HDF5 cache as the trainer's source: this rank's share with record indices as ids, training
+// steps over pairs whose condition lengths differ, and clear errors for a missing or truncated cache.
+TEST(Trainer, PairCacheSourceAndBadCache) {
+  ASSERT_TRUE(have_pair_cache());
+  const std::string dir = simu::testing::temp_dir("cache_src");
+  const std::string path = dir + "/pairs.h5";
+  simu::data::make_synthetic_cache(path, 8, {T, C}, {L, Cc}, 3, torch::kFloat32);
+  auto factory = pair_cache_source(path, 2);
+  auto src = factory(1, 2, 4, 0, DataPosition{});
+  auto b = src->next_batch();
+  ASSERT_EQ(b.size(), 2u);
+  for (const auto& p : b) {
+    EXPECT_GE(p.id, 0);
+    EXPECT_LT(p.id, 8);
+    EXPECT_EQ(p.x_pos.sizes(), (std::vector<int64_t>{T, C}));
+    EXPECT_LE(p.cond.size(0), L);
+  }
+  EXPECT_EQ(src->position().step, 1);
+  // Training over it (variable condition lengths run as separate forwards).
+  SoloComm comm;
+  ToyPolicy m(C, Cc, R, 8);
+  Trainer tr(toy_config(simu::testing::temp_dir("cache_train"), 2, 4, 4), m, factory, comm, torch::kCPU);
+  auto s = tr.step();
+  EXPECT_TRUE(std::isfinite(s.loss) && s.loss > 0);
+  // Missing and truncated caches.
+  auto expect_error = [&](const std::string& bad) {
+    try {
+      auto s2 = factory(0, 1, 4, 0, DataPosition{});
+      (void)s2;
+      auto s3 = pair_cache_source(bad, 2)(0, 1, 4, 0, DataPosition{});
+      s3->next_batch();
+      ADD_FAILURE() << "no error for " << bad;
+    } catch (const simu::Error& e) {
+      EXPECT_NE(std::string(e.what()).find(bad), std::string::npos) << e.what();
+    }
+  };
+  expect_error(dir + "/missing.h5");
+  const std::string bytes = simu::fs::read_file(path);
+  std::ofstream(dir + "/truncated.h5", std::ios::binary) << bytes.substr(0, bytes.size() / 3);
+  expect_error(dir + "/truncated.h5");
+}
+#endif
