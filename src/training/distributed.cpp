@@ -63,6 +63,20 @@ class StoreCommunicator : public Communicator {
  public:
   StoreCommunicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world, std::chrono::milliseconds timeout)
       : store_(std::move(store)), rank_(rank), world_(world), timeout_(timeout) {}
+  // Leaving: every rank posts a "left" key; rank 0, which hosts the store, waits for all of them
+  // (bounded by the timeout) so nobody still reading loses the server.
+  ~StoreCommunicator() override {
+    try {
+      store_->set(fmt::format("simu/left/{}", rank_), std::vector<uint8_t>{1});
+      if (rank_ == 0) {
+        std::vector<std::string> keys;
+        for (int r = 0; r < world_; ++r) keys.push_back(fmt::format("simu/left/{}", r));
+        store_->wait(keys, timeout_);
+      }
+    } catch (const std::exception&) {
+      // A rank that is already gone: nothing to wait for.
+    }
+  }
   int rank() const override { return rank_; }
   int world_size() const override { return world_; }
 
