@@ -48,7 +48,9 @@ int main(int argc, char** argv) {
   app.add_option("--seed", seed, "noise seed")->capture_default_str();
   app.add_option("--samples", samples, "samples per condition (the condition is repeated)")->capture_default_str();
   app.add_option("--solver", solver, "euler | midpoint | rk4 (default: the config's)");
-  app.add_flag("--shortcut", shortcut, "shortcut mode (d = 1/steps) instead of the config's setting");
+  app.add_flag("--shortcut", shortcut,
+               "shortcut (distillation) mode: d = 1/steps and, unless --cfg-strength is given, no CFG "
+               "(official sample_sparse_structure(use_distillation=True))");
   app.add_flag("--fp32", fp32, "no bf16 autocast on CUDA");
   app.add_option("--device", device, "cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--out", out, "output safetensors file (latent.<name> tensors)")->capture_default_str();
@@ -68,6 +70,7 @@ int main(int argc, char** argv) {
     // Sampling options: config defaults, then the command line.
     auto o = simu::models::SampleOptions::from(gen->config());
     if (steps > 0) o.steps = steps;
+    if (shortcut) o.cfg_strength = 0;
     if (cfg_strength >= 0) o.cfg_strength = cfg_strength;
     if (!solver.empty()) o.solver = solver;
     if (shortcut) o.shortcut = true;

@@ -504,6 +504,24 @@ torch::ScalarType torch_type(const std::string& dtype) {
   return dtype == "float16" ? torch::kFloat16 : torch::kFloat32;
 }
 
+// Plain single-threaded loops for the per-record work of the reader (these tensors are small, and
+// torch's parallel kernels only add thread wake-ups next to the training threads).
+torch::Tensor half_to_float(const torch::Tensor& h) {
+  auto out = torch::empty(h.sizes(), torch::kFloat32);
+  const auto* src = h.data_ptr<at::Half>();
+  float* dst = out.data_ptr<float>();
+  for (int64_t k = 0, n = h.numel(); k < n; ++k) dst[k] = static_cast<float>(src[k]);
+  return out;
+}
+// Index of the first row (of `rows` equal rows) holding a non-finite value, or -1.
+int64_t first_nonfinite_row(const torch::Tensor& t, int64_t rows) {
+  const float* p = t.data_ptr<float>();
+  const int64_t n = t.numel(), per = rows > 0 ? n / rows : 0;
+  for (int64_t k = 0; k < n; ++k)
+    if (!std::isfinite(p[k])) return k / per;
+  return -1;
+}
+
 // Reads rows [start, start+count) of a float dataset as a float32 tensor [count, ...].
 torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t start, int64_t count,
                               const std::string& path, const std::string& name) {
@@ -512,7 +530,7 @@ torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t star
   auto t = torch::empty(dims, torch::TensorOptions().dtype(torch_type(dtype)));
   H5Id mt = float_mem_type(dtype);
   read_rows(dset, mt.get(), start, count, t.data_ptr(), path, name);
-  return t.to(torch::kFloat32);
+  return dtype == "float16" ? half_to_float(t) : t;
 }
 
 }  // namespace
@@ -724,7 +742,7 @@ PairRecord PairCacheReader::read(int64_t i) const {
   const std::pair<const torch::Tensor*, const char*> checks[] = {
       {&r.latent_pos, "latent_pos"}, {&r.latent_neg, "latent_neg"}, {&r.cond, "cond"}};
   for (const auto& [t, name] : checks)
-    if (!torch::isfinite(*t).all().item<bool>())
+    if (first_nonfinite_row(t->contiguous(), 1) >= 0)
       fail("pair cache '{}': record {} (id '{}'): dataset '{}' holds NaN or Inf", path, i, r.id, name);
   if (!std::isfinite(r.weight) || r.weight < 0)
     fail("pair cache '{}': record {} (id '{}'): dataset 'weight' holds {}, expected finite >= 0", path, i, r.id,
@@ -841,9 +859,9 @@ CacheInfo validate_cache(const std::string& path, const std::function<void(int64
     for (const auto& [dset, name] : sets) {
       const auto& dt = std::string(name) == "cond" ? info.cond_dtype : info.latent_dtype;
       auto t = read_float_rows(dset, dt, start, count, path, name);  // [count, ...]
-      auto ok = torch::isfinite(t).reshape({count, -1}).all(1);      // [count]
-      if (!ok.all().item<bool>()) {
-        const int64_t bad = start + torch::nonzero(ok.logical_not())[0][0].item<int64_t>();
+      const int64_t row = first_nonfinite_row(t, count);
+      if (row >= 0) {
+        const int64_t bad = start + row;
         fail("pair cache '{}': record {} (id '{}'): dataset '{}' holds NaN or Inf", path, bad, ids[bad], name);
       }
     }

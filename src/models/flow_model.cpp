@@ -262,8 +262,12 @@ MultiHeadRMSNormImpl::MultiHeadRMSNormImpl(int64_t dim, int64_t heads) : scale(s
 }
 
 torch::Tensor MultiHeadRMSNormImpl::forward(const torch::Tensor& x) {
-  namespace F = torch::nn::functional;
-  auto y = F::normalize(x, F::NormalizeFuncOptions().dim(-1)) * gamma * scale;  // [B, L, H, D]
+  // Official: (F.normalize(x, dim=-1) * gamma * scale).to(x.dtype), i.e. x / max(|x|, 1e-12) in
+  // float32 (under autocast the norm runs in fp32). Written as two full-size passes instead of four:
+  // x * (1 / max(|x|, eps)) then * (gamma * scale).
+  auto inv = at::linalg_vector_norm(x, 2, {-1}, /*keepdim=*/true, torch::kFloat32).clamp_min(1e-12).reciprocal();
+  auto y = x * inv;                 // [B, L, H, D] float32
+  y.mul_(gamma.to(torch::kFloat32) * scale);
   return y.to(x.scalar_type());
 }
 
@@ -289,17 +293,25 @@ CrossAttentionImpl::CrossAttentionImpl(int64_t channels, int64_t ctx_channels, i
   to_out = register_module("to_out", Linear(channels, channels));
 }
 
-torch::Tensor CrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& context) {
-  const int64_t B = x.size(0), L = x.size(1), Lc = context.size(1);
-  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});                // [B, L, H, D]
-  auto kv = to_kv->forward(context).reshape({B, Lc, 2, num_heads, -1});    // [B, Lc, 2, H, D]
-  auto k = kv.select(2, 0), v = kv.select(2, 1);                           // [B, Lc, H, D]
-  if (q_rms_norm) {
-    q = q_rms_norm->forward(q);
-    k = k_rms_norm->forward(k);
-  }
+std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::context_kv(const torch::Tensor& context) {
+  const int64_t B = context.size(0), Lc = context.size(1);
+  auto kv = to_kv->forward(context).reshape({B, Lc, 2, num_heads, -1});  // [B, Lc, 2, H, D]
+  auto k = kv.select(2, 0), v = kv.select(2, 1);                         // [B, Lc, H, D]
+  if (k_rms_norm) k = k_rms_norm->forward(k);
+  return {k, v};
+}
+
+torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
+  const int64_t B = x.size(0), L = x.size(1);
+  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
+  if (q_rms_norm) q = q_rms_norm->forward(q);
   auto h = attention(q, k, v).reshape({B, L, -1});  // [B, L, C]
   return to_out->forward(h);
+}
+
+torch::Tensor CrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& context) {
+  const auto [k, v] = context_kv(context);
+  return attend(x, k, v);
 }
 
 MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, const std::vector<std::string>& streams,
@@ -386,7 +398,8 @@ MOTBlockImpl::MOTBlockImpl(const FlowModelConfig& c) : share_mod(c.share_mod) {
 }
 
 std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_in, const torch::Tensor& mod,
-                                                 const torch::Tensor& cond) {
+                                                 const torch::Tensor& cond,
+                                                 const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv) {
   // Modulation: six [B, 1, C] chunks (shift/scale/gate for attention and MLP).
   auto m = share_mod ? mod : ada_linear->forward(torch::silu(mod));
   auto chunks = m.chunk(6, 1);
@@ -394,17 +407,27 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   auto shift_mlp = chunks[3].unsqueeze(1), scale_mlp = chunks[4].unsqueeze(1), gate_mlp = chunks[5].unsqueeze(1);
   const size_t S = x_in.size();
   std::vector<torch::Tensor> x = x_in, h(S);
-  // Self attention on the modulated norm1.
-  for (size_t i = 0; i < S; ++i) h[i] = norm1[i]->forward(x[i]) * (1 + scale_msa) + shift_msa;
+  // norm(x) * (1 + scale) + shift. When the modulation is one row (the same t for the whole batch,
+  // as in sampling) it is a LayerNorm with weight 1 + scale and bias shift: one fused fp32 kernel.
+  const bool one_row = m.size(0) == 1;
+  auto modulate = [&](LayerNorm32& norm, const torch::Tensor& xi, const torch::Tensor& scale, const torch::Tensor& shift) {
+    if (one_row) {
+      auto w = (1 + scale).reshape({-1}).to(torch::kFloat32), b = shift.reshape({-1}).to(torch::kFloat32);
+      return at::layer_norm(xi.to(torch::kFloat32), {xi.size(-1)}, w, b, norm->eps).to(xi.scalar_type());
+    }
+    return norm->forward(xi) * (1 + scale) + shift;
+  };
+  // Self attention on the modulated norm1; gated residual x + h * gate.
+  for (size_t i = 0; i < S; ++i) h[i] = modulate(norm1[i], x[i], scale_msa, shift_msa);
   h = self_attn->forward(h);
-  for (size_t i = 0; i < S; ++i) x[i] = x[i] + h[i] * gate_msa;
+  for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], h[i], gate_msa);
   // Cross attention over the condition on the affine norm2 (no modulation).
-  for (size_t i = 0; i < S; ++i) x[i] = x[i] + cross_attn[i]->forward(norm2[i]->forward(x[i]), cond);
-  // MLP on the modulated norm3.
   for (size_t i = 0; i < S; ++i) {
-    auto hh = norm3[i]->forward(x[i]) * (1 + scale_mlp) + shift_mlp;
-    x[i] = x[i] + mlp[i]->forward(hh) * gate_mlp;
+    auto hi = norm2[i]->forward(x[i]);
+    x[i] = x[i] + (kv ? cross_attn[i]->attend(hi, (*kv)[i].first, (*kv)[i].second) : cross_attn[i]->forward(hi, cond));
   }
+  // MLP on the modulated norm3; gated residual.
+  for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], mlp[i]->forward(modulate(norm3[i], x[i], scale_mlp, shift_mlp)), gate_mlp);
   return x;
 }
 
@@ -464,8 +487,22 @@ SparseStructureFlowTdfyWrapperImpl::SparseStructureFlowTdfyWrapperImpl(FlowModel
   register_dict(*this, "latent_mapping", names, maps);
 }
 
+ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond) {
+  ConditionCache cache;
+  cache.cond = cond;
+  auto cond32 = cond.to(torch::kFloat32);
+  for (auto& block : block_list_) {
+    std::vector<std::pair<torch::Tensor, torch::Tensor>> per_stream;
+    for (auto& ca : block->cross_attn) per_stream.push_back(ca->context_kv(cond32));
+    cache.kv.push_back(std::move(per_stream));
+  }
+  return cache;
+}
+
 Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
-                                                    const c10::optional<torch::Tensor>& d) {
+                                                    const c10::optional<torch::Tensor>& d, const ConditionCache* cache) {
+  SIMU_CHECK(!cache || (cache->cond.is_same(cond) && cache->kv.size() == block_list_.size()),
+             "flow model: the condition cache was computed for another condition tensor");
   const auto& c = config_;
   SIMU_CHECK(cond.dim() == 3 && cond.size(2) == c.cond_channels, "flow model: cond must be [B, L, {}], got [{}]",
              c.cond_channels, fmt::join(cond.sizes(), ", "));
@@ -506,7 +543,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   auto cond32 = cond.to(torch::kFloat32);
 
   // Transformer blocks.
-  for (auto& block : block_list_) h = block->forward(h, t_emb, cond32);
+  for (size_t b = 0; b < block_list_.size(); ++b) h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
   for (auto& hi : h) hi = hi.to(input_dtype);
 
   // Split streams back into latents and project out.
@@ -563,6 +600,11 @@ double flow_forward_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_
   for (const auto& l : c.latents) io += 2 * 2 * static_cast<double>(l.tokens()) * C * l.in_channels;
   const double ada = (c.share_mod ? 1.0 : static_cast<double>(c.num_blocks)) * 2 * C * 6 * C;
   return batch * (c.num_blocks * block + io + ada);
+}
+
+double flow_condition_kv_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len) {
+  const double streams = static_cast<double>(c.stream_names().size());
+  return batch * c.num_blocks * streams * 2.0 * cond_len * c.cond_channels * 2.0 * c.model_channels;
 }
 
 }  // namespace simu::models

@@ -151,6 +151,10 @@ class CrossAttentionImpl : public torch::nn::Module {
   CrossAttentionImpl(int64_t channels, int64_t ctx_channels, int64_t num_heads, bool qk_rms_norm);
   // x: [B, L, C], context: [B, Lc, Cc] -> [B, L, C]
   torch::Tensor forward(const torch::Tensor& x, const torch::Tensor& context);
+  // Keys (RMS-normed when enabled) and values of the context: [B, Lc, H, D] each.
+  std::pair<torch::Tensor, torch::Tensor> context_kv(const torch::Tensor& context);
+  // Attention of x over precomputed keys/values, then to_out: [B, L, C].
+  torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
   Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
   int64_t num_heads;
@@ -172,13 +176,22 @@ class MOTSelfAttentionImpl : public torch::nn::Module {
 };
 TORCH_MODULE(MOTSelfAttention);
 
+// Cross-attention keys/values of the condition for every block and stream, computed once and reused
+// over the sampling steps (the condition is the same at every step). kv[block][stream] = (k, v).
+struct ConditionCache {
+  torch::Tensor cond;  // the condition they were computed from
+  std::vector<std::vector<std::pair<torch::Tensor, torch::Tensor>>> kv;
+};
+
 // One MOT block: adaLN-modulated self attention, cross attention, MLP; per-stream weights.
 class MOTBlockImpl : public torch::nn::Module {
  public:
   explicit MOTBlockImpl(const FlowModelConfig& c);
   // x[i]: [B, L_i, C]; mod: [B or 1, C] (t embedding) or [B or 1, 6C] when share_mod; cond: [B, Lc, Cc].
+  // kv: this block's precomputed condition keys/values per stream (ConditionCache), or null.
   std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x, const torch::Tensor& mod,
-                                     const torch::Tensor& cond);
+                                     const torch::Tensor& cond,
+                                     const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv = nullptr);
   std::vector<LayerNorm32> norm1, norm2, norm3;
   MOTSelfAttention self_attn{nullptr};
   std::vector<CrossAttention> cross_attn;
@@ -213,8 +226,12 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   // x: one tensor per latent of the config [B, tokens, in_ch]; t: [B] (or [1]) in time_scale units
   // (t*1000); cond: [B, L, cond_channels]; d: [B] shortcut step in time_scale units, only for shortcut
   // models (when given, its embedding is added, also for d = 0). Returns the velocity per latent.
+  // cache: condition keys/values from condition_cache(cond) for this same cond (skips the to_kv
+  // projections); null computes them.
   Latents forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
-                  const c10::optional<torch::Tensor>& d = c10::nullopt);
+                  const c10::optional<torch::Tensor>& d = c10::nullopt, const ConditionCache* cache = nullptr);
+  // Cross-attention keys/values of cond for every block (run under the same autocast as forward).
+  ConditionCache condition_cache(const torch::Tensor& cond);
 
   const FlowModelConfig& config() const { return config_; }
 
@@ -235,5 +252,8 @@ TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 // 2*2*T*Tk*C (Tk = keys seen); cross q 2*T*C*C + kv 2*Lc*Cc*2C + out 2*T*C*C; cross attention
 // 2*2*T*Lc*C; MLP 2*2*T*C*(C*mlp_ratio); plus adaLN and latent in/out layers. Times batch.
 double flow_forward_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len);
+// The part of flow_forward_flops spent on the condition key/value projections (2*Lc*Cc*2C per block
+// and stream, times batch): what a ConditionCache saves per reuse.
+double flow_condition_kv_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len);
 
 }  // namespace simu::models

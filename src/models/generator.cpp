@@ -147,30 +147,52 @@ ClassifierFreeGuidanceImpl::ClassifierFreeGuidanceImpl(const GeneratorConfig& c)
   backbone = register_module("backbone", SparseStructureFlowTdfyWrapper(c.backbone));
 }
 
+PreparedCondition ClassifierFreeGuidanceImpl::prepare(const torch::Tensor& cond, bool cache) {
+  PreparedCondition pc;
+  pc.cond = cond;
+  torch::Tensor cond_u = cond;
+  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) cond_u = cond * 0;
+  pc.pair = torch::cat({cond, cond_u}, 0);
+  pc.cache = cache;
+  return pc;
+}
+
 Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, const torch::Tensor& cond,
                                             c10::optional<double> d_scaled, double strength,
                                             std::pair<double, double> interval) {
+  auto pc = prepare(cond, false);
+  return forward(x, t_scaled, pc, d_scaled, strength, interval);
+}
+
+Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, PreparedCondition& pc,
+                                            c10::optional<double> d_scaled, double strength,
+                                            std::pair<double, double> interval) {
+  const auto& cond = pc.cond;
   const int64_t B = cond.size(0);
   const auto opts = torch::TensorOptions().dtype(torch::kFloat32).device(cond.device());
   // The official compares the float32 time tensor with the interval bounds.
   const double tf = static_cast<float>(t_scaled);
   const bool guided = strength > 0.0 && interval.first <= tf && tf <= interval.second;
+  // t (and d) as one value for the whole batch ([1], like the official ShortCut): the modulation is
+  // then computed once and broadcast, which lets the blocks fuse it into the LayerNorms.
   if (!guided) {
     c10::optional<torch::Tensor> d;
-    if (d_scaled) d = torch::full({B}, *d_scaled, opts);
-    return backbone->forward(x, torch::full({B}, t_scaled, opts), cond, d);
+    if (d_scaled) d = torch::full({1}, *d_scaled, opts);
+    if (pc.cache && !pc.single_kv) pc.single_kv = backbone->condition_cache(cond);
+    return backbone->forward(x, torch::full({1}, t_scaled, opts), cond, d, pc.single_kv ? &*pc.single_kv : nullptr);
   }
   // One batched forward: first half conditional, second half unconditional.
   Latents x2;
   for (const auto& [k, v] : x) x2[k] = torch::cat({v, v}, 0);
-  torch::Tensor cond_u = cond;
-  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) cond_u = cond * 0;
   c10::optional<torch::Tensor> d2;
   if (d_scaled) {
-    const double du = unconditional_handling == "zeros" ? 0.0 : *d_scaled;
-    d2 = torch::cat({torch::full({B}, *d_scaled, opts), torch::full({B}, du, opts)});
+    if (unconditional_handling == "zeros")  // zero_out also zeroes d in the unconditional half
+      d2 = torch::cat({torch::full({B}, *d_scaled, opts), torch::zeros({B}, opts)});
+    else
+      d2 = torch::full({1}, *d_scaled, opts);
   }
-  auto y = backbone->forward(x2, torch::full({2 * B}, t_scaled, opts), torch::cat({cond, cond_u}, 0), d2);
+  if (pc.cache && !pc.pair_kv) pc.pair_kv = backbone->condition_cache(pc.pair);
+  auto y = backbone->forward(x2, torch::full({1}, t_scaled, opts), pc.pair, d2, pc.pair_kv ? &*pc.pair_kv : nullptr);
   Latents out;
   for (const auto& [k, v] : y) {
     auto yc = v.narrow(0, 0, B), yu = v.narrow(0, B, B);
@@ -222,9 +244,10 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
 
   Latents x;
   for (const auto& [k, v] : x0) x[k] = v.to(torch::kFloat32);
+  auto pc = reverse_fn->prepare(cond, o.cache_condition);
   // Velocity at time t (in [0, 1]).
   auto velocity = [&](const Latents& xt, double t) {
-    return reverse_fn->forward(xt, tp(t * c.time_scale), cond, d, o.cfg_strength, o.cfg_interval);
+    return reverse_fn->forward(xt, tp(t * c.time_scale), pc, d, o.cfg_strength, o.cfg_interval);
   };
   for (int i = 0; i < o.steps; ++i) {
     const double t0 = grid[i], dt = tp(grid[i + 1] - grid[i]);
@@ -265,6 +288,9 @@ Generator load_generator(const std::string& config_path, const std::string& weig
   Generator g(cfg);
   if (!weights_path.empty()) {
     LoadOptions lo;
+    // A condition embedder passed into the wrapper (official `condition_embedder` kwarg) is another
+    // component (loaded by the condition-embedder code), not part of this flow model.
+    lo.ignore_prefixes = {"reverse_fn.backbone.condition_embedder."};
     // The official checkpoint prefixes generator weights with "_base_models.generator."; other
     // sub-models (condition embedder) live under other prefixes and are skipped by the prefix filter.
     const std::string ext = ".safetensors";

@@ -67,11 +67,23 @@ struct SampleOptions {
   std::string solver = "euler";  // euler | midpoint | rk4
   // On CUDA: run the backbone under bf16 autocast (official inference). Ignored on CPU.
   bool bf16_autocast = true;
+  // Compute the condition's cross-attention keys/values once and reuse them at every step (same
+  // result up to rounding order: none, the same ops run once instead of per step).
+  bool cache_condition = true;
   // Called after each solver step with (step index from 1, steps).
   std::function<void(int, int)> on_step;
 
   // Defaults from the config (inference_steps, CFG strength/interval, rescale_t, !no_shortcut, solver).
   static SampleOptions from(const GeneratorConfig& c);
+};
+
+// A condition prepared for repeated guided evaluations: the conditional/unconditional pair built once,
+// and (when `cache`) the cross-attention keys/values of both computed on first use and reused.
+struct PreparedCondition {
+  torch::Tensor cond;  // [B, L, Cc]
+  torch::Tensor pair;  // [2B, L, Cc]: cond, then the unconditional condition
+  bool cache = false;
+  c10::optional<ConditionCache> single_kv, pair_kv;
 };
 
 // ClassifierFreeGuidance: holds the backbone; `forward` evaluates the guided velocity at one time.
@@ -82,6 +94,11 @@ class ClassifierFreeGuidanceImpl : public torch::nn::Module {
   // units or nullopt (no d); strength/interval: CFG settings. Returns the velocity per latent.
   Latents forward(const Latents& x, double t_scaled, const torch::Tensor& cond, c10::optional<double> d_scaled,
                   double strength, std::pair<double, double> interval);
+  // Same with a prepared condition (reuses its condition keys/values when pc.cache).
+  Latents forward(const Latents& x, double t_scaled, PreparedCondition& pc, c10::optional<double> d_scaled,
+                  double strength, std::pair<double, double> interval);
+  // The unconditional condition of the official handling ("add_flag" + force_zeros_cond / "zeros": cond * 0).
+  PreparedCondition prepare(const torch::Tensor& cond, bool cache);
   SparseStructureFlowTdfyWrapper backbone{nullptr};
   std::string unconditional_handling;
 };

@@ -624,6 +624,16 @@ TEST(PairsTool, MakeInspectValidate) {
   EXPECT_NE(err.find("error: pair cache '" + dir + "/t.h5'"), std::string::npos) << err;
   EXPECT_NE(run("make --out " + dir + "/x.h5 --n 2 --dtype bf16"), 0);
   EXPECT_FALSE(std::filesystem::exists(dir + "/x.h5"));
+  // kill -9 in the middle of a long write: no file at the path, the previous cache (if any) intact.
+  const auto before = simu::fs::read_file(f);
+  std::system(("timeout -s KILL 2 " + exe + " make --out " + f +
+               " --n 100000000 --tokens 64 --channels 8 --cond-len 4 --cond-channels 4 >/dev/null 2>&1").c_str());
+  EXPECT_EQ(simu::fs::read_file(f), before);
+  int stray = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir))
+    if (e.path().filename().string().rfind("p.h5.tmp-", 0) == 0) ++stray, std::filesystem::remove(e.path());
+  EXPECT_LE(stray, 1);
+  EXPECT_EQ(run("validate " + f), 0);
 }
 
 }  // namespace

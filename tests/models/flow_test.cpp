@@ -249,3 +249,17 @@ TEST(FlowModel, RealConfigDescribesTheReleasedModel) {
   const double want = 24 * (stream(4096, 4096) + stream(4, 4100)) + io + 24 * 2 * C * 6 * C;
   EXPECT_NEAR(simu::models::flow_forward_flops(c.backbone, 1, 2800) / want, 1.0, 1e-12);
 }
+
+// Reusing the condition keys/values over the steps (the default) gives the result of recomputing them.
+TEST(Generator, ConditionCacheMatchesRecomputation) {
+  for (const char* name : {"ss_generator_small", "ss_generator_variant"}) {
+    auto f = load(name);
+    auto o = simu::models::SampleOptions::from(f.gen->config());
+    auto x0 = with_prefix(f.io, "in.sample.x0.");
+    o.cache_condition = true;
+    auto a = f.gen->sample(f.io.at("in.cond"), x0, o);
+    o.cache_condition = false;
+    auto b = f.gen->sample(f.io.at("in.cond"), x0, o);
+    for (const auto& [k, v] : a) EXPECT_TRUE(simu::testing::close(v, b.at(k), 1e-6, std::string(name) + "." + k));
+  }
+}
