@@ -1,0 +1,60 @@
+// train_fmdpo: FM-DPO fine-tuning of the Stage-1 shape branch's LoRA adapters on a pair cache.
+//   train_fmdpo --config configs/lora64.yaml [--set optim.lr=2e-5] [--resume latest|DIR]
+//   train_fmdpo --config ... --nproc-per-node 2        (starts the local ranks itself)
+//   torchrun --nproc-per-node 2 --no-python train_fmdpo --config ...
+#include <cstdlib>
+#include <cstring>
+
+#include <c10/cuda/CUDAFunctions.h>
+
+#include "common/cli.h"
+#include "common/error.h"
+#include "common/log.h"
+#include "training/distributed.h"
+#include "training/generator_policy.h"
+#include "training/trainer.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{"FM-DPO fine-tuning of the shape branch's LoRA adapters on cached latent preference pairs"};
+  std::string config_path, resume;
+  int nproc = 0;
+  app.add_option("--config", config_path, "training config (YAML), e.g. configs/lora64.yaml")->required();
+  app.add_option("--resume", resume, "continue from 'latest' (newest under run.out_dir/checkpoints) or a checkpoint dir");
+  app.add_option("--nproc-per-node", nproc, "start this many local ranks (one per GPU) and watch them");
+  simu::cli::CommonOptions common;
+  simu::cli::add_common_options(app, common);
+  return simu::cli::run(app, argc, argv, [&] {
+    using namespace simu::training;
+    simu::cli::apply_common_options(common);
+    // Launcher mode: validate the config, then start and watch the ranks.
+    if (nproc > 1 && !std::getenv("RANK")) {
+      auto cfg = TrainConfig::load(config_path, common.sets);
+      std::vector<std::string> args;
+      for (int i = 1; i < argc; ++i) {
+        if (std::strcmp(argv[i], "--nproc-per-node") == 0) { ++i; continue; }
+        if (std::strncmp(argv[i], "--nproc-per-node=", 17) == 0) continue;
+        args.push_back(argv[i]);
+      }
+      launch_local_ranks(nproc, args, std::chrono::seconds(static_cast<int64_t>(cfg.dist.hang_timeout_s)));
+      return 0;
+    }
+    const auto env = DistEnv::from_environment();
+    simu::log::set_rank(env.rank);
+    auto cfg = TrainConfig::load(config_path, common.sets);
+    torch::Device device(torch::kCPU);
+    if (cfg.train.device == "cuda") {
+      if (!torch::cuda::is_available())
+        simu::fail_hint("set train.device: cpu (slow) or run on a GPU machine", "train.device is cuda but no CUDA device is visible");
+      SIMU_CHECK(env.local_rank < static_cast<int>(torch::cuda::device_count()),
+                 "LOCAL_RANK {} but only {} CUDA devices are visible", env.local_rank, torch::cuda::device_count());
+      device = torch::Device(torch::kCUDA, env.local_rank);
+      c10::cuda::set_device(static_cast<c10::DeviceIndex>(env.local_rank));
+    }
+    auto comm = Communicator::create(env, device, std::chrono::milliseconds(static_cast<int64_t>(cfg.dist.timeout_s * 1000)));
+    auto model = make_generator_policy(cfg, device);
+    Trainer trainer(cfg, *model, pair_cache_source(cfg.data.cache, cfg.data.prefetch), *comm, device);
+    if (!resume.empty()) trainer.resume(resolve_resume(cfg.run.out_dir + "/checkpoints", resume));
+    trainer.run();
+    return 0;
+  });
+}

@@ -1,0 +1,169 @@
+// bench_fmdpo: FM-DPO training-step throughput on GPU with the real-size Stage-1 generator (random
+// weights) and LoRA r 64 on the 120 shape-branch projections, synthetic pairs in memory.
+//
+// For each micro-batch m (accumulation 1): step time, pairs/s, MFU, peak memory.
+// MFU = useful FLOPs per step / (step time x world x peak FLOP/s), useful FLOPs per pair =
+//   policy forward+backward on both members (3 x F each) + reference forward on both (1 x F each)
+//   = 8 F, with F = models::flow_forward_flops(config, 1, cond_len) (matrix products, 2 per MAC).
+// Peak FLOP/s: --peak-tflops (default 989.4 = H100/H200 SXM dense bf16).
+// With --nproc-per-node 2 every rank first measures alone (world 1, no all-reduce), then all ranks
+// train together; scaling efficiency = pairs/s together / sum of pairs/s alone.
+#include <cstdlib>
+#include <cstring>
+
+#include <c10/cuda/CUDACachingAllocator.h>
+#include <c10/cuda/CUDAFunctions.h>
+#include <fmt/ranges.h>
+
+#include "common/cli.h"
+#include "common/error.h"
+#include "common/log.h"
+#include "training/distributed.h"
+#include "training/generator_policy.h"
+#include "training/trainer.h"
+
+#if __has_include("models/generator.h")
+#include "models/generator.h"
+#define SIMU_BENCH_HAVE_MODELS 1
+#endif
+
+using namespace simu::training;
+
+namespace {
+
+struct Row {
+  int64_t micro = 0;
+  int world = 1;
+  double step_s = 0, pairs_s = 0, mfu = 0, peak_gib = 0;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"FM-DPO training-step benchmark (GPU, real-size generator with random weights)"};
+  std::string generator = "configs/stage1_real.yaml";
+  std::vector<int64_t> micros = {1, 2, 4};
+  int steps = 10, warmup = 3, nproc = 0;
+  int64_t cond_len = 2800;
+  double peak_tflops = 989.4;
+  bool checkpointing = false;
+  app.add_option("--generator", generator, "generator config (official layout)");
+  app.add_option("--micro", micros, "micro-batch sizes")->delimiter(',');
+  app.add_option("--steps", steps, "timed steps per setting");
+  app.add_option("--warmup", warmup, "untimed steps per setting");
+  app.add_option("--cond-len", cond_len, "condition tokens per pair (1024 channels)");
+  app.add_option("--peak-tflops", peak_tflops, "device peak dense bf16 TFLOP/s for MFU");
+  app.add_flag("--activation-checkpointing", checkpointing, "recompute the policy forward in backward");
+  app.add_option("--nproc-per-node", nproc, "ranks (GPUs) to start");
+  simu::cli::CommonOptions common;
+  simu::cli::add_common_options(app, common);
+  return simu::cli::run(app, argc, argv, [&]() -> int {
+    simu::cli::apply_common_options(common);
+    if (!torch::cuda::is_available()) {
+      fmt::print("bench_fmdpo: skipped: needs a CUDA device (none here)\n");
+      return 0;
+    }
+    if (!have_generator_policy()) {
+      fmt::print("bench_fmdpo: skipped: this build has no generator/LoRA library\n");
+      return 0;
+    }
+    if (nproc > 1 && !std::getenv("RANK")) {
+      std::vector<std::string> args;
+      for (int i = 1; i < argc; ++i) {
+        if (std::strcmp(argv[i], "--nproc-per-node") == 0) { ++i; continue; }
+        args.push_back(argv[i]);
+      }
+      launch_local_ranks(nproc, args, std::chrono::seconds(1200));
+      return 0;
+    }
+#ifdef SIMU_BENCH_HAVE_MODELS
+    const auto env = DistEnv::from_environment();
+    simu::log::set_rank(env.rank);
+    c10::cuda::set_device(static_cast<c10::DeviceIndex>(env.local_rank));
+    const torch::Device device(torch::kCUDA, env.local_rank);
+    // Real-size policy: random base weights, LoRA r 64 / alpha 128 on the shape projections.
+    YAML::Node lora = YAML::Load(
+        "{r: 64, alpha: 128, dropout: 0.0, target_modules: "
+        "'.*blocks\\.\\d+\\.(self_attn\\.(to_qkv|to_out)\\.shape|cross_attn\\.shape\\.(to_q|to_kv|to_out))$'}");
+    torch::manual_seed(0);
+    auto policy = make_generator_policy(generator, "", lora, "", device);
+    const auto gcfg = simu::models::GeneratorConfig::from_official_file(generator);
+    const auto& fc = gcfg.backbone;
+    int64_t T = 0;
+    for (const auto& s : fc.latents)
+      if (s.name == "shape") T = s.tokens();
+    const double fwd_flops = simu::models::flow_forward_flops(fc, 1, cond_len);
+    // Synthetic pairs: enough for every setting.
+    const int64_t n_pairs = 4 * 8 * std::max<int>(nproc, env.world_size);
+    auto pairs = std::make_shared<std::vector<Pair>>();
+    torch::manual_seed(1);
+    for (int64_t i = 0; i < n_pairs; ++i)
+      pairs->push_back(Pair{i, static_cast<int>(i % 2), torch::randn({T, fc.in_channels}), torch::randn({T, fc.in_channels}),
+                            torch::randn({cond_len, fc.cond_channels})});
+    auto source = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
+      return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
+    };
+    auto solo = Communicator::create(DistEnv{}, device, std::chrono::minutes(10));
+    auto together = Communicator::create(env, device, std::chrono::minutes(10));
+    std::vector<Row> rows;
+    for (int64_t m : micros) {
+      for (Communicator* comm : {solo.get(), together.get()}) {
+        if (comm == together.get() && env.world_size == 1) continue;
+        TrainConfig cfg;
+        cfg.model.config = generator;
+        cfg.objective.beta = 500;
+        cfg.optim.warmup_steps = 0;
+        cfg.data.global_batch = m * comm->world_size();
+        cfg.data.micro_batch = m;
+        cfg.train.steps = warmup + steps;
+        cfg.train.precision = "bf16";
+        cfg.train.activation_checkpointing = checkpointing;
+        cfg.train.device = "cuda";
+        cfg.run.progress = false;
+        Trainer tr(cfg, *policy, source, *comm, device);
+        for (int s = 0; s < warmup; ++s) tr.step();
+        together->barrier();
+        torch::cuda::synchronize();
+        c10::cuda::CUDACachingAllocator::resetPeakStats(env.local_rank);
+        const auto t0 = std::chrono::steady_clock::now();
+        for (int s = 0; s < steps; ++s) tr.step();
+        torch::cuda::synchronize();
+        const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() / steps;
+        const auto stats = c10::cuda::CUDACachingAllocator::getDeviceStats(env.local_rank);
+        Row r;
+        r.micro = m;
+        r.world = comm->world_size();
+        r.step_s = secs;
+        r.pairs_s = cfg.data.global_batch / secs;
+        r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * peak_tflops * 1e12);
+        r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
+        rows.push_back(r);
+        together->barrier();
+      }
+    }
+    // Alone rates summed over ranks for the scaling efficiency.
+    std::vector<double> alone;
+    for (auto& r : rows) alone.push_back(r.world == 1 ? r.pairs_s : 0.0);
+    alone = together->all_reduce_sum(alone);
+    if (env.rank == 0) {
+      fmt::print("bench_fmdpo: {} ({} blocks, {} ch, {} shape tokens), cond {} tokens, LoRA r64 shape branch, bf16{}\n",
+                 generator, fc.num_blocks, fc.model_channels, T, cond_len, checkpointing ? ", activation checkpointing" : "");
+      fmt::print("forward FLOPs per member F = {:.3f} TFLOP; per pair 8F (policy fwd+bwd 3F x2, reference fwd 1F x2); peak {} TFLOP/s\n",
+                 fwd_flops / 1e12, peak_tflops);
+      fmt::print("{:>5} {:>5} {:>10} {:>9} {:>7} {:>10} {:>8}\n", "micro", "world", "step [ms]", "pairs/s", "MFU", "peak GiB",
+                 "scaling");
+      for (size_t i = 0; i < rows.size(); ++i) {
+        const auto& r = rows[i];
+        std::string scaling = "-";
+        if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
+        fmt::print("{:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>10.2f} {:>8}\n", r.micro, r.world, r.step_s * 1e3, r.pairs_s,
+                   100 * r.mfu, r.peak_gib, scaling);
+      }
+    }
+    return 0;
+#else
+    fmt::print("bench_fmdpo: skipped: this build has no models/generator.h\n");
+    return 0;
+#endif
+  });
+}

@@ -1,0 +1,372 @@
+// NCCL process group headers are guarded by USE_C10D_NCCL, which the torch CMake config does not set.
+#ifndef USE_C10D_NCCL
+#define USE_C10D_NCCL
+#endif
+#include "training/distributed.h"
+
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <signal.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <torch/csrc/distributed/c10d/ProcessGroupNCCL.hpp>
+#include <torch/csrc/distributed/c10d/TCPStore.hpp>
+
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <thread>
+
+#include <fmt/ranges.h>
+
+#include "common/error.h"
+#include "common/log.h"
+#include "training/checkpoint.h"
+
+namespace simu::training {
+
+namespace {
+
+// Integer environment variable, or fallback when unset.
+int env_int(const char* name, int fallback) {
+  const char* v = std::getenv(name);
+  if (!v || !*v) return fallback;
+  char* end = nullptr;
+  const long x = std::strtol(v, &end, 10);
+  if (*end != '\0') fail("environment variable {}='{}': expected an integer", name, v);
+  return static_cast<int>(x);
+}
+
+// Flattens tensors into one contiguous buffer (same dtype/device as the first).
+torch::Tensor flatten(const std::vector<torch::Tensor>& ts) {
+  std::vector<torch::Tensor> flat;
+  for (const auto& t : ts) flat.push_back(t.reshape({-1}));
+  return torch::cat(flat);
+}
+// Copies a flat buffer back into the tensors.
+void unflatten(const torch::Tensor& buf, std::vector<torch::Tensor>& ts) {
+  int64_t off = 0;
+  torch::NoGradGuard ng;
+  for (auto& t : ts) {
+    const int64_t n = t.numel();
+    t.copy_(buf.narrow(0, off, n).view(t.sizes()));
+    off += n;
+  }
+}
+
+// Store-based collectives: each rank posts its bytes under a round key; all read in rank order.
+class StoreCommunicator : public Communicator {
+ public:
+  StoreCommunicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world, std::chrono::milliseconds timeout)
+      : store_(std::move(store)), rank_(rank), world_(world), timeout_(timeout) {}
+  // Leaving: every rank posts a "left" key; rank 0, which hosts the store, waits for all of them
+  // (bounded by the timeout) so nobody still reading loses the server.
+  ~StoreCommunicator() override {
+    try {
+      store_->set(fmt::format("simu/left/{}", rank_), std::vector<uint8_t>{1});
+      if (rank_ == 0) {
+        std::vector<std::string> keys;
+        for (int r = 0; r < world_; ++r) keys.push_back(fmt::format("simu/left/{}", r));
+        store_->wait(keys, timeout_);
+      }
+    } catch (const std::exception&) {
+      // A rank that is already gone: nothing to wait for.
+    }
+  }
+  int rank() const override { return rank_; }
+  int world_size() const override { return world_; }
+
+  void all_reduce_mean(std::vector<torch::Tensor>& tensors) override {
+    if (tensors.empty()) return;
+    // [N] float64 on CPU: exact transport, sum in rank order.
+    auto flat = flatten(tensors).detach().to(torch::kCPU, torch::kFloat64).contiguous();
+    auto all = exchange("allreduce", bytes_of(flat));
+    auto sum = torch::zeros_like(flat);
+    for (auto& b : all) sum += from_bytes(b, flat.numel());
+    unflatten((sum / world_).to(tensors[0].device(), tensors[0].scalar_type()), tensors);
+  }
+
+  std::vector<double> all_reduce_sum(const std::vector<double>& values) override {
+    std::vector<uint8_t> mine(values.size() * sizeof(double));
+    std::memcpy(mine.data(), values.data(), mine.size());
+    auto all = exchange("sum", mine);
+    std::vector<double> out(values.size(), 0.0);
+    for (auto& b : all) {
+      SIMU_CHECK(b.size() == mine.size(), "all_reduce_sum: ranks disagree on the number of values");
+      const double* d = reinterpret_cast<const double*>(b.data());
+      for (size_t i = 0; i < out.size(); ++i) out[i] += d[i];
+    }
+    return out;
+  }
+
+  void barrier() override { exchange("barrier", {1}); }
+
+ private:
+  static std::vector<uint8_t> bytes_of(const torch::Tensor& t) {
+    std::vector<uint8_t> b(t.numel() * sizeof(double));
+    std::memcpy(b.data(), t.data_ptr<double>(), b.size());
+    return b;
+  }
+  static torch::Tensor from_bytes(const std::vector<uint8_t>& b, int64_t n) {
+    SIMU_CHECK(static_cast<int64_t>(b.size()) == n * 8, "all_reduce_mean: ranks disagree on the gradient size ({} vs {} bytes)",
+               b.size(), n * 8);
+    auto t = torch::empty({n}, torch::kFloat64);
+    std::memcpy(t.data_ptr<double>(), b.data(), b.size());
+    return t;
+  }
+  // Posts mine for this round, waits for every rank's (naming the missing ones), returns them in rank order.
+  std::vector<std::vector<uint8_t>> exchange(const std::string& what, const std::vector<uint8_t>& mine) {
+    const int64_t round = round_++;
+    auto key = [&](int64_t rd, int r) { return fmt::format("simu/{}/{}", rd, r); };
+    store_->set(key(round, rank_), mine);
+    std::vector<std::string> keys;
+    for (int r = 0; r < world_; ++r) keys.push_back(key(round, r));
+    try {
+      store_->wait(keys, timeout_);
+    } catch (const std::exception&) {
+      std::vector<int> missing;
+      for (int r = 0; r < world_; ++r) {
+        try {
+          if (!store_->check({keys[r]})) missing.push_back(r);
+        } catch (const std::exception&) {
+          missing.push_back(r);
+        }
+      }
+      fail_hint("check the log of the named rank(s); raise dist.timeout_s if they are only slow",
+                "rank {}: {} #{} timed out after {} s waiting for rank(s) {} (dead or hung)", rank_, what, round,
+                timeout_.count() / 1000.0, fmt::join(missing, ", "));
+    }
+    std::vector<std::vector<uint8_t>> out;
+    for (auto& k : keys) out.push_back(store_->get(k));
+    // Every rank has read round-2 by the time any rank posts this round's key: drop my old one.
+    if (round >= 2) store_->deleteKey(key(round - 2, rank_));
+    return out;
+  }
+
+  c10::intrusive_ptr<c10d::Store> store_;
+  int rank_, world_;
+  std::chrono::milliseconds timeout_;
+  int64_t round_ = 0;
+};
+
+// NCCL for tensors, the store for small host-side exchanges.
+class NcclCommunicator : public StoreCommunicator {
+ public:
+  NcclCommunicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world, std::chrono::milliseconds timeout)
+      : StoreCommunicator(store, rank, world, timeout) {
+    auto opts = c10d::ProcessGroupNCCL::Options::create();
+    opts->timeout = timeout;
+    pg_ = c10::make_intrusive<c10d::ProcessGroupNCCL>(c10::make_intrusive<c10d::PrefixStore>("nccl", store), rank,
+                                                      world, opts);
+  }
+  void all_reduce_mean(std::vector<torch::Tensor>& tensors) override {
+    if (tensors.empty()) return;
+    std::vector<at::Tensor> buf{flatten(tensors).detach().to(torch::kFloat32).contiguous()};
+    c10d::AllreduceOptions o;
+    o.reduceOp = c10d::ReduceOp::SUM;
+    auto work = pg_->allreduce(buf, o);
+    // The NCCL watchdog aborts the process when the collective exceeds opts->timeout.
+    work->wait();
+    unflatten((buf[0] / world_size()).to(tensors[0].scalar_type()), tensors);
+  }
+
+ private:
+  c10::intrusive_ptr<c10d::ProcessGroupNCCL> pg_;
+};
+
+// World of one: nothing to do.
+class SoloCommunicator : public Communicator {
+ public:
+  int rank() const override { return 0; }
+  int world_size() const override { return 1; }
+  void all_reduce_mean(std::vector<torch::Tensor>&) override {}
+  std::vector<double> all_reduce_sum(const std::vector<double>& v) override { return v; }
+  void barrier() override {}
+};
+
+}  // namespace
+
+DistEnv DistEnv::from_environment() {
+  DistEnv e;
+  if (std::getenv("RANK") || std::getenv("WORLD_SIZE")) {
+    e.rank = env_int("RANK", 0);
+    e.world_size = env_int("WORLD_SIZE", 1);
+    e.local_rank = env_int("LOCAL_RANK", e.rank);
+  } else if (std::getenv("SLURM_PROCID")) {
+    e.rank = env_int("SLURM_PROCID", 0);
+    e.world_size = env_int("SLURM_NTASKS", 1);
+    e.local_rank = env_int("SLURM_LOCALID", 0);
+  }
+  if (const char* a = std::getenv("MASTER_ADDR"); a && *a) e.master_addr = a;
+  e.master_port = env_int("MASTER_PORT", e.master_port);
+  SIMU_CHECK(e.world_size >= 1 && e.rank >= 0 && e.rank < e.world_size,
+             "distributed environment: RANK {} is not in [0, WORLD_SIZE={})", e.rank, e.world_size);
+  return e;
+}
+
+c10::intrusive_ptr<c10d::Store> connect_store(const DistEnv& env, std::chrono::milliseconds timeout) {
+  c10d::TCPStoreOptions o;
+  o.port = static_cast<uint16_t>(env.master_port);
+  o.isServer = env.rank == 0;
+  o.numWorkers = env.world_size;
+  o.waitWorkers = true;
+  o.timeout = timeout;
+  try {
+    return c10::make_intrusive<c10d::TCPStore>(env.master_addr, o);
+  } catch (const std::exception& e) {
+    fail_hint("check MASTER_ADDR/MASTER_PORT and that every rank started",
+              "rank {}: rendezvous at {}:{} failed (world size {}, timeout {} s): {}", env.rank, env.master_addr,
+              env.master_port, env.world_size, timeout.count() / 1000.0, e.what());
+  }
+}
+
+std::unique_ptr<Communicator> make_store_communicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world_size,
+                                                      std::chrono::milliseconds timeout) {
+  return std::make_unique<StoreCommunicator>(std::move(store), rank, world_size, timeout);
+}
+
+std::unique_ptr<Communicator> Communicator::create(const DistEnv& env, const torch::Device& device,
+                                                   std::chrono::milliseconds timeout) {
+  if (env.world_size == 1) return std::make_unique<SoloCommunicator>();
+  auto store = connect_store(env, timeout);
+  if (device.is_cuda()) return std::make_unique<NcclCommunicator>(store, env.rank, env.world_size, timeout);
+  return std::make_unique<StoreCommunicator>(store, env.rank, env.world_size, timeout);
+}
+
+int free_port() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  SIMU_CHECK(fd >= 0, "free_port: socket(): {}", std::strerror(errno));
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  a.sin_port = 0;
+  socklen_t len = sizeof(a);
+  if (::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof(a)) != 0 ||
+      ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len) != 0) {
+    ::close(fd);
+    fail("free_port: cannot bind a loopback port: {}", std::strerror(errno));
+  }
+  const int port = ntohs(a.sin_port);
+  ::close(fd);
+  return port;
+}
+
+void heartbeat() {
+  static const char* path = std::getenv("SIMU_HEARTBEAT_FILE");
+  if (path && *path) ::utimensat(AT_FDCWD, path, nullptr, 0);
+}
+
+namespace {
+volatile sig_atomic_t g_forward_signal = 0;
+void on_signal(int sig) { g_forward_signal = sig; }
+}  // namespace
+
+void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::chrono::seconds hang_timeout) {
+  SIMU_CHECK(nproc >= 1, "--nproc-per-node must be >= 1, got {}", nproc);
+  const int port = free_port();
+  const std::string beat_dir = fmt::format("{}/simu_launch_{}", std::filesystem::temp_directory_path().string(), ::getpid());
+  std::filesystem::create_directories(beat_dir);
+  char exe[4096];
+  const ssize_t n = ::readlink("/proc/self/exe", exe, sizeof(exe) - 1);
+  SIMU_CHECK(n > 0, "cannot find this program's path (/proc/self/exe)");
+  exe[n] = '\0';
+  std::vector<pid_t> pids(nproc, -1);
+  std::vector<std::string> beats(nproc);
+  // Start the ranks.
+  for (int r = 0; r < nproc; ++r) {
+    beats[r] = fmt::format("{}/rank{}", beat_dir, r);
+    {
+      const int fd = ::open(beats[r].c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+      if (fd >= 0) ::close(fd);
+    }
+    const pid_t pid = ::fork();
+    SIMU_CHECK(pid >= 0, "fork failed: {}", std::strerror(errno));
+    if (pid == 0) {
+      ::setenv("RANK", std::to_string(r).c_str(), 1);
+      ::setenv("LOCAL_RANK", std::to_string(r).c_str(), 1);
+      ::setenv("WORLD_SIZE", std::to_string(nproc).c_str(), 1);
+      ::setenv("LOCAL_WORLD_SIZE", std::to_string(nproc).c_str(), 1);
+      ::setenv("MASTER_ADDR", "127.0.0.1", 1);
+      ::setenv("MASTER_PORT", std::to_string(port).c_str(), 1);
+      ::setenv("NCCL_NVLS_ENABLE", "0", 1);
+      ::setenv("SIMU_HEARTBEAT_FILE", beats[r].c_str(), 1);
+      std::vector<char*> argv;
+      argv.push_back(exe);
+      for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+      argv.push_back(nullptr);
+      ::execv(exe, argv.data());
+      std::fprintf(stderr, "error: rank %d: exec %s failed: %s\n", r, exe, std::strerror(errno));
+      ::_exit(127);
+    }
+    pids[r] = pid;
+  }
+  simu::log::info("launched {} local ranks (MASTER_PORT {}, hang timeout {} s)", nproc, port, hang_timeout.count());
+  struct sigaction sa {};
+  sa.sa_handler = on_signal;
+  ::sigaction(SIGINT, &sa, nullptr);
+  ::sigaction(SIGTERM, &sa, nullptr);
+
+  // Ends every rank still running: SIGTERM, then SIGKILL after 5 s.
+  auto stop_all = [&](int sig) {
+    for (auto p : pids)
+      if (p > 0) ::kill(p, sig);
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (std::chrono::steady_clock::now() < until) {
+      bool any = false;
+      for (auto& p : pids) {
+        if (p <= 0) continue;
+        if (::waitpid(p, nullptr, WNOHANG) == p) p = -1; else any = true;
+      }
+      if (!any) break;
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    for (auto& p : pids)
+      if (p > 0) {
+        ::kill(p, SIGKILL);
+        ::waitpid(p, nullptr, 0);
+        p = -1;
+      }
+    remove_tree(beat_dir);
+  };
+
+  // Watch: exits, signals, heartbeats.
+  int running = nproc;
+  while (running > 0) {
+    if (g_forward_signal) {
+      const int sig = g_forward_signal;
+      stop_all(SIGTERM);
+      fail("interrupted by signal {}; all ranks stopped", sig);
+    }
+    for (int r = 0; r < nproc; ++r) {
+      if (pids[r] <= 0) continue;
+      int status = 0;
+      if (::waitpid(pids[r], &status, WNOHANG) != pids[r]) continue;
+      pids[r] = -1;
+      --running;
+      if (WIFEXITED(status) && WEXITSTATUS(status) == 0) continue;
+      const std::string how = WIFSIGNALED(status) ? fmt::format("was killed by signal {} ({})", WTERMSIG(status), strsignal(WTERMSIG(status)))
+                                                  : fmt::format("exited with status {}", WEXITSTATUS(status));
+      stop_all(SIGTERM);
+      fail("rank {} {}; the other ranks were stopped", r, how);
+    }
+    const auto now = std::filesystem::file_time_type::clock::now();
+    for (int r = 0; r < nproc; ++r) {
+      if (pids[r] <= 0) continue;
+      std::error_code ec;
+      const auto t = std::filesystem::last_write_time(beats[r], ec);
+      if (!ec && now - t > hang_timeout) {
+        stop_all(SIGTERM);
+        fail_hint("raise dist.hang_timeout_s if a step (or start-up) is legitimately this slow",
+                  "rank {} made no progress for {} s (hung); all ranks stopped", r, hang_timeout.count());
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  remove_tree(beat_dir);
+}
+
+}  // namespace simu::training

@@ -1,0 +1,69 @@
+// Data-parallel plumbing: rendezvous from the environment, gradient averaging, the local launcher.
+//
+// One process per GPU. Ranks meet through c10d's TCPStore at MASTER_ADDR:MASTER_PORT (rank 0 hosts
+// it). Gradients are averaged with ProcessGroupNCCL on GPU. On CPU the torch wheel ships no gloo
+// headers (ProcessGroupGloo.hpp includes <gloo/...>, absent from the wheel), so ProcessGroupGloo
+// cannot be built from C++ here; CPU ranks average through the same TCPStore instead (each rank
+// posts its flattened tensor, all sum in rank order: deterministic, fine for CPU-sized adapters).
+// Every collective waits at most `timeout`; a rank missing from it is named in the error.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <chrono>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <torch/csrc/distributed/c10d/Store.hpp>
+
+namespace simu::training {
+
+// Where this process sits in the job.
+struct DistEnv {
+  int rank = 0, local_rank = 0, world_size = 1;
+  std::string master_addr = "127.0.0.1";
+  int master_port = 29500;
+  // RANK/LOCAL_RANK/WORLD_SIZE/MASTER_ADDR/MASTER_PORT (torchrun), else SLURM_PROCID/SLURM_LOCALID/
+  // SLURM_NTASKS (+ MASTER_ADDR/MASTER_PORT or the defaults), else a single process.
+  static DistEnv from_environment();
+};
+
+// Collectives among the ranks of a job (a no-op for world size 1).
+class Communicator {
+ public:
+  // device: cuda -> NCCL for tensors; cpu -> store-based reduction. timeout bounds every collective.
+  static std::unique_ptr<Communicator> create(const DistEnv& env, const torch::Device& device,
+                                              std::chrono::milliseconds timeout);
+  virtual ~Communicator() = default;
+  virtual int rank() const = 0;
+  virtual int world_size() const = 0;
+  // Averages tensors (all on the same device, floating point) over ranks, in place, as one buffer.
+  virtual void all_reduce_mean(std::vector<torch::Tensor>& tensors) = 0;
+  // Sums numbers over ranks (metrics); every rank gets the sums.
+  virtual std::vector<double> all_reduce_sum(const std::vector<double>& values) = 0;
+  // Waits for every rank; names the missing ones on timeout.
+  virtual void barrier() = 0;
+};
+
+// Communicator over an existing store with store-based reduction (tests use this with two threads
+// or processes; production CPU runs get it from create()).
+std::unique_ptr<Communicator> make_store_communicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world_size,
+                                                      std::chrono::milliseconds timeout);
+// TCPStore for env (rank 0 serves); waits for all ranks to connect within timeout.
+c10::intrusive_ptr<c10d::Store> connect_store(const DistEnv& env, std::chrono::milliseconds timeout);
+
+// A TCP port free on the loopback interface right now.
+int free_port();
+
+// Progress signal to a launching parent: touches $SIMU_HEARTBEAT_FILE when set (no-op otherwise).
+void heartbeat();
+
+// Starts nproc local ranks of this program (/proc/self/exe with args) with RANK, LOCAL_RANK,
+// WORLD_SIZE, LOCAL_WORLD_SIZE, MASTER_ADDR=127.0.0.1, a free MASTER_PORT, NCCL_NVLS_ENABLE=0 and a
+// heartbeat file each; waits for them. A rank that exits non-zero or by a signal, or sends no
+// heartbeat for hang_timeout, ends the whole job (SIGTERM, then SIGKILL after 5 s) and this throws
+// simu::Error naming the rank. Returns when all ranks exit 0.
+void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::chrono::seconds hang_timeout);
+
+}  // namespace simu::training

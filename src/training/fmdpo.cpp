@@ -1,0 +1,208 @@
+#include "training/fmdpo.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <ATen/autocast_mode.h>
+
+#include "common/error.h"
+
+namespace simu::training {
+
+ObjectiveConfig ObjectiveConfig::from(simu::config::Reader& r) {
+  ObjectiveConfig c;
+  r.field("beta", c.beta);
+  r.field("weight_completion", c.weight_completion);
+  r.field("weight_preservation", c.weight_preservation);
+  r.field("t_mean", c.t_mean);
+  r.field("t_std", c.t_std);
+  SIMU_CHECK(c.beta > 0, "{}: objective.beta must be > 0, got {}", r.file(), c.beta);
+  SIMU_CHECK(c.weight_completion >= 0 && c.weight_preservation >= 0, "{}: objective weights must be >= 0", r.file());
+  SIMU_CHECK(c.t_std > 0, "{}: objective.t_std must be > 0", r.file());
+  return c;
+}
+
+double ObjectiveConfig::weight_of(int kind) const {
+  if (kind == 0) return weight_completion;
+  if (kind == 1) return weight_preservation;
+  fail("pair kind {} unknown (0 = occlusion completion, 1 = clean preservation)", kind);
+}
+
+torch::Tensor flow_mse(const torch::Tensor& pred, const torch::Tensor& target) {
+  // [B, ...] -> [B]
+  auto diff = pred.to(torch::kFloat32) - target.to(torch::kFloat32);
+  return diff.pow(2).flatten(1).mean(1);
+}
+
+namespace {
+
+// Keeps the closure of a checkpointed segment alive in the autograd context.
+struct SegmentHolder : torch::CustomClassHolder {
+  std::function<torch::Tensor(const std::vector<torch::Tensor>&)> fn;
+};
+
+// Autocast state to replay in the backward recompute (the engine thread has its own).
+struct AutocastState {
+  bool cuda = false, cpu = false;
+  at::ScalarType cuda_dtype = at::kBFloat16, cpu_dtype = at::kBFloat16;
+  static AutocastState capture() {
+    AutocastState s;
+    s.cuda = at::autocast::is_autocast_enabled(at::kCUDA);
+    s.cpu = at::autocast::is_autocast_enabled(at::kCPU);
+    s.cuda_dtype = at::autocast::get_autocast_dtype(at::kCUDA);
+    s.cpu_dtype = at::autocast::get_autocast_dtype(at::kCPU);
+    return s;
+  }
+  void apply() const {
+    at::autocast::set_autocast_enabled(at::kCUDA, cuda);
+    at::autocast::set_autocast_enabled(at::kCPU, cpu);
+    at::autocast::set_autocast_dtype(at::kCUDA, cuda_dtype);
+    at::autocast::set_autocast_dtype(at::kCPU, cpu_dtype);
+  }
+};
+
+struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction> {
+  static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx,
+                                                at::TensorList all_list, int64_t n_inputs,
+                                                c10::intrusive_ptr<SegmentHolder> holder) {
+    const torch::autograd::variable_list all(all_list.begin(), all_list.end());
+    const auto ac = AutocastState::capture();
+    ctx->saved_data["n_inputs"] = n_inputs;
+    ctx->saved_data["fn"] = c10::IValue::make_capsule(c10::intrusive_ptr<torch::CustomClassHolder>(holder));
+    ctx->saved_data["ac_cuda"] = ac.cuda;
+    ctx->saved_data["ac_cpu"] = ac.cpu;
+    ctx->saved_data["ac_cuda_dtype"] = static_cast<int64_t>(ac.cuda_dtype);
+    ctx->saved_data["ac_cpu_dtype"] = static_cast<int64_t>(ac.cpu_dtype);
+    ctx->save_for_backward(all);
+    std::vector<torch::Tensor> ins(all.begin(), all.begin() + n_inputs);
+    // No graph kept: custom functions run forward with grad mode off.
+    return {holder->fn(ins)};
+  }
+
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grad_out) {
+    auto saved = ctx->get_saved_variables();
+    const int64_t n_inputs = ctx->saved_data["n_inputs"].toInt();
+    auto holder = c10::static_intrusive_pointer_cast<SegmentHolder>(ctx->saved_data["fn"].toCapsule());
+    AutocastState ac;
+    ac.cuda = ctx->saved_data["ac_cuda"].toBool();
+    ac.cpu = ctx->saved_data["ac_cpu"].toBool();
+    ac.cuda_dtype = static_cast<at::ScalarType>(ctx->saved_data["ac_cuda_dtype"].toInt());
+    ac.cpu_dtype = static_cast<at::ScalarType>(ctx->saved_data["ac_cpu_dtype"].toInt());
+    // Recompute with a graph: inputs detached (fresh leaves), parameters as they are.
+    std::vector<torch::Tensor> ins;
+    std::vector<torch::Tensor> targets;
+    std::vector<int64_t> target_index;
+    for (int64_t i = 0; i < static_cast<int64_t>(saved.size()); ++i) {
+      torch::Tensor v = saved[i];
+      if (i < n_inputs) {
+        v = v.detach().requires_grad_(saved[i].requires_grad());
+        ins.push_back(v);
+      }
+      if (v.requires_grad()) {
+        targets.push_back(v);
+        target_index.push_back(i);
+      }
+    }
+    torch::Tensor out;
+    {
+      const auto before = AutocastState::capture();
+      torch::AutoGradMode grad_on(true);
+      ac.apply();
+      out = holder->fn(ins);
+      before.apply();
+    }
+    torch::autograd::variable_list grads(saved.size() + 2);
+    if (!targets.empty() && out.requires_grad()) {
+      auto g = torch::autograd::grad({out}, targets, {grad_out[0]}, /*retain_graph=*/false,
+                                     /*create_graph=*/false, /*allow_unused=*/true);
+      for (size_t k = 0; k < g.size(); ++k) grads[target_index[k]] = g[k];
+    }
+    return grads;
+  }
+};
+
+// splitmix64 step: decorrelates the seed parts.
+uint64_t mix(uint64_t x) {
+  x += 0x9e3779b97f4a7c15ull;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+  return x ^ (x >> 31);
+}
+
+// Switches the adapters off for the reference pass and back on at scope exit.
+struct AdaptersOff {
+  PolicyModel& m;
+  explicit AdaptersOff(PolicyModel& model) : m(model) { m.set_adapters_enabled(false); }
+  ~AdaptersOff() { m.set_adapters_enabled(true); }
+};
+
+}  // namespace
+
+torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<torch::Tensor>&)>& fn,
+                           const std::vector<torch::Tensor>& inputs, const std::vector<torch::Tensor>& params) {
+  auto holder = c10::make_intrusive<SegmentHolder>();
+  holder->fn = fn;
+  torch::autograd::variable_list all(inputs.begin(), inputs.end());
+  all.insert(all.end(), params.begin(), params.end());
+  // Passed as a TensorList so that autograd sees every tensor as an input (a std::vector is not).
+  return CheckpointFunction::apply(at::TensorList(all), static_cast<int64_t>(inputs.size()), holder)[0];
+}
+
+PairNoise draw_pair_noise(uint64_t seed, int64_t step, int64_t pair_id, at::IntArrayRef latent_shape, double t_mean,
+                          double t_std) {
+  const uint64_t s = mix(mix(mix(seed) ^ static_cast<uint64_t>(step)) ^ static_cast<uint64_t>(pair_id));
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(s);
+  PairNoise n;
+  const auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+  // t = sigmoid(N(mean, std)): the official logit-normal training sampler.
+  n.t = torch::sigmoid(at::randn(std::vector<int64_t>{}, gen, f32) * t_std + t_mean);
+  n.eps_pos = at::randn(latent_shape, gen, f32);
+  n.eps_neg = at::randn(latent_shape, gen, f32);
+  return n;
+}
+
+FmdpoTerms fmdpo_terms(PolicyModel& model, const FmdpoInputs& in, double beta, bool checkpoint) {
+  const int64_t B = in.x_pos.size(0);
+  SIMU_CHECK(in.x_neg.sizes() == in.x_pos.sizes() && in.eps_pos.sizes() == in.x_pos.sizes() &&
+                 in.eps_neg.sizes() == in.x_pos.sizes(),
+             "fmdpo: x_pos, x_neg, eps_pos, eps_neg must share one shape");
+  SIMU_CHECK(in.t.dim() == 1 && in.t.size(0) == B && in.w.size(0) == B && in.cond.size(0) == B,
+             "fmdpo: t, w and cond must have one entry per pair ({})", B);
+  // Noised latents and velocity targets, both members stacked: [2B, T, C].
+  auto t = in.t.to(torch::kFloat32).view({B, 1, 1});
+  auto xt = torch::cat({(1 - t) * in.eps_pos + t * in.x_pos, (1 - t) * in.eps_neg + t * in.x_neg});
+  auto target = torch::cat({in.x_pos - in.eps_pos, in.x_neg - in.eps_neg});
+  auto t_scaled = torch::cat({in.t, in.t}).to(torch::kFloat32) * 1000.0;  // [2B]
+  auto cond = torch::cat({in.cond, in.cond});                            // [2B, L, Cc]
+  auto d = torch::zeros({2 * B}, t_scaled.options());                   // no shortcut
+
+  FmdpoTerms out;
+  // Policy: adapters on, with graph.
+  torch::Tensor pred;
+  if (checkpoint) {
+    std::vector<torch::Tensor> params;
+    for (auto& [n, p] : model.adapter_parameters()) params.push_back(p);
+    pred = checkpointed(
+        [&model](const std::vector<torch::Tensor>& v) { return model.predict_shape(v[0], v[1], v[2], v[3]); },
+        {xt, t_scaled, cond, d}, params);
+  } else {
+    pred = model.predict_shape(xt, t_scaled, cond, d);
+  }
+  auto l_pol = flow_mse(pred, target);  // [2B]
+  out.loss_pos_policy = l_pol.narrow(0, 0, B);
+  out.loss_neg_policy = l_pol.narrow(0, B, B);
+  // Reference: adapters off, no graph, same inputs.
+  {
+    torch::NoGradGuard no_grad;
+    AdaptersOff off(model);
+    auto l_ref = flow_mse(model.predict_shape(xt, t_scaled, cond, d), target);
+    out.loss_pos_ref = l_ref.narrow(0, 0, B);
+    out.loss_neg_ref = l_ref.narrow(0, B, B);
+  }
+  out.d_theta = out.loss_pos_policy - out.loss_neg_policy;
+  out.d_ref = out.loss_pos_ref - out.loss_neg_ref;
+  out.per_pair = -torch::log_sigmoid(-beta / 2.0 * (out.d_theta - out.d_ref));
+  out.loss = (in.w.to(torch::kFloat32) * out.per_pair).mean();
+  return out;
+}
+
+}  // namespace simu::training

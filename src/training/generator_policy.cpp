@@ -1,0 +1,146 @@
+#include "training/generator_policy.h"
+
+#include "common/error.h"
+#include "common/log.h"
+
+#if __has_include("models/generator.h") && __has_include("lora/lora.h")
+#define SIMU_TRAINING_HAVE_POLICY 1
+#include "lora/lora.h"
+#include "models/generator.h"
+#endif
+#if __has_include("data/pair_cache.h")
+#define SIMU_TRAINING_HAVE_CACHE 1
+#include "data/pair_cache.h"
+#endif
+
+namespace simu::training {
+
+#ifdef SIMU_TRAINING_HAVE_POLICY
+namespace {
+
+// The generator with adapters, seen through PolicyModel.
+class GeneratorPolicy : public PolicyModel {
+ public:
+  GeneratorPolicy(simu::models::Generator gen, simu::lora::LoraConfig lora)
+      : gen_(std::move(gen)), lora_(std::move(lora)) {}
+
+  torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled, const torch::Tensor& cond,
+                              const torch::Tensor& d) override {
+    auto backbone = gen_->backbone();
+    const auto& c = backbone->config();
+    // Shape latent as given; pose latents as zeros [B, tokens, ch].
+    simu::models::Latents latents;
+    const int64_t B = x_shape.size(0);
+    for (const auto& spec : c.latents) {
+      if (spec.name == "shape") latents["shape"] = x_shape;
+      else latents[spec.name] = torch::zeros({B, spec.tokens(), spec.in_channels}, x_shape.options());
+    }
+    auto out = backbone->forward(latents, t_scaled, cond, c.is_shortcut_model ? c10::optional<torch::Tensor>(d) : c10::nullopt);
+    return out.at("shape");
+  }
+  void set_adapters_enabled(bool enabled) override { simu::lora::set_lora_enabled(*gen_, enabled); }
+  std::vector<std::pair<std::string, torch::Tensor>> adapter_parameters() override {
+    std::vector<std::pair<std::string, torch::Tensor>> out;
+    for (auto& [name, p] : simu::lora::lora_parameters(*gen_)) out.emplace_back(simu::lora::peft_file_key(name), p);
+    return out;
+  }
+  void export_peft(const std::string& dir) override {
+    simu::lora::save_peft(dir, *gen_, lora_, "FM-DPO (train_fmdpo)");
+  }
+
+ private:
+  simu::models::Generator gen_;
+  simu::lora::LoraConfig lora_;
+};
+
+// Freezes every parameter of the generator (adapters are added afterwards, trainable).
+void freeze(torch::nn::Module& m) {
+  for (auto& p : m.parameters()) p.set_requires_grad(false);
+}
+
+}  // namespace
+
+bool have_generator_policy() { return true; }
+
+std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_config, const std::string& weights,
+                                                   const YAML::Node& lora, const std::string& lora_dir,
+                                                   torch::Device device) {
+  auto gen = simu::models::load_generator(generator_config, weights, torch::kCPU);
+  freeze(*gen);
+  simu::lora::LoraConfig lc;
+  if (lora_dir.empty()) {
+    simu::config::Reader r(lora ? lora : YAML::Node(YAML::NodeType::Map), generator_config, "lora");
+    lc = simu::lora::LoraConfig::from(r);
+    r.finish();
+    auto report = simu::lora::inject_lora(*gen, lc);
+    (void)report;
+  } else {
+    lc = simu::lora::load_peft(lora_dir, *gen);
+  }
+  gen->to(device);
+  gen->train();
+  return std::make_unique<GeneratorPolicy>(gen, lc);
+}
+
+std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch::Device device) {
+  return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device);
+}
+#else
+bool have_generator_policy() { return false; }
+std::unique_ptr<PolicyModel> make_generator_policy(const std::string&, const std::string&, const YAML::Node&,
+                                                   const std::string&, torch::Device) {
+  fail("this build has no Stage-1 generator / LoRA library (models/generator.h, lora/lora.h)");
+}
+std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig&, torch::Device) {
+  fail("this build has no Stage-1 generator / LoRA library (models/generator.h, lora/lora.h)");
+}
+#endif
+
+#ifdef SIMU_TRAINING_HAVE_CACHE
+namespace {
+
+// PairStream seen through PairSource.
+class CacheSource : public PairSource {
+ public:
+  CacheSource(const std::string& path, int rank, int world, int64_t global_batch, uint64_t seed, DataPosition pos,
+              int64_t prefetch)
+      : stream_(path, rank, world, global_batch, seed, simu::data::StreamPosition{pos.epoch, pos.step}, prefetch) {}
+  std::vector<Pair> next_batch() override {
+    std::vector<Pair> out;
+    for (auto& r : stream_.next_batch()) {
+      Pair p;
+      p.id = r.index;
+      p.kind = static_cast<int>(r.kind);
+      p.x_pos = r.latent_pos;
+      p.x_neg = r.latent_neg;
+      p.cond = r.cond;
+      out.push_back(std::move(p));
+    }
+    return out;
+  }
+  DataPosition position() const override {
+    auto p = stream_.position();
+    return {p.epoch, p.step};
+  }
+
+ private:
+  simu::data::PairStream stream_;
+};
+
+}  // namespace
+
+bool have_pair_cache() { return true; }
+
+PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch) {
+  return [path, prefetch](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
+    return std::make_unique<CacheSource>(path, rank, world, gb, seed, pos, prefetch);
+  };
+}
+#else
+bool have_pair_cache() { return false; }
+PairSourceFactory pair_cache_source(const std::string&, int64_t) {
+  fail("this build has no pair cache library (data/pair_cache.h)");
+}
+#endif
+
+}  // namespace simu::training

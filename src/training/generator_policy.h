@@ -1,0 +1,32 @@
+// Bindings of the trainer to the rest of the toolkit: the Stage-1 generator with LoRA adapters as
+// the PolicyModel, and the HDF5 pair cache as the PairSource. Parts whose library is not in this
+// build throw a simu::Error saying so.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "training/fmdpo.h"
+#include "training/trainer.h"
+
+namespace simu::training {
+
+// Loads the generator (model.config / model.weights), injects LoRA (cfg.lora, strict keys) into
+// its shape-branch projections, moves it to device. Only the adapters require gradients.
+// Pose latents are fed as zeros (the shape prediction does not depend on them).
+std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch::Device device);
+
+// Same, from a generator already built (tests: fixture weights + a PEFT adapter loaded on top).
+// lora_dir: "" -> inject fresh adapters from cfg.lora; else load_peft(lora_dir) (adapter config there).
+std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_config, const std::string& weights,
+                                                   const YAML::Node& lora, const std::string& lora_dir,
+                                                   torch::Device device);
+
+// Source over the HDF5 pair cache (data/pair_cache.h PairStream) with `prefetch` batches read ahead.
+PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch);
+
+// True when this build has the generator + LoRA (resp. the pair cache) libraries.
+bool have_generator_policy();
+bool have_pair_cache();
+
+}  // namespace simu::training

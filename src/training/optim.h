@@ -1,0 +1,60 @@
+// Optimisation pieces of FM-DPO training: learning-rate schedule, global-norm clipping, AdamW over
+// named adapter parameters with its state saved to and restored from named tensors.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <map>
+#include <memory>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "common/config.h"
+
+namespace simu::training {
+
+// optim: section of the training config.
+struct OptimConfig {
+  double lr = 1e-5;
+  std::vector<double> betas = {0.9, 0.999};
+  double eps = 1e-8;
+  double weight_decay = 0.01;
+  int64_t warmup_steps = 300;
+  std::string schedule = "constant";  // "constant" or "cosine" after the warm-up
+  double min_lr_ratio = 0.0;          // cosine floor as a fraction of lr
+  double clip_grad_norm = 1.0;        // <= 0: no clipping (the norm is still reported)
+  static OptimConfig from(simu::config::Reader& r);
+};
+
+// Learning rate for optimizer step `step` (0-based) of `total_steps`: linear warm-up from lr/warmup
+// to lr over warmup_steps steps (step s uses lr*(s+1)/warmup), then constant or cosine down to
+// lr*min_lr_ratio at the last step.
+double learning_rate(const OptimConfig& cfg, int64_t step, int64_t total_steps);
+
+// Global L2 norm over all defined gradients (float64 accumulation), like torch's clip_grad_norm_.
+double global_grad_norm(const std::vector<torch::Tensor>& params);
+// Scales gradients by min(1, max_norm / (norm + 1e-6)) when max_norm > 0 (PyTorch's rule).
+// Returns the norm before clipping.
+double clip_grad_norm(const std::vector<torch::Tensor>& params, double max_norm);
+
+// AdamW on named parameters (decoupled weight decay, PyTorch's torch.optim.AdamW update).
+class AdamW {
+ public:
+  AdamW(std::vector<std::pair<std::string, torch::Tensor>> params, const OptimConfig& cfg);
+  // One update with learning rate lr.
+  void step(double lr);
+  void zero_grad();
+  const std::vector<std::pair<std::string, torch::Tensor>>& params() const { return params_; }
+  std::vector<torch::Tensor> tensors() const;
+  // State as named CPU tensors: `<name>.exp_avg`, `<name>.exp_avg_sq`, `<name>.step` (int64 scalar).
+  std::map<std::string, torch::Tensor> state_dict() const;
+  // Restores state_dict(); every parameter's three entries must be there with the right shape.
+  void load_state_dict(const std::map<std::string, torch::Tensor>& state, const std::string& source);
+
+ private:
+  std::vector<std::pair<std::string, torch::Tensor>> params_;
+  std::unique_ptr<torch::optim::AdamW> opt_;
+};
+
+}  // namespace simu::training

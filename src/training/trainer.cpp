@@ -1,0 +1,424 @@
+#include "training/trainer.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <ATen/autocast_mode.h>
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <numeric>
+#include <random>
+#include <sstream>
+
+#include <fmt/ranges.h>
+
+#include "common/error.h"
+#include "common/log.h"
+#include "training/observe.h"
+
+namespace simu::training {
+
+// ---- configs ---------------------------------------------------------------------------------
+
+ModelConfig ModelConfig::from(simu::config::Reader& r) {
+  ModelConfig c;
+  c.config = r.require<std::string>("config");
+  r.field("weights", c.weights);
+  return c;
+}
+
+DataConfig DataConfig::from(simu::config::Reader& r) {
+  DataConfig c;
+  r.field("cache", c.cache);
+  r.field("global_batch", c.global_batch);
+  r.field("micro_batch", c.micro_batch);
+  r.field("prefetch", c.prefetch);
+  r.field("seed", c.seed);
+  SIMU_CHECK(c.global_batch >= 1, "{}: data.global_batch must be >= 1, got {}", r.file(), c.global_batch);
+  SIMU_CHECK(c.micro_batch >= 1, "{}: data.micro_batch must be >= 1, got {}", r.file(), c.micro_batch);
+  SIMU_CHECK(c.prefetch >= 0, "{}: data.prefetch must be >= 0", r.file());
+  return c;
+}
+
+LoopConfig LoopConfig::from(simu::config::Reader& r) {
+  LoopConfig c;
+  r.field("steps", c.steps);
+  r.field("precision", c.precision);
+  r.field("activation_checkpointing", c.activation_checkpointing);
+  r.field("seed", c.seed);
+  r.field("device", c.device);
+  SIMU_CHECK(c.steps >= 1, "{}: train.steps must be >= 1, got {}", r.file(), c.steps);
+  SIMU_CHECK(c.precision == "bf16" || c.precision == "fp32", "{}: train.precision: expected 'bf16' or 'fp32', got '{}'",
+             r.file(), c.precision);
+  SIMU_CHECK(c.device == "cuda" || c.device == "cpu", "{}: train.device: expected 'cuda' or 'cpu', got '{}'", r.file(),
+             c.device);
+  return c;
+}
+
+RunConfig RunConfig::from(simu::config::Reader& r) {
+  RunConfig c;
+  r.field("out_dir", c.out_dir);
+  r.field("checkpoint_every", c.checkpoint_every);
+  r.field("keep_last", c.keep_last);
+  r.field("log_every", c.log_every);
+  r.field("progress", c.progress);
+  SIMU_CHECK(c.checkpoint_every >= 0, "{}: run.checkpoint_every must be >= 0", r.file());
+  SIMU_CHECK(!c.out_dir.empty(), "{}: run.out_dir must not be empty", r.file());
+  return c;
+}
+
+DistConfig DistConfig::from(simu::config::Reader& r) {
+  DistConfig c;
+  r.field("timeout_s", c.timeout_s);
+  r.field("hang_timeout_s", c.hang_timeout_s);
+  SIMU_CHECK(c.timeout_s > 0 && c.hang_timeout_s > 0, "{}: dist timeouts must be > 0", r.file());
+  return c;
+}
+
+TrainConfig TrainConfig::from(simu::config::Reader& r) {
+  TrainConfig c;
+  auto m = r.child("model");
+  c.model = ModelConfig::from(m);
+  c.lora = r.raw("lora");
+  auto o = r.child("objective");
+  c.objective = ObjectiveConfig::from(o);
+  auto op = r.child("optim");
+  c.optim = OptimConfig::from(op);
+  auto d = r.child("data");
+  c.data = DataConfig::from(d);
+  auto t = r.child("train");
+  c.train = LoopConfig::from(t);
+  auto rr = r.child("run");
+  c.run = RunConfig::from(rr);
+  auto ds = r.child("dist");
+  c.dist = DistConfig::from(ds);
+  r.finish();
+  c.file = r.file();
+  c.resolved = YAML::Clone(r.node());
+  return c;
+}
+
+TrainConfig TrainConfig::load(const std::string& path, const std::vector<std::string>& overrides) {
+  auto node = simu::config::load_file(path, overrides);
+  simu::config::Reader r(node, path);
+  return from(r);
+}
+
+// ---- data ------------------------------------------------------------------------------------
+
+std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch) {
+  std::vector<int64_t> perm(n);
+  std::iota(perm.begin(), perm.end(), 0);
+  // Fisher-Yates with a 64-bit Mersenne twister (identical on every platform).
+  std::mt19937_64 rng(seed * 0x9e3779b97f4a7c15ull + static_cast<uint64_t>(epoch) + 1);
+  for (int64_t i = n - 1; i > 0; --i) {
+    const int64_t j = static_cast<int64_t>(rng() % static_cast<uint64_t>(i + 1));
+    std::swap(perm[i], perm[j]);
+  }
+  return perm;
+}
+
+MemoryPairSource::MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world,
+                                   int64_t global_batch, uint64_t seed, DataPosition start)
+    : pairs_(std::move(pairs)), rank_(rank), world_(world), global_(global_batch), seed_(seed), pos_(start) {
+  SIMU_CHECK(global_ % world_ == 0, "global batch {} is not divisible by the world size {}", global_, world_);
+  SIMU_CHECK(static_cast<int64_t>(pairs_->size()) >= global_, "{} pairs cannot fill one global batch of {}",
+             pairs_->size(), global_);
+}
+
+std::vector<Pair> MemoryPairSource::next_batch() {
+  const int64_t n = static_cast<int64_t>(pairs_->size());
+  if (pos_.step >= n / global_) {
+    ++pos_.epoch;
+    pos_.step = 0;
+  }
+  if (perm_epoch_ != pos_.epoch) {
+    perm_ = epoch_permutation(n, seed_, pos_.epoch);
+    perm_epoch_ = pos_.epoch;
+  }
+  const int64_t share = global_ / world_;
+  std::vector<Pair> out;
+  for (int64_t i = 0; i < share; ++i) out.push_back((*pairs_)[perm_[pos_.step * global_ + rank_ * share + i]]);
+  ++pos_.step;
+  return out;
+}
+
+std::map<std::string, double> StepMetrics::scalars() const {
+  std::map<std::string, double> m{{"loss", loss},           {"accuracy", accuracy}, {"margin", margin},
+                                  {"grad_norm", grad_norm}, {"lr", lr},             {"pairs_per_s", pairs_per_s}};
+  for (const auto& [k, v] : per_kind) m[k] = v;
+  return m;
+}
+
+// ---- trainer ---------------------------------------------------------------------------------
+
+namespace {
+
+const char* kKindNames[2] = {"completion", "preservation"};
+
+// CUDA bf16 autocast for a scope when enabled (adapters stay fp32; matmuls run in bf16).
+struct AutocastScope {
+  bool on;
+  bool prev_enabled = false;
+  at::ScalarType prev_dtype = at::kBFloat16;
+  explicit AutocastScope(bool enable) : on(enable) {
+    if (!on) return;
+    prev_enabled = at::autocast::is_autocast_enabled(at::kCUDA);
+    prev_dtype = at::autocast::get_autocast_dtype(at::kCUDA);
+    at::autocast::set_autocast_enabled(at::kCUDA, true);
+    at::autocast::set_autocast_dtype(at::kCUDA, at::kBFloat16);
+  }
+  ~AutocastScope() {
+    if (!on) return;
+    at::autocast::set_autocast_enabled(at::kCUDA, prev_enabled);
+    at::autocast::set_autocast_dtype(at::kCUDA, prev_dtype);
+    at::autocast::clear_cache();
+  }
+};
+
+// The CPU and (when used) CUDA default generators' states, as uint8 tensors under rng.*.
+std::map<std::string, torch::Tensor> rng_states(const torch::Device& device) {
+  std::map<std::string, torch::Tensor> out;
+  out["rng.torch_cpu"] = at::detail::getDefaultCPUGenerator().get_state();
+  if (device.is_cuda()) {
+    at::Generator g = at::globalContext().defaultGenerator(device);
+    out["rng.torch_cuda"] = g.get_state();
+  }
+  return out;
+}
+
+}  // namespace
+
+Trainer::Trainer(TrainConfig cfg, PolicyModel& model, PairSourceFactory sources, Communicator& comm,
+                 torch::Device device)
+    : cfg_(std::move(cfg)), model_(model), make_source_(std::move(sources)), comm_(comm), device_(device) {
+  const int64_t world = comm_.world_size();
+  const int64_t per_rank = cfg_.data.global_batch / world;
+  if (cfg_.data.global_batch % (world * cfg_.data.micro_batch) != 0)
+    fail_hint("choose global_batch = micro_batch x accumulation x world size",
+              "{}: data.global_batch {} is not divisible by micro_batch {} x world size {}", cfg_.file,
+              cfg_.data.global_batch, cfg_.data.micro_batch, world);
+  (void)per_rank;
+  opt_ = std::make_unique<AdamW>(model_.adapter_parameters(), cfg_.optim);
+  source_ = make_source_(comm_.rank(), comm_.world_size(), cfg_.data.global_batch, cfg_.data.seed, DataPosition{});
+}
+
+CheckpointData Trainer::checkpoint_data() const {
+  CheckpointData d;
+  d.step = step_;
+  for (const auto& [name, p] : opt_->params()) d.adapter[name] = p.detach().to(torch::kCPU).clone();
+  d.optimizer = opt_->state_dict();
+  for (auto& [k, v] : rng_states(device_)) d.optimizer[k] = v;
+  const auto pos = source_->position();
+  std::ostringstream cfg;
+  cfg << cfg_.resolved;
+  d.state = {{"data_position", {{"epoch", pos.epoch}, {"step", pos.step}}},
+             {"seed", cfg_.train.seed},
+             {"data_seed", cfg_.data.seed},
+             {"world_size", comm_.world_size()},
+             {"global_batch", cfg_.data.global_batch},
+             {"micro_batch", cfg_.data.micro_batch},
+             {"lr_next", learning_rate(cfg_.optim, step_, cfg_.train.steps)},
+             {"schedule", {{"kind", cfg_.optim.schedule}, {"warmup_steps", cfg_.optim.warmup_steps},
+                           {"total_steps", cfg_.train.steps}}},
+             {"config", cfg.str()}};
+  return d;
+}
+
+std::string Trainer::save() {
+  std::string dir;
+  if (comm_.rank() == 0) dir = save_checkpoint(cfg_.run.out_dir + "/checkpoints", checkpoint_data(), cfg_.run.keep_last);
+  comm_.barrier();
+  return dir;
+}
+
+void Trainer::resume(const std::string& dir) {
+  auto ck = load_checkpoint(dir);
+  // Adapters: exactly the same names and shapes.
+  std::vector<std::string> problems;
+  for (const auto& [name, p] : opt_->params()) {
+    auto it = ck.adapter.find(name);
+    if (it == ck.adapter.end()) problems.push_back("missing " + name);
+    else if (it->second.sizes() != p.sizes())
+      problems.push_back(fmt::format("{}: shape {} vs {}", name, fmt::join(it->second.sizes(), "x"), fmt::join(p.sizes(), "x")));
+  }
+  if (ck.adapter.size() != opt_->params().size())
+    problems.push_back(fmt::format("{} adapter tensors in the checkpoint, {} in the model", ck.adapter.size(),
+                                   opt_->params().size()));
+  if (!problems.empty()) fail("{}: checkpoint does not match the model's adapters:\n  {}", dir, fmt::join(problems, "\n  "));
+  const int64_t gb = ck.state.value("global_batch", int64_t{-1});
+  if (gb != cfg_.data.global_batch)
+    fail("{}: checkpoint was trained with global batch {}, the config says {}", dir, gb, cfg_.data.global_batch);
+  {
+    torch::NoGradGuard ng;
+    for (const auto& [name, p] : opt_->params()) p.copy_(ck.adapter.at(name));
+  }
+  std::map<std::string, torch::Tensor> opt_state;
+  for (auto& [k, v] : ck.optimizer)
+    if (k.rfind("rng.", 0) != 0) opt_state[k] = v;
+  opt_->load_state_dict(opt_state, dir + "/optimizer.safetensors");
+  // RNG states.
+  if (auto it = ck.optimizer.find("rng.torch_cpu"); it != ck.optimizer.end())
+  {
+    at::Generator g = at::detail::getDefaultCPUGenerator();
+    g.set_state(it->second);
+  }
+  if (device_.is_cuda())
+    if (auto it = ck.optimizer.find("rng.torch_cuda"); it != ck.optimizer.end())
+    {
+      at::Generator g = at::globalContext().defaultGenerator(device_);
+      g.set_state(it->second);
+    }
+  step_ = ck.step;
+  DataPosition pos;
+  pos.epoch = ck.state.at("data_position").at("epoch").get<int64_t>();
+  pos.step = ck.state.at("data_position").at("step").get<int64_t>();
+  source_ = make_source_(comm_.rank(), comm_.world_size(), cfg_.data.global_batch, cfg_.data.seed, pos);
+  if (comm_.rank() == 0) simu::log::info("resumed from {} at step {} (data epoch {}, batch {})", dir, step_, pos.epoch, pos.step);
+}
+
+StepMetrics Trainer::step() {
+  const auto began = std::chrono::steady_clock::now();
+  auto pairs = source_->next_batch();
+  const int64_t share = static_cast<int64_t>(pairs.size());
+  SIMU_CHECK(share == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected", share,
+             cfg_.data.global_batch / comm_.world_size());
+  const int64_t micro = cfg_.data.micro_batch;
+  const double beta = cfg_.objective.beta;
+  const bool bf16 = cfg_.train.precision == "bf16" && device_.is_cuda();
+  opt_->zero_grad();
+
+  // Sums over this rank's pairs: loss*, correct, margin, then per kind: count, 4 losses.
+  std::vector<double> sums(3 + 2 * 5, 0.0);
+  // Micro-batches of `micro` pairs; within one, pairs with different condition lengths run as
+  // separate forwards (the model has no condition mask, so padding would change the result).
+  std::vector<std::vector<int64_t>> groups;
+  for (int64_t m0 = 0; m0 < share; m0 += micro) {
+    std::map<int64_t, std::vector<int64_t>> by_len;
+    for (int64_t i = m0; i < std::min(share, m0 + micro); ++i) by_len[pairs[i].cond.size(0)].push_back(i);
+    for (auto& [len, idx] : by_len) groups.push_back(idx);
+  }
+  for (const auto& group : groups) {
+    // One forward: stack pairs, draw their noise.
+    std::vector<torch::Tensor> xp, xn, cd, ts, ep, en, ws;
+    std::vector<int> kinds;
+    for (int64_t i : group) {
+      const Pair& p = pairs[i];
+      auto nz = draw_pair_noise(cfg_.train.seed, step_, p.id, p.x_pos.sizes(), cfg_.objective.t_mean, cfg_.objective.t_std);
+      xp.push_back(p.x_pos.to(torch::kFloat32));
+      xn.push_back(p.x_neg.to(torch::kFloat32));
+      cd.push_back(p.cond.to(torch::kFloat32));
+      ts.push_back(nz.t);
+      ep.push_back(nz.eps_pos);
+      en.push_back(nz.eps_neg);
+      ws.push_back(torch::tensor(static_cast<float>(cfg_.objective.weight_of(p.kind))));
+      kinds.push_back(p.kind);
+    }
+    FmdpoInputs in;
+    in.x_pos = torch::stack(xp).to(device_);
+    in.x_neg = torch::stack(xn).to(device_);
+    in.cond = torch::stack(cd).to(device_);
+    in.t = torch::stack(ts).to(device_);
+    in.eps_pos = torch::stack(ep).to(device_);
+    in.eps_neg = torch::stack(en).to(device_);
+    in.w = torch::stack(ws).to(device_);
+    FmdpoTerms terms;
+    {
+      AutocastScope ac(bf16);
+      terms = fmdpo_terms(model_, in, beta, cfg_.train.activation_checkpointing);
+    }
+    // Rank-local mean over its share; the all-reduce averages the ranks -> global mean.
+    auto weighted = in.w * terms.per_pair;  // [m]
+    (weighted.sum() / static_cast<double>(share)).backward();
+    // Metrics.
+    auto cpu = [](const torch::Tensor& t) { return t.detach().to(torch::kCPU, torch::kFloat64); };
+    auto wpp = cpu(weighted), dth = cpu(terms.d_theta), dre = cpu(terms.d_ref);
+    auto lpp = cpu(terms.loss_pos_policy), lnp = cpu(terms.loss_neg_policy);
+    auto lpr = cpu(terms.loss_pos_ref), lnr = cpu(terms.loss_neg_ref);
+    for (int64_t b = 0; b < static_cast<int64_t>(kinds.size()); ++b) {
+      sums[0] += wpp[b].item<double>();
+      sums[1] += dth[b].item<double>() < dre[b].item<double>() ? 1.0 : 0.0;
+      sums[2] += -beta / 2.0 * (dth[b].item<double>() - dre[b].item<double>());
+      const int k = std::clamp(kinds[b], 0, 1);
+      sums[3 + 5 * k + 0] += 1.0;
+      sums[3 + 5 * k + 1] += lpp[b].item<double>();
+      sums[3 + 5 * k + 2] += lnp[b].item<double>();
+      sums[3 + 5 * k + 3] += lpr[b].item<double>();
+      sums[3 + 5 * k + 4] += lnr[b].item<double>();
+    }
+  }
+  // Average gradients over ranks, clip, step.
+  auto params = opt_->tensors();
+  std::vector<torch::Tensor> grads;
+  for (auto& p : params) {
+    if (!p.grad().defined()) p.mutable_grad() = torch::zeros_like(p);
+    grads.push_back(p.grad());
+  }
+  comm_.all_reduce_mean(grads);
+  StepMetrics m;
+  m.grad_norm = clip_grad_norm(params, cfg_.optim.clip_grad_norm);
+  m.lr = learning_rate(cfg_.optim, step_, cfg_.train.steps);
+  opt_->step(m.lr);
+  ++step_;
+  heartbeat();
+  // Metrics over all ranks.
+  sums = comm_.all_reduce_sum(sums);
+  const double n = static_cast<double>(cfg_.data.global_batch);
+  m.step = step_;
+  m.loss = sums[0] / n;
+  m.accuracy = sums[1] / n;
+  m.margin = sums[2] / n;
+  for (int k = 0; k < 2; ++k) {
+    const double c = sums[3 + 5 * k];
+    if (c == 0) continue;
+    const std::string kn = kKindNames[k];
+    m.per_kind[kn + "/policy_pos"] = sums[3 + 5 * k + 1] / c;
+    m.per_kind[kn + "/policy_neg"] = sums[3 + 5 * k + 2] / c;
+    m.per_kind[kn + "/ref_pos"] = sums[3 + 5 * k + 3] / c;
+    m.per_kind[kn + "/ref_neg"] = sums[3 + 5 * k + 4] / c;
+  }
+  if (device_.is_cuda()) torch::cuda::synchronize();
+  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - began).count();
+  m.pairs_per_s = n / std::max(secs, 1e-9);
+  return m;
+}
+
+void Trainer::run() {
+  const bool lead = comm_.rank() == 0;
+  const std::string out = cfg_.run.out_dir;
+  std::unique_ptr<MetricsWriter> metrics;
+  std::unique_ptr<TensorBoardWriter> tb;
+  std::unique_ptr<Progress> progress;
+  if (lead) {
+    std::filesystem::create_directories(out);
+    metrics = std::make_unique<MetricsWriter>(out + "/metrics.jsonl", step_ > 0 ? step_ : -1);
+    tb = std::make_unique<TensorBoardWriter>(out + "/tensorboard");
+    if (cfg_.run.progress)
+      progress = std::make_unique<Progress>(cfg_.train.steps, step_, Progress::stderr_is_tty(), cfg_.run.log_every);
+    simu::log::info("FM-DPO: {} steps from step {}, global batch {} = micro {} x accumulation {} x world {}",
+                    cfg_.train.steps, step_, cfg_.data.global_batch, cfg_.data.micro_batch,
+                    cfg_.data.global_batch / (cfg_.data.micro_batch * comm_.world_size()), comm_.world_size());
+  }
+  while (step_ < cfg_.train.steps) {
+    auto m = step();
+    if (lead) {
+      const auto sc = m.scalars();
+      metrics->write(m.step, sc);
+      tb->add_scalars(m.step, sc);
+      if (progress) progress->update(m.step, m.loss, m.accuracy, m.lr, m.pairs_per_s);
+    }
+    const bool last = step_ == cfg_.train.steps;
+    if (last || (cfg_.run.checkpoint_every > 0 && step_ % cfg_.run.checkpoint_every == 0)) {
+      const auto dir = save();
+      if (lead && !last) simu::log::debug("checkpoint {}", dir);
+    }
+  }
+  if (progress) progress->finish();
+  if (lead) {
+    model_.export_peft(out + "/adapter");
+    simu::log::info("done: {} steps; adapter (PEFT) in {}/adapter, checkpoints in {}/checkpoints", step_, out, out);
+  }
+  comm_.barrier();
+}
+
+}  // namespace simu::training

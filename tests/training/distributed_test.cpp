@@ -1,0 +1,99 @@
+// Distributed plumbing with plain tensors: TCPStore rendezvous on loopback, averaging, dead-rank errors.
+#include <cstdlib>
+#include <future>
+#include <thread>
+
+#include "common/error.h"
+#include "test_util.h"
+#include "training/distributed.h"
+
+using namespace simu::training;
+
+// Two ranks (threads) average their tensors; metrics sums agree.
+TEST(Distributed, StoreAllReduceAveragesAcrossRanks) {
+  const int port = free_port();
+  auto rank_fn = [port](int rank) {
+    DistEnv env;
+    env.rank = rank;
+    env.world_size = 2;
+    env.master_port = port;
+    auto store = connect_store(env, std::chrono::seconds(20));
+    auto comm = make_store_communicator(store, rank, 2, std::chrono::seconds(20));
+    std::vector<torch::Tensor> ts{torch::full({3, 2}, 1.0f + rank), torch::full({4}, 10.0f * rank)};
+    for (int round = 0; round < 4; ++round) comm->all_reduce_mean(ts);  // idempotent after the first
+    auto sums = comm->all_reduce_sum({1.0 + rank, 2.0});
+    comm->barrier();
+    return std::make_tuple(ts[0].clone(), ts[1].clone(), sums);
+  };
+  auto f0 = std::async(std::launch::async, rank_fn, 0);
+  auto f1 = std::async(std::launch::async, rank_fn, 1);
+  auto [a0, b0, s0] = f0.get();
+  auto [a1, b1, s1] = f1.get();
+  EXPECT_TRUE(torch::equal(a0, torch::full({3, 2}, 1.5f)));
+  EXPECT_TRUE(torch::equal(b0, torch::full({4}, 5.0f)));
+  EXPECT_TRUE(torch::equal(a0, a1) && torch::equal(b0, b1));
+  EXPECT_EQ(s0, (std::vector<double>{3.0, 4.0}));
+  EXPECT_EQ(s0, s1);
+}
+
+// A rank that stops taking part ends the collective with an error naming it, within the timeout.
+TEST(Distributed, DeadRankIsNamedWithinTimeout) {
+  const int port = free_port();
+  auto survivor = std::async(std::launch::async, [port] {
+    DistEnv env;
+    env.rank = 0;
+    env.world_size = 2;
+    env.master_port = port;
+    auto store = connect_store(env, std::chrono::seconds(20));
+    auto comm = make_store_communicator(store, 0, 2, std::chrono::milliseconds(1500));
+    std::vector<torch::Tensor> ts{torch::ones({2})};
+    comm->all_reduce_mean(ts);  // rank 1 joins this one
+    const auto t0 = std::chrono::steady_clock::now();
+    try {
+      comm->all_reduce_mean(ts);  // rank 1 is gone
+      return std::string("no error");
+    } catch (const simu::Error& e) {
+      const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      return std::string(e.what()) + (s < 10 ? "" : " (too late)");
+    }
+  });
+  {
+    DistEnv env;
+    env.rank = 1;
+    env.world_size = 2;
+    env.master_port = port;
+    auto store = connect_store(env, std::chrono::seconds(20));
+    auto comm = make_store_communicator(store, 1, 2, std::chrono::seconds(5));
+    std::vector<torch::Tensor> ts{torch::ones({2})};
+    comm->all_reduce_mean(ts);
+  }  // rank 1 "dies"
+  const std::string msg = survivor.get();
+  EXPECT_NE(msg.find("waiting for rank(s) 1"), std::string::npos) << msg;
+  EXPECT_EQ(msg.find("too late"), std::string::npos) << msg;
+}
+
+// Environment parsing: torchrun variables, then Slurm's.
+TEST(Distributed, EnvFromTorchrunAndSlurm) {
+  for (const char* k : {"RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT", "SLURM_PROCID", "SLURM_NTASKS", "SLURM_LOCALID"})
+    ::unsetenv(k);
+  EXPECT_EQ(DistEnv::from_environment().world_size, 1);
+  ::setenv("SLURM_PROCID", "3", 1);
+  ::setenv("SLURM_NTASKS", "8", 1);
+  ::setenv("SLURM_LOCALID", "1", 1);
+  ::setenv("MASTER_PORT", "12345", 1);
+  auto e = DistEnv::from_environment();
+  EXPECT_EQ(e.rank, 3);
+  EXPECT_EQ(e.world_size, 8);
+  EXPECT_EQ(e.local_rank, 1);
+  EXPECT_EQ(e.master_port, 12345);
+  ::setenv("RANK", "1", 1);
+  ::setenv("WORLD_SIZE", "2", 1);
+  ::setenv("LOCAL_RANK", "1", 1);
+  e = DistEnv::from_environment();
+  EXPECT_EQ(e.rank, 1);
+  EXPECT_EQ(e.world_size, 2);
+  ::setenv("RANK", "2", 1);
+  EXPECT_THROW(DistEnv::from_environment(), simu::Error);
+  for (const char* k : {"RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_PORT", "SLURM_PROCID", "SLURM_NTASKS", "SLURM_LOCALID"})
+    ::unsetenv(k);
+}

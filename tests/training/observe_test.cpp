@@ -1,0 +1,56 @@
+// TensorBoard event files (CRC32C, framing, read back by TensorBoard itself) and metrics lines.
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+
+#include "common/fs.h"
+#include "common/error.h"
+#include "test_util.h"
+#include "training/observe.h"
+
+using namespace simu::training;
+
+// CRC-32C check value of "123456789" (RFC 3720 / iSCSI) and a 32-byte-zero vector.
+TEST(TensorBoard, Crc32cKnownValues) {
+  EXPECT_EQ(crc32c("123456789", 9), 0xE3069283u);
+  const std::string zeros(32, '\0');
+  EXPECT_EQ(crc32c(zeros.data(), zeros.size()), 0x8A9136AAu);
+}
+
+// The file opens in TensorBoard's EventAccumulator with the scalars we wrote.
+TEST(TensorBoard, ReadBackByTensorBoard) {
+  const std::string dir = simu::testing::temp_dir("tb");
+  {
+    TensorBoardWriter w(dir);
+    w.add_scalars(1, {{"loss", 0.5}, {"accuracy", 0.25}});
+    w.add_scalars(2, {{"loss", 0.375}, {"accuracy", 0.75}});
+  }
+  const std::string py = SIMU_PYTHON;
+  if (std::system((py + " -c 'import tensorboard' >/dev/null 2>&1").c_str()) != 0)
+    GTEST_SKIP() << py << " has no tensorboard module";
+  const std::string script = dir + "/read.py";
+  std::ofstream(script) << "import sys\n"
+                           "from tensorboard.backend.event_processing.event_accumulator import EventAccumulator\n"
+                           "ea = EventAccumulator(sys.argv[1]); ea.Reload()\n"
+                           "for tag in sorted(ea.Tags()['scalars']):\n"
+                           "    for e in ea.Scalars(tag): print(tag, e.step, repr(e.value))\n";
+  const std::string out = dir + "/out.txt";
+  ASSERT_EQ(std::system((py + " " + script + " " + dir + " > " + out + " 2>/dev/null").c_str()), 0);
+  EXPECT_EQ(simu::fs::read_file(out), "accuracy 1 0.25\naccuracy 2 0.75\nloss 1 0.5\nloss 2 0.375\n");
+}
+
+// A resumed run drops metric lines past its checkpoint step and appends.
+TEST(Metrics, ResumeTruncatesLaterLines) {
+  const std::string dir = simu::testing::temp_dir("metrics");
+  const std::string path = dir + "/metrics.jsonl";
+  {
+    MetricsWriter w(path);
+    for (int s = 1; s <= 4; ++s) w.write(s, {{"loss", s * 0.5}});
+  }
+  {
+    MetricsWriter w(path, 2);
+    w.write(3, {{"loss", 9.0}});
+  }
+  EXPECT_EQ(simu::fs::read_file(path), "{\"loss\":0.5,\"step\":1}\n{\"loss\":1.0,\"step\":2}\n{\"loss\":9.0,\"step\":3}\n");
+  EXPECT_EQ(format_duration(3725), "1h02m05s");
+}
