@@ -174,6 +174,32 @@ Mesh box_mesh(const Vec3& h) {
   return m;
 }
 
+Mesh prism_mesh(const std::vector<Eigen::Vector2d>& poly, double hh) {
+  const int n = static_cast<int>(poly.size());
+  SIMU_CHECK(n >= 3, "prism_mesh: polygon needs 3 or more vertices, got {}", n);
+  Mesh m;
+  m.V.resize(2 * n, 3);
+  for (int i = 0; i < n; ++i) {
+    m.V.row(i) << poly[i].x(), poly[i].y(), -hh;      // bottom ring
+    m.V.row(n + i) << poly[i].x(), poly[i].y(), hh;   // top ring
+  }
+  std::vector<Eigen::Vector3i> f;
+  // Caps: fans from vertex 0 (top counter-clockwise seen from +z, bottom reversed).
+  for (int i = 1; i + 1 < n; ++i) {
+    f.emplace_back(n, n + i, n + i + 1);
+    f.emplace_back(0, i + 1, i);
+  }
+  // Sides: two triangles per edge, outward.
+  for (int i = 0; i < n; ++i) {
+    const int j = (i + 1) % n;
+    f.emplace_back(i, j, n + j);
+    f.emplace_back(i, n + j, n + i);
+  }
+  m.F.resize(static_cast<Eigen::Index>(f.size()), 3);
+  for (size_t k = 0; k < f.size(); ++k) m.F.row(static_cast<Eigen::Index>(k)) = f[k].transpose();
+  return m;
+}
+
 uint64_t fnv1a64(const void* data, size_t n, uint64_t seed) {
   uint64_t h = seed;
   const auto* p = static_cast<const unsigned char*>(data);

@@ -3,6 +3,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "pipeline/scene.h"
 
@@ -36,6 +37,9 @@ double canonicalize(Mesh& mesh);
 double signed_volume(const Mesh& mesh);
 // An axis-aligned box mesh with the given half extents centred at the origin (outward winding).
 Mesh box_mesh(const Vec3& half_extents);
+// A closed prism: a simple counter-clockwise polygon in the xy plane (star-shaped about its first
+// vertex) extruded over z in [-half_height, half_height], wound outward.
+Mesh prism_mesh(const std::vector<Eigen::Vector2d>& polygon, double half_height);
 // 64-bit FNV-1a hash of bytes (used to key caches by mesh content).
 uint64_t fnv1a64(const void* data, size_t n, uint64_t seed = 1469598103934665603ULL);
 uint64_t mesh_hash(const Mesh& mesh);

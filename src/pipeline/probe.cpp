@@ -163,7 +163,7 @@ MjBody object_body(const Ctx& c, int i, bool dynamic, bool pins) {
 
 // Builds and compiles a world: planes, bases, static objects, dynamic objects (pins optional).
 World build_world(const Ctx& c, const std::vector<int>& statics, const std::vector<int>& dynamics, bool pins,
-                  std::string* xml_out = nullptr, const std::vector<int>& visual_only = {}) {
+                  std::string* xml_out = nullptr, const std::vector<int>& visual_only = {}, int buffer_factor = 1) {
   MjScene ms;
   ms.gravity = c.scene.gravity * c.scene.gravity_magnitude;
   if (c.scene.floor) {
@@ -186,8 +186,8 @@ World build_world(const Ctx& c, const std::vector<int>& statics, const std::vect
   // Contact and constraint buffers sized to the dynamic bodies (mjData holds an njmax^2 matrix).
   PhysicsConfig pc = c.cfg.physics;
   const int ndyn = static_cast<int>(dynamics.size());
-  pc.nconmax = std::min(pc.nconmax, 200 + 100 * ndyn);
-  pc.njmax = std::min(pc.njmax, 600 + 300 * ndyn);
+  pc.nconmax = std::min(pc.nconmax, (100 + 25 * ndyn) * buffer_factor);
+  pc.njmax = std::min(pc.njmax, (300 + 60 * ndyn) * buffer_factor);
   std::string xml = write_mjcf(ms, pc);
   // Visual-only bodies (disabled objects in the final file): no collisions.
   if (!visual_only.empty()) {
@@ -820,19 +820,51 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   std::vector<int> visual;
   for (size_t i = 0; i < n; ++i)
     if (objs[i].usable && !objs[i].simulate) visual.push_back(static_cast<int>(i));
+  const auto t_pen_done = clock::now();
+  log::debug("final penetration pass: {:.3f} s", std::chrono::duration<double>(t_pen_done - t2).count());
+  int buffer_factor = 1;
   if (!final_order.empty()) {
     try {
-      World w = build_world(c, {}, final_order, true);
-      const mjModel* m = w.model.get();
-      const int steps = static_cast<int>(std::ceil(cfg.final_settle_time / m->opt.timestep));
-      bool reset = false;
-      for (int s = 0; s < steps; ++s) {
-        mj_step(m, w.data.get());
-        if (take_warnings(w.data.get()) & (1 << mjWARN_BADQACC)) {
-          reset = true;
-          break;
+      // Joint settle for T_settle; stops early once every body has been at rest for settle_hold_time.
+      // Full contact/constraint buffers (a warning) restart it with larger ones.
+      World w;
+      bool reset = false, full = true;
+      for (; full && buffer_factor <= 8; buffer_factor *= 2) {
+        w = build_world(c, {}, final_order, true, nullptr, {}, buffer_factor);
+        const mjModel* m = w.model.get();
+        const int steps = static_cast<int>(std::ceil(cfg.final_settle_time / m->opt.timestep));
+        // Rest test every settle_window: no body moved more than settle_rest_distance since the last one.
+        const int window = std::max(1, static_cast<int>(cfg.settle_window / m->opt.timestep));
+        std::vector<Vec3> last(final_order.size());
+        for (size_t k = 0; k < final_order.size(); ++k) last[k] = Eigen::Map<const Vec3>(w.data->xpos + 3 * w.obj_body[final_order[k]]);
+        bool calm = false;
+        full = false;
+        for (int s = 0; s < steps && !calm; ++s) {
+          mj_step(m, w.data.get());
+          const int warn = take_warnings(w.data.get());
+          if (warn & ((1 << mjWARN_CONTACTFULL) | (1 << mjWARN_CNSTRFULL))) {
+            full = true;
+            break;
+          }
+          if (warn & (1 << mjWARN_BADQACC)) {
+            reset = true;
+            break;
+          }
+          if ((s + 1) % window == 0) {
+            double moved = 0;
+            for (size_t k = 0; k < final_order.size(); ++k) {
+              const Vec3 p = Eigen::Map<const Vec3>(w.data->xpos + 3 * w.obj_body[final_order[k]]);
+              moved = std::max(moved, (p - last[k]).norm());
+              last[k] = p;
+            }
+            calm = moved < cfg.settle_rest_distance;
+          }
         }
+        if (!full) break;
       }
+      if (full) log::warn("final settle: contact buffers still full at {}x", buffer_factor / 2);
+      log::debug("final settle: {:.3f} s ({:.2f} s simulated)", std::chrono::duration<double>(clock::now() - t_pen_done).count(),
+                 w.data->time);
       for (int i : final_order) {
         Diagnostics& d = res.diagnostics[i];
         if (reset) {
@@ -860,7 +892,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   }
   // The final MJCF: free objects dynamic, anchored ones on their pins, disabled ones visual only.
   try {
-    build_world(c, {}, final_order, true, &res.mjcf, visual);
+    build_world(c, {}, final_order, true, &res.mjcf, visual, std::max(1, buffer_factor));
   } catch (const std::exception& e) {
     log::warn("final MJCF does not compile: {}", e.what());
   }

@@ -126,6 +126,8 @@ struct ProbeConfig {
   double settle_speed = 2e-3;      // m/s and rad/s below which a body counts as settled
   double settle_hold_time = 0.1;   // s the speed must stay below settle_speed
   double final_settle_time = 2.0;  // T_settle (s)
+  double settle_window = 0.25;     // s: the final settle stops early once, over one window, ...
+  double settle_rest_distance = 1e-3;  // ... no body moved more than this (m)
   double divergence_bound = 0.25;  // m: larger final-settle motion is reverted
   double pin_region = 0.1;         // top-back pin region, fraction of the object's extent
   bool write_outputs = true;       // scene.json, meshes, scene.xml, report.json, hand-off

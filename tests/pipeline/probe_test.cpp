@@ -41,6 +41,7 @@ SceneObject cube(const std::string& id, const std::string& mesh, double size, co
 ProbeConfig quick() {
   ProbeConfig c;
   c.final_settle_time = 1.0;
+  c.collision.use_coacd = false;  // boxes are convex: one hull each, no decomposition time
   return c;
 }
 
