@@ -92,8 +92,8 @@ TEST(Raster, CubeSilhouetteAreaRotated) {
   EXPECT_EQ(img.mask_of(0).count(), 0);
   EXPECT_EQ(img.mask_of(1).count(), m.count());
   int checked = 0;
-  for (int r = 60; r < 180; r += 7)
-    for (int c = 100; c < 260; c += 7) {
+  for (int r = 60; r < 180; r += 4)
+    for (int c = 100; c < 260; c += 4) {
       // First hit of the pixel ray (direction with z = 1, so t is the depth) on the box (slab method).
       const Vec3 d = pixel_ray_camera(cam, c, r);
       const Vec3 o = b.axes.transpose() * (-b.center), dl = b.axes.transpose() * d;
@@ -214,4 +214,32 @@ TEST(Metrics, PhysicsMetrics) {
   EXPECT_FALSE(is_valid(r[1]));  // unstable free object
   EXPECT_FALSE(is_valid(r[2]));  // penetrating
   EXPECT_TRUE(is_valid(r[3]));   // hanging, moved but not counted as unstable
+}
+
+#include "pipeline/overlay.h"
+#include "test_util.h"
+
+#include <filesystem>
+
+// Mask PNG round trip and an overlay file with masks, boxes and an auxiliary mask.
+TEST(Overlay, MaskRoundTripAndOverlay) {
+#ifndef SIMU_HAVE_OPENCV
+  GTEST_SKIP() << "built without OpenCV";
+#endif
+  const std::string dir = simu::testing::temp_dir("overlay");
+  BinaryMask m(40, 30);
+  for (int r = 5; r < 20; ++r)
+    for (int c = 3; c < 17; ++c) m.at(r, c) = 1;
+  write_mask(dir + "/m.png", m);
+  const BinaryMask back = read_mask(dir + "/m.png");
+  EXPECT_EQ(back.width, 40);
+  EXPECT_EQ(back.data, m.data);
+  EXPECT_THROW(read_mask(dir + "/missing.png"), simu::Error);
+  const Camera cam = camera(40, 30, 30, 20, 15);
+  Obb b;
+  b.extents = Vec3::Constant(0.5), b.center = Vec3(0, 0, 3);
+  OverlayItem it;
+  it.label = "box", it.mask = &m, it.obb = b, it.obb_target = b, it.aux_mask = &m;
+  write_overlay_png(dir + "/overlay.png", cam, "", {it});
+  EXPECT_GT(std::filesystem::file_size(dir + "/overlay.png"), 100u);
 }

@@ -74,7 +74,11 @@ TEST(Synthetic, GroundTruthErrorsAndDecisions) {
     const SceneEvaluation ev = evaluate_scene(s, CorrectionConfig{});
     for (const ObjectOutcome& oc : ev.objects) {
       EXPECT_EQ(oc.got, oc.expected) << oc.id << " error " << to_string(oc.error) << " rho " << oc.rho;
-      if (oc.got == Branch::Stretch) EXPECT_LT(oc.support_gap_after, 1e-6) << oc.id;
+      // Upright errors: the stretch lands the bottom exactly on the support. A tilted object is
+      // stretched along its tilted OBB axis, so its lowest point lands only approximately.
+      if (oc.got == Branch::Stretch && oc.error != InjectedError::Rotation)
+        EXPECT_LT(oc.support_gap_after, 1e-9) << oc.id << " " << to_string(oc.error);
+      if (oc.error == InjectedError::Rotation) EXPECT_LE(oc.support_gap_after, 0.2 * oc.support_gap_before + 1e-6) << oc.id;
     }
     // Stretching cannot make the boxes worse than the errors on average.
     EXPECT_GE(ev.box_after.iou + 1e-9, ev.box_before.iou - 0.05);
