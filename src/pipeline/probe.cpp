@@ -22,19 +22,20 @@
 #include "common/fs.h"
 #include "common/log.h"
 #include "pipeline/mesh.h"
+#include "pipeline/raster.h"
 
 namespace simu::pipeline {
 
 namespace stdfs = std::filesystem;
 using nlohmann::json;
 
-const char* to_string(Branch b) {
+const char* to_string(ProbeBranch b) {
   switch (b) {
-    case Branch::None: return "none";
-    case Branch::Stretch: return "stretch";
-    case Branch::Resample: return "resample";
-    case Branch::Anchored: return "anchored";
-    case Branch::Disabled: return "disabled";
+    case ProbeBranch::None: return "none";
+    case ProbeBranch::Stretch: return "stretch";
+    case ProbeBranch::Resample: return "resample";
+    case ProbeBranch::Anchored: return "anchored";
+    case ProbeBranch::Disabled: return "disabled";
   }
   return "none";
 }
@@ -49,14 +50,6 @@ double lowest_corner_along_gravity(const Mesh& world, const Vec3& g) {
   return best;
 }
 
-OrientedBox object_obb(const Mesh& canonical, const SceneObject& o) {
-  const auto b = mesh_aabb(canonical);
-  OrientedBox box;
-  box.axes = o.R;
-  box.extents = o.scale.cwiseProduct(b.size()).cwiseAbs();
-  box.center = o.to_world(b.center());
-  return box;
-}
 
 std::vector<Vec3> choose_pins(const Mesh& world, const Plane& wall, const Vec3& g, int count, double region) {
   std::vector<Vec3> pins;
@@ -428,69 +421,36 @@ bool settle_on_pins(const Ctx& c, World& w, int i, Vec3* dt, Mat3* dR, double* t
   return true;
 }
 
-#ifdef SIMU_HAVE_OPENCV
-// Projects world points through the camera; false if any is behind it.
-bool project(const Camera& cam, const std::vector<Vec3>& pts, std::vector<cv::Point>* out) {
-  out->clear();
-  for (const auto& p : pts) {
-    const Vec3 pc = cam.R_world_cam.transpose() * (p - cam.t_world_cam);
-    if (pc.z() <= 1e-6) return false;
-    out->emplace_back(static_cast<int>(std::lround(cam.fx * pc.x() / pc.z() + cam.cx)),
-                      static_cast<int>(std::lround(cam.fy * pc.y() / pc.z() + cam.cy)));
-  }
-  return true;
-}
-#endif
-
-// The eight corners of an oriented box.
-std::vector<Vec3> box_corners(const OrientedBox& b) {
-  std::vector<Vec3> c;
-  for (int k = 0; k < 8; ++k) {
-    const Vec3 s((k & 1) ? 0.5 : -0.5, (k & 2) ? 0.5 : -0.5, (k & 4) ? 0.5 : -0.5);
-    c.push_back(b.center + b.axes * s.cwiseProduct(b.extents));
-  }
-  return c;
-}
-
-// Fills the resample hand-off: modal mask, auxiliary mask M' (modal mask united with the projection
-// of the part of the stretched OBB below the pre-simulation OBB's bottom), target OBB.
-ResampleRequest make_request(const Scene& scene, int i, const Diagnostics& d) {
+// Fills the resample hand-off: modal mask, auxiliary mask M' (raster.h: modal mask united with the
+// projection of the lowest part of B_str), target OBB B_str.
+ResampleRequest make_request(const Scene& scene, int i, const Diagnostics& d, const Diagnosis& dg,
+                             const CorrectionConfig& cc) {
   ResampleRequest r;
   r.object_index = i;
   r.object_id = scene.objects[i].id;
   r.image_path = scene.image_path;
   r.mask_path = scene.objects[i].mask_path;
   r.target_obb = d.obb_target;
-#ifdef SIMU_HAVE_OPENCV
   const Camera& cam = scene.camera;
-  if (!r.mask_path.empty() && stdfs::exists(r.mask_path)) r.modal_mask = cv::imread(r.mask_path, cv::IMREAD_GRAYSCALE);
-  if (r.modal_mask.empty() && cam.valid()) r.modal_mask = cv::Mat::zeros(cam.height, cam.width, CV_8UC1);
-  if (!r.modal_mask.empty()) {
-    r.aux_mask = r.modal_mask.clone();
-    // Lowest part of the stretched OBB: from its gravity-side face up to the pre-sim bottom (or its
-    // lowest quarter when the box shrank).
-    const Vec3 u = d.u_grv;
-    const double bottom_pre = u.dot(d.obb_pre.center) + 0.5 * d.ell;
-    const double bottom_str = u.dot(d.obb_target.center) + 0.5 * std::abs(d.obb_target.axes.col(0).dot(u)) * d.obb_target.extents[0] +
-                              0.5 * std::abs(d.obb_target.axes.col(1).dot(u)) * d.obb_target.extents[1] +
-                              0.5 * std::abs(d.obb_target.axes.col(2).dot(u)) * d.obb_target.extents[2];
-    double top = bottom_pre;
-    const double height = bottom_str - (u.dot(d.obb_target.center) - (bottom_str - u.dot(d.obb_target.center)));
-    if (bottom_str - top < 0.25 * height) top = bottom_str - 0.25 * height;
-    std::vector<Vec3> pts;
-    for (const auto& p : box_corners(d.obb_target)) {
-      const double a = u.dot(p);
-      pts.push_back(a < top ? Vec3(p + (top - a) * u) : p);  // clamp corners into the slab
-    }
-    std::vector<cv::Point> px;
-    if (cam.valid() && project(cam, pts, &px)) {
-      std::vector<cv::Point> hull;
-      cv::convexHull(px, hull);
-      if (r.aux_mask.rows != cam.height || r.aux_mask.cols != cam.width)
-        cv::resize(r.aux_mask, r.aux_mask, cv::Size(cam.width, cam.height), 0, 0, cv::INTER_NEAREST);
-      cv::fillConvexPoly(r.aux_mask, hull, cv::Scalar(255));
-    }
+  if (!cam.valid()) return r;
+  BinaryMask modal(cam.width, cam.height);
+#ifdef SIMU_HAVE_OPENCV
+  if (!r.mask_path.empty() && stdfs::exists(r.mask_path)) {
+    cv::Mat m = cv::imread(r.mask_path, cv::IMREAD_GRAYSCALE);
+    if (!m.empty() && (m.cols != cam.width || m.rows != cam.height))
+      cv::resize(m, m, cv::Size(cam.width, cam.height), 0, 0, cv::INTER_NEAREST);
+    if (!m.empty())
+      for (int y = 0; y < cam.height; ++y)
+        for (int x = 0; x < cam.width; ++x) modal.at(y, x) = m.at<uint8_t>(y, x) ? 255 : 0;
   }
+#endif
+  BinaryMask aux = auxiliary_crop_mask(cam, modal, dg, cc);
+#ifdef SIMU_HAVE_OPENCV
+  r.modal_mask = cv::Mat(cam.height, cam.width, CV_8UC1, modal.data.data()).clone();
+  r.aux_mask = cv::Mat(cam.height, cam.width, CV_8UC1, aux.data.data()).clone();
+#else
+  r.modal_mask = MaskImage{modal.width, modal.height, modal.data};
+  r.aux_mask = MaskImage{aux.width, aux.height, aux.data};
 #endif
   return r;
 }
@@ -506,7 +466,7 @@ json mat_j(const Mat3& m) {
   return json::array({json::array({m(0, 0), m(0, 1), m(0, 2)}), json::array({m(1, 0), m(1, 1), m(1, 2)}),
                       json::array({m(2, 0), m(2, 1), m(2, 2)})});
 }
-json box_j(const OrientedBox& b) { return {{"center", vec_j(b.center)}, {"axes", mat_j(b.axes)}, {"extents", vec_j(b.extents)}}; }
+json box_j(const Obb& b) { return {{"center", vec_j(b.center)}, {"axes", mat_j(b.axes)}, {"extents", vec_j(b.extents)}}; }
 double angle_of(const Mat3& R) { return std::acos(std::clamp((R.trace() - 1.0) / 2.0, -1.0, 1.0)); }
 
 // Sequential order: ascending lowest world-AABB corner along gravity.
@@ -549,7 +509,7 @@ nlohmann::json report_json(const ProbeResult& r) {
     e["ell"] = d.ell;
     e["u_grv"] = vec_j(d.u_grv);
     e["obb_pre"] = box_j(d.obb_pre);
-    if (d.branch == Branch::Stretch || d.branch == Branch::Resample) e["obb_target"] = box_j(d.obb_target);
+    if (d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample) e["obb_target"] = box_j(d.obb_target);
     if (!d.pins_world.empty()) {
       e["pins"] = json::array();
       for (size_t k = 0; k < d.pins_world.size(); ++k)
@@ -654,7 +614,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   for (size_t i = 0; i < n; ++i)
     if (!objs[i].simulate) {
       res.diagnostics[i].physics_disabled = true;
-      res.diagnostics[i].branch = Branch::Disabled;
+      res.diagnostics[i].branch = ProbeBranch::Disabled;
     }
 
   // 2. Sequential order over the simulated objects.
@@ -666,6 +626,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   // 3. Per object: penetration resolution, gravity diagnostics, decision.
   std::vector<int> placed;
   std::vector<int> needs_resample;
+  std::vector<Diagnosis> diagnoses(n);
   int done = 0;
   for (int i : res.order) {
     Diagnostics& d = res.diagnostics[i];
@@ -695,7 +656,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
       }
       if (!ok) {
         d.physics_disabled = true;
-        d.branch = Branch::Disabled;
+        d.branch = ProbeBranch::Disabled;
         add_flag(d, "physics_disabled", why);
         // Leave it out of the physics: back to its pre-simulation pose.
         o.t = d.t_pre, o.R = d.R_pre;
@@ -703,43 +664,48 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
       }
     } catch (const std::exception& e) {
       d.physics_disabled = true;
-      d.branch = Branch::Disabled;
+      d.branch = ProbeBranch::Disabled;
       add_flag(d, "physics_disabled", e.what());
       o.t = d.t_pre, o.R = d.R_pre;
       o.simulate = false;
     }
-    // Decision (OBB of the pre-simulation object, gravity-most-aligned axis, rho, eta).
+    // Decision through the geometry half (geometry.h): OBB of the pre-simulation object,
+    // gravity-most-aligned axis, rho, eta, branch, the stretch and the desired OBB B_str.
     if (o.simulate) {
-      SceneObject pre = so;
-      pre.t = d.t_pre, pre.R = d.R_pre, pre.scale = d.s_pre;
-      d.obb_pre = object_obb(o.canonical, pre);
-      const Vec3 g = scene.gravity;
-      int k = 0;
-      for (int a = 1; a < 3; ++a)
-        if (std::abs(d.obb_pre.axes.col(a).dot(g)) > std::abs(d.obb_pre.axes.col(k).dot(g))) k = a;
-      const double sign = d.obb_pre.axes.col(k).dot(g) >= 0 ? 1.0 : -1.0;
-      d.u_grv = sign * d.obb_pre.axes.col(k);
-      d.ell = d.obb_pre.extents[k];
-      d.eta = d.ell > 0 ? g.dot(d.dt_pen + d.dt_grv) / d.ell : 0.0;
-      d.rho = std::abs(d.eta);
-      // Desired stretched OBB: gravity-side face moves by eta * ell, the opposite face stays.
-      d.obb_target = d.obb_pre;
-      d.obb_target.extents[k] = d.ell * std::max(1.0 + d.eta, 0.05);
-      d.obb_target.center = d.obb_pre.center + 0.5 * (d.obb_target.extents[k] - d.ell) * d.u_grv;
-      if (so.dof != PoseDof::Free) {
-        d.branch = Branch::Anchored;  // wall-anchored objects keep their geometry and constrained pose
-      } else if (d.rho >= cfg.rho_threshold) {
-        d.branch = Branch::Resample;
-        needs_resample.push_back(i);
-        // Until resampled: the object stays where the diagnostic left it.
-      } else {
-        // Gravity-axis stretch: canonical axis k scaled by lambda = 1 + eta (folded into s), top face fixed.
-        d.branch = Branch::Stretch;
-        const double lambda = 1.0 + d.eta;
-        o.s = d.s_pre;
-        o.s[k] *= lambda;
-        o.R = d.dR_grv * d.R_pre;
-        o.t = d.t_pre + 0.5 * d.eta * d.ell * d.u_grv;
+      try {
+        CorrectionConfig cc;
+        cc.resample_threshold = cfg.rho_threshold;
+        d.obb_pre = object_obb(o.canonical, d.s_pre, d.R_pre, d.t_pre, scene.gravity);
+        const Diagnosis dg = diagnose(d.obb_pre, scene.gravity, d.dt_pen, d.dt_grv, cc);
+        d.u_grv = dg.axis.u;
+        d.ell = dg.axis.length;
+        d.eta = dg.eta;
+        d.rho = dg.rho;
+        d.obb_target = stretched_obb(dg, cc);
+        if (so.dof != PoseDof::Free) {
+          d.branch = ProbeBranch::Anchored;  // wall-anchored objects keep their geometry and constrained pose
+        } else if (dg.branch == Branch::Resample) {
+          d.branch = ProbeBranch::Resample;
+          needs_resample.push_back(i);
+          diagnoses[i] = dg;
+          // Until resampled: the object stays where the diagnostic left it.
+        } else {
+          // Gravity-axis stretch (supplementary equations; anti-gravity face fixed).
+          d.branch = ProbeBranch::Stretch;
+          const StretchResult st = gravity_axis_stretch(o.canonical.V, d.s_pre, d.R_pre, d.t_pre, d.dR_grv * d.R_pre, dg, cc);
+          if (st.mesh_changed) {
+            Mesh m = o.canonical;
+            m.V = st.canonical;
+            o.shape = decompose(m, cfg.collision);
+            o.canonical = m;
+          }
+          o.s = st.scale;
+          o.R = st.R;
+          o.t = st.t;
+        }
+      } catch (const std::exception& e) {
+        // Degenerate OBB or non-finite numbers: keep the diagnostic pose, no correction.
+        add_flag(d, "decision_failed", e.what());
       }
       placed.push_back(i);
     }
@@ -754,7 +720,20 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   res.seconds_probe = std::chrono::duration<double>(t1 - t0).count();
 
   // 4. Resample hand-off, one call for the whole scene.
-  for (int i : needs_resample) res.resample_requests.push_back(make_request(scene, i, res.diagnostics[i]));
+  {
+    CorrectionConfig cc;
+    cc.resample_threshold = cfg.rho_threshold;
+    for (int i : needs_resample) {
+      try {
+        res.resample_requests.push_back(make_request(scene, i, res.diagnostics[i], diagnoses[i], cc));
+      } catch (const std::exception& e) {
+        add_flag(res.diagnostics[i], "handoff_failed", e.what());
+        ResampleRequest r;
+        r.object_index = i, r.object_id = scene.objects[i].id, r.target_obb = res.diagnostics[i].obb_target;
+        res.resample_requests.push_back(r);
+      }
+    }
+  }
   if (!needs_resample.empty()) {
     std::vector<ResampleResult> results;
     if (resampler) {

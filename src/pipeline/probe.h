@@ -28,6 +28,7 @@
 #endif
 
 #include "pipeline/collision.h"
+#include "pipeline/geometry.h"
 #include "pipeline/mjcf.h"
 #include "pipeline/scene.h"
 
@@ -44,21 +45,15 @@ struct MaskImage {
 };
 #endif
 
-// An oriented box: centre, axes (columns, unit, right-handed), full side lengths.
-struct OrientedBox {
-  Vec3 center = Vec3::Zero();
-  Mat3 axes = Mat3::Identity();
-  Vec3 extents = Vec3::Zero();
-};
 
-// What the correction step decided for an object.
-enum class Branch { None, Stretch, Resample, Anchored, Disabled };
-const char* to_string(Branch b);
+// What the probe did with an object (the stretch/resample decision itself is geometry.h's Branch).
+enum class ProbeBranch { None, Stretch, Resample, Anchored, Disabled };
+const char* to_string(ProbeBranch b);
 
 // The numbers the diagnostic simulation produces for one object (and the decision made from them).
 struct Diagnostics {
   int order = -1;                 // position in the sequential order (-1: not simulated)
-  Branch branch = Branch::None;
+  ProbeBranch branch = ProbeBranch::None;
   bool physics_disabled = false;
   std::vector<std::string> flags; // e.g. "bad_input", "mesh_error", "outside_room", "physics_disabled",
                                   // "no_support", "solver_reset", "needs_resample", "resample_failed",
@@ -80,11 +75,11 @@ struct Diagnostics {
   std::vector<Vec3> wall_points;  // their wall mates (feet of the perpendiculars)
   std::string wall_id;
   // Decision.
-  OrientedBox obb_pre;            // OBB of the pre-simulation object
+  Obb obb_pre;            // OBB of the pre-simulation object
   Vec3 u_grv = Vec3::Zero();      // OBB axis most aligned with gravity, oriented so u.g >= 0
   double ell = 0;                 // OBB side length along u_grv
   double rho = 0, eta = 0;
-  OrientedBox obb_target;         // desired stretched OBB (stretch and resample)
+  Obb obb_target;         // desired stretched OBB (stretch and resample)
   // Final composition.
   Vec3 dt_final_pen = Vec3::Zero();
   double settle_displacement = 0; // m, during the joint settle
@@ -99,7 +94,7 @@ struct ResampleRequest {
   std::string mask_path;
   MaskImage modal_mask;          // M_i (empty if the scene has none)
   MaskImage aux_mask;            // M'_i = M_i united with the projected lowest part of the stretched OBB
-  OrientedBox target_obb;        // desired stretched OBB; its centre becomes the translation
+  Obb target_obb;        // desired stretched OBB; its centre becomes the translation
 };
 
 struct ResampleResult {
@@ -156,8 +151,6 @@ nlohmann::json report_json(const ProbeResult& r);
 // Pieces exposed for tests and for the geometry half.
 // Ordering key: max over the 8 world-AABB corners of g.x (larger = lower); objects sort by its negation.
 double lowest_corner_along_gravity(const Mesh& world, const Vec3& gravity);
-// Object-frame OBB of a placed object (axes R columns, extents s .* canonical AABB size).
-OrientedBox object_obb(const Mesh& canonical, const SceneObject& o);
 // Object-side pins (top-back region; 1: highest, most centred; 2: leftmost and rightmost along the
 // wall-parallel horizontal) for a world mesh hanging on a wall.
 std::vector<Vec3> choose_pins(const Mesh& world, const Plane& wall, const Vec3& gravity, int count, double region);

@@ -66,7 +66,7 @@ TEST(Probe, HoveringBoxFallsThreeCentimetresAndIsStretched) {
   EXPECT_NEAR(d.dt_grv.head<2>().norm(), 0.0, 1e-6);
   EXPECT_NEAR(d.dt_pen.norm(), 0.0, 1e-9);
   EXPECT_NEAR(d.rho, 0.1, 4e-3);
-  EXPECT_EQ(d.branch, Branch::Stretch);
+  EXPECT_EQ(d.branch, ProbeBranch::Stretch);
   // Top face fixed at 0.33, bottom on the floor (after the final settle too).
   const auto& o = r.scene.objects[0];
   const double top = o.t.z() + 0.5 * o.scale.z(), bottom = o.t.z() - 0.5 * o.scale.z();
@@ -98,7 +98,7 @@ TEST(Probe, BoxSunkIntoTableIsPushedUp) {
   EXPECT_NEAR(d.pen_max_depth, 0.02, 2e-3);
   EXPECT_NEAR((d.dt_pen + d.dt_grv).z(), 0.02, 2e-3);
   EXPECT_NEAR(d.eta, -0.1, 0.01);
-  EXPECT_EQ(d.branch, Branch::Stretch);
+  EXPECT_EQ(d.branch, ProbeBranch::Stretch);
   // Final: resting on the table.
   const auto& o = r.scene.objects[0];
   EXPECT_NEAR(o.t.z() - 0.5 * o.scale.z(), 0.425, 4e-3);
@@ -118,7 +118,7 @@ TEST(Probe, FrameOnTwoPinsStaysOnTheWall) {
   const auto r = run_probe(s, quick(), dir + "/out");
   const auto& d = r.diagnostics[0];
   EXPECT_FALSE(d.physics_disabled) << d.message;
-  EXPECT_EQ(d.branch, Branch::Anchored);
+  EXPECT_EQ(d.branch, ProbeBranch::Anchored);
   ASSERT_EQ(d.pins_world.size(), 2u);
   // Pins at the top-back corners: y near the wall, z at the top, x at the left and right ends.
   for (const auto& p : d.pins_world) {
@@ -211,7 +211,7 @@ TEST(Probe, LargeDropSelectsResampleAndHandsOff) {
   s.objects.push_back(cube("box", mesh, 0.2, Vec3(0, 0, 0.1 + 0.06)));  // rho = 0.3
   const auto r = run_probe(s, quick(), dir + "/out");
   const auto& d = r.diagnostics[0];
-  EXPECT_EQ(d.branch, Branch::Resample);
+  EXPECT_EQ(d.branch, ProbeBranch::Resample);
   EXPECT_NEAR(d.rho, 0.3, 0.01);
   EXPECT_TRUE(has_flag(d, "needs_resample"));
   ASSERT_EQ(r.resample_requests.size(), 1u);
