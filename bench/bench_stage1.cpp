@@ -1,0 +1,170 @@
+// bench_stage1: speed of the Stage-1 flow model (real size, random weights, bf16 autocast) on CUDA.
+// Measures one forward at batch 2 (the CFG pair) and a full CFG sampling (25 steps by default) at
+// condition lengths 2800 and 7500: median milliseconds, achieved TFLOP/s (analytic matmul FLOPs, see
+// simu::models::flow_forward_flops) and peak allocated memory; plus the plain bf16 matmul rate of the
+// device for reference. On a machine without CUDA it says so (or runs tiny with --device cpu --small).
+#include <ATen/CPUGeneratorImpl.h>
+#include <c10/cuda/CUDACachingAllocator.h>
+#include <fmt/ranges.h>
+#include <torch/cuda.h>
+
+#include <algorithm>
+#include <chrono>
+
+#include "common/cli.h"
+#include "common/error.h"
+#include "common/log.h"
+#include "models/generator.h"
+
+namespace {
+
+void sync(const torch::Device& d) {
+  if (d.is_cuda()) torch::cuda::synchronize(d.index() < 0 ? 0 : d.index());
+}
+
+// Median wall time in ms of fn over `iters` runs after `warmup` runs (device synchronized around each).
+double time_ms(const torch::Device& d, int warmup, int iters, const std::function<void()>& fn) {
+  for (int i = 0; i < warmup; ++i) fn();
+  sync(d);
+  std::vector<double> ms;
+  for (int i = 0; i < iters; ++i) {
+    sync(d);
+    const auto t0 = std::chrono::steady_clock::now();
+    fn();
+    sync(d);
+    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+  }
+  std::sort(ms.begin(), ms.end());
+  return ms[ms.size() / 2];
+}
+
+void reset_peak(const torch::Device& d) {
+  if (d.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(d.index() < 0 ? 0 : d.index());
+}
+double peak_gib(const torch::Device& d) {
+  if (!d.is_cuda()) return 0;
+  const auto s = c10::cuda::CUDACachingAllocator::getDeviceStats(d.index() < 0 ? 0 : d.index());
+  return static_cast<double>(s.allocated_bytes[0].peak) / (1024.0 * 1024.0 * 1024.0);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"Benchmark the Stage-1 flow model: forward at batch 2 and full CFG sampling (bf16, random weights)"};
+  std::string config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_real.yaml", device = "cuda";
+  std::vector<int64_t> cond_lens = {2800, 7500};
+  int steps = 25, iters = 5, sample_iters = 3, warmup = 2;
+  double cfg = 7.0;
+  bool small = false, fp32 = false;
+  app.add_option("--config", config, "generator config (official or project layout)")->capture_default_str();
+  app.add_option("--cond-lens", cond_lens, "condition lengths")->capture_default_str();
+  app.add_option("--steps", steps, "sampling steps")->capture_default_str();
+  app.add_option("--cfg-strength", cfg, "CFG strength (interval from the config)")->capture_default_str();
+  app.add_option("--iters", iters, "timed forwards (median)")->capture_default_str();
+  app.add_option("--sample-iters", sample_iters, "timed samplings (median)")->capture_default_str();
+  app.add_option("--warmup", warmup, "untimed warm-up runs")->capture_default_str();
+  app.add_option("--device", device, "cuda | cuda:N | cpu (cpu needs --small)")->capture_default_str();
+  app.add_flag("--small", small, "use configs/stage1_small.yaml and short conditions (CPU smoke run)");
+  app.add_flag("--fp32", fp32, "no bf16 autocast");
+  simu::cli::CommonOptions common;
+  simu::cli::add_common_options(app, common);
+  return simu::cli::run(app, argc, argv, [&] {
+    simu::cli::apply_common_options(common);
+    const torch::Device dev(device);
+    if (dev.is_cuda() && !torch::cuda::is_available()) {
+      fmt::print("bench_stage1 needs a CUDA device (none here); for a CPU smoke run use --device cpu --small\n");
+      return 0;
+    }
+    if (!dev.is_cuda() && !small) {
+      fmt::print("bench_stage1 measures the real model on CUDA; on CPU only --device cpu --small is supported\n");
+      return 0;
+    }
+    if (small) {
+      config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml";
+      cond_lens = {10, 30};
+      steps = std::min(steps, 4);
+    }
+    torch::NoGradGuard no_grad;
+    auto gen = simu::models::load_generator(config, "", dev, common.sets);
+    const auto& mc = gen->config().backbone;
+    const bool bf16 = dev.is_cuda() && !fp32;
+    fmt::print("device {}, config {}\nmodel: {} channels, {} blocks, {} heads, streams [{}], cond {} ch; {}\n", device,
+               config, mc.model_channels, mc.num_blocks, mc.num_heads, fmt::join(mc.stream_names(), ", "), mc.cond_channels,
+               bf16 ? "bf16 autocast (fp32 weights, fp32 norms/residual)" : "fp32");
+    fmt::print("FLOPs (2 per multiply-add, per sample, per block and stream of T tokens, C channels, Lc condition tokens):\n"
+               "  self qkv 6TC^2 + out 2TC^2 + attention 4*T*Tk*C (Tk = T for shape, all tokens for pose)\n"
+               "  + cross q 2TC^2 + kv 4*Lc*Cc*C + out 2TC^2 + attention 4*T*Lc*C + MLP 4*T*C*(ratio*C); + adaLN, latent io\n");
+
+    // Reference: plain bf16 matmul rate of this device.
+    double mm_tflops = 0;
+    if (dev.is_cuda()) {
+      const int64_t n = 8192;
+      auto a = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
+      auto b = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
+      const double ms = time_ms(dev, 3, 10, [&] { (void)torch::mm(a, b); });
+      mm_tflops = 2.0 * n * n * n / (ms * 1e-3) / 1e12;
+      fmt::print("bf16 matmul {}^3: {:.3f} ms = {:.1f} TFLOP/s\n", n, ms, mm_tflops);
+    }
+
+    struct Row {
+      int64_t cond_len;
+      std::string what;
+      double ms, tflops, peak;
+    };
+    std::vector<Row> rows;
+    auto rng = at::make_generator<at::CPUGeneratorImpl>(0);
+    for (const int64_t L : cond_lens) {
+      auto cond1 = torch::randn({1, L, mc.cond_channels}, rng).to(dev);
+      // One forward at batch 2 (the CFG pair: conditional + unconditional).
+      {
+        auto x = gen->noise(2, rng, dev);
+        auto cond = torch::cat({cond1, cond1 * 0}, 0);
+        // One t for the pair (as the sampler passes it: [1], broadcast over the batch).
+        auto t = torch::full({1}, 500.0, torch::TensorOptions().device(dev));
+        c10::optional<torch::Tensor> d;
+        if (mc.is_shortcut_model) d = torch::zeros({1}, torch::TensorOptions().device(dev));
+        auto fwd = [&] { auto y = gen->backbone()->forward(x, t, cond, d); };
+        reset_peak(dev);
+        // One autocast region around all runs: the bf16 copies of the weights are made once and cached,
+        // as in sampling (Generator::sample keeps one region over all steps).
+        simu::models::Bf16Autocast ac(bf16);
+        const double ms = time_ms(dev, warmup, iters, fwd);
+        const double flops = simu::models::flow_forward_flops(mc, 2, L);
+        rows.push_back({L, "forward B=2", ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
+        simu::log::info("cond {}: forward {:.2f} ms", L, ms);
+      }
+      // Full sampling with CFG (batch 1 -> batch-2 forwards while guided).
+      {
+        auto o = simu::models::SampleOptions::from(gen->config());
+        o.steps = steps;
+        o.cfg_strength = cfg;
+        o.bf16_autocast = bf16;
+        auto x0 = gen->noise(1, rng, dev);
+        auto run = [&] { auto y = gen->sample(cond1, x0, o); };
+        // FLOPs: one forward per step, batch 2 where CFG is active.
+        const auto grid = gen->time_grid(o.steps, o.rescale_t, o.reversed_timestamp);
+        // The condition keys/values are computed once per batch size (ConditionCache), not per step.
+        double flops = 0;
+        bool any_guided = false, any_plain = false;
+        for (int i = 0; i < o.steps; ++i) {
+          const double ts = static_cast<float>(grid[i] * gen->config().time_scale);
+          const bool guided = o.cfg_strength > 0 && o.cfg_interval.first <= ts && ts <= o.cfg_interval.second;
+          const int64_t b = guided ? 2 : 1;
+          flops += simu::models::flow_forward_flops(mc, b, L) - simu::models::flow_condition_kv_flops(mc, b, L);
+          (guided ? any_guided : any_plain) = true;
+        }
+        if (any_guided) flops += simu::models::flow_condition_kv_flops(mc, 2, L);
+        if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
+        reset_peak(dev);
+        const double ms = time_ms(dev, 1, sample_iters, run);
+        rows.push_back({L, fmt::format("sample {} steps CFG {}", o.steps, cfg), ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
+        simu::log::info("cond {}: sampling {:.1f} ms", L, ms);
+      }
+    }
+    fmt::print("\n| cond tokens | run | ms (median) | TFLOP/s | % of matmul rate | peak alloc GiB |\n|---|---|---|---|---|---|\n");
+    for (const auto& r : rows)
+      fmt::print("| {} | {} | {:.2f} | {:.1f} | {} | {:.2f} |\n", r.cond_len, r.what, r.ms, r.tflops,
+                 mm_tflops > 0 ? fmt::format("{:.0f}%", 100 * r.tflops / mm_tflops) : "-", r.peak);
+    return 0;
+  });
+}

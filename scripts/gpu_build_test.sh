@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Builds the tree on the GPU machine and runs every test, the `gpu`-labelled ones included.
+# Needs .carry/ from scripts/gpu_bundle.sh (run here first) carried with the device call:
+#   device run (carry .carry): bash scripts/gpu_build_test.sh [ctest args]
+# Uses the machine's own PyTorch 2.11.0+cu130 (python3) for LibTorch. Writes build-gpu/.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+PREFIX="$ROOT/.carry/prefix/usr"
+[ -d "$PREFIX" ] || { echo "error: $PREFIX missing: run scripts/gpu_bundle.sh here and carry .carry" >&2; exit 1; }
+export LD_LIBRARY_PATH="$PREFIX/lib/x86_64-linux-gnu:$PREFIX/lib/coacd:${LD_LIBRARY_PATH:-}"
+export SIMU_SHARED_DIR="${SIMU_SHARED_DIR:-$ROOT/.carry/shared}"
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
+PY="${PYTHON:-python3}"
+TORCH_PREFIX="$($PY -c 'import torch.utils; print(torch.utils.cmake_prefix_path)')"
+BUILD="${BUILD_DIR:-$ROOT/build-gpu}"
+t0=$(date +%s)
+cmake -S "$ROOT" -B "$BUILD" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TORCH_PREFIX;$PREFIX" \
+  -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DTORCH_CUDA_ARCH_LIST=9.0 >"$ROOT/gpu-configure.log" 2>&1 \
+  || { tail -40 "$ROOT/gpu-configure.log"; exit 1; }
+cmake --build "$BUILD" -j"$(nproc)" >"$ROOT/gpu-build.log" 2>&1 || { grep -B2 -A8 -E "error|FAILED" "$ROOT/gpu-build.log" | head -80; exit 1; }
+t1=$(date +%s)
+echo "[gpu] configure+build: $((t1 - t0)) s on $(nproc) cores"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+cd "$BUILD"
+ctest --output-on-failure --timeout 900 -j4 "$@"

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Prepares, on our Debian 12 machine, what the GPU machine's image lacks, as files under .carry/:
+#   .carry/prefix/usr/...  Debian packages unpacked (MuJoCo 2.2.2 + qhull, assimp, GoogleTest) and
+#                          the runtime libraries they need; CoACD's C library from its PyPI wheel
+#   .carry/shared/         a copy of ../shared/fixtures (the device gets only the repository)
+# The GPU machine has LibTorch (its PyTorch 2.11.0+cu130), CUDA, Eigen, HDF5 1.10, yaml-cpp, CLI11,
+# nlohmann-json. OpenCV is NOT carried: Debian's imgcodecs pulls GDAL (~180 MB of libraries), over the
+# device's 64 MiB transfer limit; the GPU build sets SIMU_WITH_OPENCV=OFF (image-file tests skip there).
+# Then run on the device (carry .carry):  bash scripts/gpu_build_test.sh
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+CARRY="$ROOT/.carry"
+SHARED="${SIMU_SHARED_DIR:-$ROOT/../shared}"
+PKGS=(libmujoco-dev libmujoco2.2.2 libqhull-dev libqhull-r8.0 libqhull8.0 libqhullcpp8.0 libccd2 libtinyxml2-9
+      liblodepng0 libassimp-dev libassimp5 libdraco7 libminizip1 libgtest-dev libgmock-dev libpoly2tri1 libpugixml1v5
+      libkubazip0)
+mkdir -p "$CARRY/debs" "$CARRY/prefix"
+cd "$CARRY/debs"
+for p in "${PKGS[@]}"; do
+  ls "${p}"_*.deb >/dev/null 2>&1 || apt-get download -qq "$p" 2>/dev/null || echo "[bundle] note: no package $p (skipped)"
+done
+for d in "$CARRY"/debs/*.deb; do dpkg -x "$d" "$CARRY/prefix"; done
+# CoACD's C library from the venv's PyPI package, when installed.
+coacd_lib="$(ls "$ROOT"/.deps/venv/lib/python3*/site-packages/coacd/lib_coacd.so 2>/dev/null | head -1 || true)"
+if [ -n "$coacd_lib" ]; then mkdir -p "$CARRY/prefix/usr/lib/coacd" && cp -f "$coacd_lib" "$CARRY/prefix/usr/lib/coacd/"; fi
+# Fixtures.
+rm -rf "$CARRY/shared" && mkdir -p "$CARRY/shared" && cp -r "$SHARED/fixtures" "$CARRY/shared/"
+rm -rf "$CARRY/prefix/usr/share/doc" "$CARRY/prefix/usr/share/man"
+du -sh "$CARRY/prefix" "$CARRY/shared"

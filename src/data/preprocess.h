@@ -1,0 +1,110 @@
+// Stage-1 condition preprocessing of SAM 3D Objects: RGB image + object mask + point map -> the
+// inputs of the condition embedder (models/cond_embedder.h), as the official `ss_preprocessor`
+// (sam3d_objects/data/dataset/tdfy/{preprocessor,img_and_mask_transforms,img_processing}.py,
+// sam3d_objects/pipeline/inference_pipeline_pointmap.py::preprocess_image) does:
+//
+//   1. point map normalisation on the full map (ObjectCentricSSI): shift = per-axis nanmedian of the
+//      points under the mask; scale = nanmedian over all pixels of max(|p - shift|) (scene scale)
+//      times scale_factor; p' = (p - shift) / scale;
+//   2. object crop (crop_around_mask_with_padding): square box of side int(max(w, h, 2) * box_size_factor)
+//      centred on the mask's bounding box (w, h = max - min pixel index; both must be >= 2), cut
+//      with zero fill outside the image, padded to a square, then extended by int(side * padding_factor)
+//      on each side (zeros; NaN for the point map);
+//   3. background removal in the crop (rembg): image * mask, point map NaN where mask == 0;
+//   4. per-tensor transforms: pad to a centred square (0; NaN for point maps), resize to image_size
+//      (image: bicubic with antialias = torchvision Resize on tensors; mask: nearest; point map:
+//      nearest to pointmap_size).
+//   The full-image versions (rgb_image, rgb_image_mask, rgb_pointmap) get only step 4 (and step 1).
+//
+// Amodal resampling: with `crop_mask` (the auxiliary mask M' of the paper), the crop box is computed
+// from crop_mask and the background is removed with crop_mask (the amodal crop image I_{M'}), while
+// the `mask` / `rgb_image_mask` channels stay the modal mask and the point map is normalised with it.
+//
+// Choices where the released pipeline.yaml could not be read (see README notes in the report):
+// the point map of the full image is normalised with the crop's scale/shift (the official code
+// recomputes them from the resized full mask, which is the same for square images); a point map of
+// another size than the image is first resized to it with nearest sampling (as compute_pointmap does).
+#pragma once
+
+#include <torch/torch.h>
+
+#include <map>
+#include <string>
+
+#include "common/config.h"
+
+namespace simu::data {
+
+struct PreprocessConfig {
+  int64_t image_size = 518;                     // image and mask outputs: image_size x image_size
+  std::string image_interpolation = "bicubic";  // "bicubic" or "bilinear"
+  bool image_antialias = true;                  // torchvision >= 0.17 Resize default on tensors
+  int64_t pointmap_size = 518;                  // 0: keep the padded crop's size
+  double box_size_factor = 1.0;
+  double padding_factor = 0.1;
+  bool remove_background = true;                // rembg in the crop
+  bool normalize_pointmap = true;               // false: points unchanged, scale/shift still returned
+  // ObjectCentricSSI: "scene" (use_scene_scale true), "object_quantile" (false: 2 x spread between the
+  // quantile_drop_threshold quantiles of |p - shift| over the mask), "object_norm_median".
+  std::string scale_mode = "scene";
+  double quantile_drop_threshold = 0.1;
+  double scale_factor = 1.0;
+  double clip_beyond_scale = 0.0;               // > 0: points with |p'| beyond it become NaN
+  static PreprocessConfig from(config::Reader& r);
+};
+
+// Square crop window in original image pixels, [x1, x2) x [y1, y2); may extend past the image.
+struct CropBox {
+  int64_t x1 = 0, y1 = 0, x2 = 0, y2 = 0;
+  int64_t width() const { return x2 - x1; }
+  int64_t height() const { return y2 - y1; }
+};
+
+struct ConditionInputs {
+  // Official kwarg names, each with a batch dimension of 1:
+  //   image [1,3,S,S], rgb_image [1,3,S,S], mask [1,1,S,S], rgb_image_mask [1,1,S,S] (S = image_size),
+  //   pointmap [1,3,P,P], rgb_pointmap [1,3,P,P] (only with a point map; NaN = invalid).
+  std::map<std::string, torch::Tensor> tensors;
+  CropBox crop_box;                      // the crop before the padding_factor extension
+  int64_t crop_extend = 0;               // pixels added on each side after squaring
+  torch::Tensor pointmap_scale;          // [3] (undefined without a point map)
+  torch::Tensor pointmap_shift;          // [3]
+};
+
+// SAM 3D reads point maps in the PyTorch3D camera frame (x left, y up, z forward). Depth models such
+// as MoGe give OpenCV-frame points (x right, y down, z forward); the official pipeline rotates them by
+// diag(-1, -1, 1) (camera_to_pytorch3d_camera). This does that: pointmap [3,H,W] -> (-x, -y, z).
+torch::Tensor pointmap_from_opencv_camera(const torch::Tensor& pointmap);
+
+// compute_mask_bbox: box around mask != 0 (see step 2). Throws for an empty mask or a box thinner
+// than 2 pixels.
+CropBox compute_mask_bbox(const torch::Tensor& mask, double box_size_factor = 1.0);
+
+// ObjectCentricSSI scale and shift ([3] each) of point map [3,H,W] under mask [H,W] (> 0.5 is object).
+// Throws when no point under the mask is finite.
+std::pair<torch::Tensor, torch::Tensor> object_centric_scale_shift(const torch::Tensor& pointmap,
+                                                                   const torch::Tensor& mask,
+                                                                   const PreprocessConfig& config = {});
+
+// rgb: [3,H,W] float in [0,1]; mask: [H,W] (or [1,H,W]) in [0,1], object where > 0;
+// pointmap: [3,Hp,Wp] or [Hp,Wp,3] points in the PyTorch3D camera frame (see
+//   pointmap_from_opencv_camera; NaN/inf = invalid), or undefined for none;
+// crop_mask: optional [H,W] mask that defines the crop box (and the background removal) instead of mask.
+// Errors: empty mask / crop mask, size mismatches, a point map with no finite point under the mask.
+ConditionInputs prepare_condition_inputs(const torch::Tensor& rgb, const torch::Tensor& mask,
+                                         const torch::Tensor& pointmap, const PreprocessConfig& config = {},
+                                         const torch::Tensor& crop_mask = {});
+
+// Image I/O through OpenCV (an error naming the path when the build has no OpenCV):
+// RGB image [3,H,W] float in [0,1] (8- or 16-bit files); with `alpha`, also its alpha channel [H,W]
+// in [0,1] (undefined when the file has none).
+torch::Tensor read_image_rgb(const std::string& path, torch::Tensor* alpha = nullptr);
+// Mask [H,W] in [0,1]: a grey file as is, the alpha channel of an RGBA file, else the channel maximum.
+torch::Tensor read_mask(const std::string& path);
+// Files -> inputs. An empty mask_path uses the image's alpha channel; crop_mask_path is optional.
+ConditionInputs prepare_condition_inputs_from_files(const std::string& image_path, const std::string& mask_path,
+                                                    const torch::Tensor& pointmap,
+                                                    const PreprocessConfig& config = {},
+                                                    const std::string& crop_mask_path = "");
+
+}  // namespace simu::data

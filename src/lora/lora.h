@@ -1,0 +1,157 @@
+// LoRA adapters for simu::models::Linear, with PEFT-compatible injection, files and semantics.
+//
+// A wrapped Linear computes   y = x W^T + b + scale * B(A(dropout(x)))
+//   A: [r, in]  Kaiming-uniform (a = sqrt(5)), like PEFT's default init
+//   B: [out, r] zeros (so a fresh adapter changes nothing)
+//   scale = alpha / r, or alpha / sqrt(r) with use_rslora
+// A and B are registered on the Linear as submodules `lora_A` / `lora_B`, so the model's parameter
+// names read `<path>.lora_A.weight` (PEFT keeps `<path>.lora_A.default.weight` in memory and writes
+// `base_model.model.<path>.lora_A.weight` to adapter_model.safetensors). Adapter parameters are fp32
+// always (they ignore Module::to(dtype)); under autocast their compute follows autocast, otherwise
+// the input is cast to fp32 and the adapter output back to the input's dtype (PEFT does the same).
+//
+// Order of use: construct the model, load its base weights, then inject (or load_peft) — the
+// base-weight loader does not know the lora_* parameters.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "common/config.h"
+#include "models/linear.h"
+
+namespace simu::lora {
+
+// Hyper-parameters of the adapters (PEFT LoraConfig's subset that this toolkit supports).
+struct LoraConfig {
+  int64_t r = 64;            // rank
+  double alpha = 128.0;      // lora_alpha
+  double dropout = 0.0;      // lora_dropout on the adapter's input (training mode only)
+  bool use_rslora = false;   // scale = alpha / sqrt(r) instead of alpha / r
+  // PEFT target_modules. When target_regex is non-empty it is the string form: a regex that must
+  // match the whole module path (std::regex ECMAScript, like Python's re.fullmatch for the usual
+  // patterns). Otherwise target_suffixes is the list form: a module is targeted when its path
+  // equals an entry or ends with "." + entry. Default: the 5 shape-branch attention projections.
+  std::string target_regex;
+  std::vector<std::string> target_suffixes = default_targets();
+
+  // scale = alpha / r (or alpha / sqrt(r)).
+  double scale() const;
+  // Throws simu::Error on r <= 0, alpha <= 0, dropout outside [0, 1), no targets.
+  void validate() const;
+  // The 5 shape-branch projections of each block (self_attn.to_qkv.shape, self_attn.to_out.shape,
+  // cross_attn.shape.to_q, cross_attn.shape.to_kv, cross_attn.shape.to_out).
+  static std::vector<std::string> default_targets();
+  // Reads r, alpha, dropout, use_rslora, target_modules (a string = regex, or a list of suffixes).
+  static LoraConfig from(config::Reader& reader);
+};
+
+// What inject_lora did.
+struct InjectReport {
+  int layers = 0;                   // Linear layers wrapped
+  int64_t parameters = 0;           // adapter parameters added (sum of r * (in + out))
+  std::vector<std::string> paths;   // module paths wrapped, in module order
+};
+
+// One LoRA matrix (`weight`, [rows, cols]) that stays fp32 whatever dtype the model is cast to.
+class LoraWeightImpl : public torch::nn::Module {
+ public:
+  LoraWeightImpl(int64_t rows, int64_t cols, torch::Device device);
+  void to(torch::Device device, torch::Dtype dtype, bool non_blocking = false) override;  // device only
+  void to(torch::Dtype dtype, bool non_blocking = false) override;                        // no-op
+  void to(torch::Device device, bool non_blocking = false) override;
+  torch::Tensor weight;
+};
+TORCH_MODULE(LoraWeight);
+
+// The adapter a wrapped Linear calls: delta(x) = scale * B(A(dropout(x))).
+class LoraAdapter : public models::LinearAdapter {
+ public:
+  LoraAdapter(LoraWeight A, LoraWeight B, double scale, double dropout);
+  // x: [..., in] -> [..., out]
+  torch::Tensor delta(const torch::Tensor& x) override;
+  // scale * B @ A in fp32: [out, in]
+  torch::Tensor delta_weight() const;
+  int64_t rank() const { return A->weight.size(0); }
+
+  LoraWeight A, B;
+  double scale, dropout;
+  bool enabled = true;   // user switch (set_lora_enabled)
+  bool merged = false;   // delta currently added into the Linear's weight
+};
+
+// The Linear modules under root that carry a LoraAdapter, with their paths, in module order.
+std::vector<std::pair<std::string, std::shared_ptr<models::LinearImpl>>> lora_layers(torch::nn::Module& root);
+// The LoraAdapter of a Linear, or nullptr.
+std::shared_ptr<LoraAdapter> lora_adapter(const models::LinearImpl& linear);
+
+// Wraps every Linear whose path (relative to root, e.g. "reverse_fn.backbone.blocks.0.self_attn.to_qkv.shape")
+// is targeted by cfg, then freezes every non-LoRA parameter of root (requires_grad false).
+// Errors (one simu::Error listing all): a regex matching nothing, a suffix matching nothing, a
+// targeted module that is not a models::Linear, a Linear already wrapped. Logs the report.
+InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg);
+
+// Injects with cfg when root has no adapters yet; otherwise gives the existing adapters cfg's scale
+// and dropout (their rank and targets stay; a mismatch shows when tensors are loaded).
+void ensure_lora(torch::nn::Module& root, const LoraConfig& cfg);
+
+// Removes every adapter (unmerging first) and its parameters; base parameters stay frozen.
+void remove_lora(torch::nn::Module& root);
+
+// Switches every adapter under root on or off (off: outputs are the base model's exactly; a merged
+// model is unmerged first, as PEFT does).
+void set_lora_enabled(torch::nn::Module& root, bool enabled);
+
+// The adapter parameters by model name `<path>.lora_A.weight` / `<path>.lora_B.weight` (A then B
+// per layer, in module order). The tensors are the live parameters (not copies).
+std::vector<std::pair<std::string, torch::Tensor>> lora_parameters(torch::nn::Module& root);
+
+// W += scale * B @ A for every adapter (in fp32, rounded to W's dtype); the adapter term is then
+// skipped in forward. Already merged layers are left alone. Disabled adapters -> error.
+void merge_lora(torch::nn::Module& root);
+// W -= scale * B @ A for every merged adapter (restores W to within float rounding).
+void unmerge_lora(torch::nn::Module& root);
+
+// PEFT names: "<path>.lora_A.weight" <-> "base_model.model.<path>.lora_A.weight" (file) and
+// "base_model.model.<path>.lora_A.default.weight" (PEFT's in-memory parameter name).
+std::string peft_file_key(const std::string& model_name);
+std::string peft_param_key(const std::string& model_name);
+// Inverse of both (accepts either form); throws on a key that is neither.
+std::string model_name_from_peft(const std::string& peft_key);
+
+// PEFT LoRA directory: adapter_config.json + adapter_model.safetensors (PEFT 0.21 layout).
+inline constexpr const char* kPeftConfigFile = "adapter_config.json";
+inline constexpr const char* kPeftWeightsFile = "adapter_model.safetensors";
+
+// Writes root's adapters as a PEFT directory. base_description (free text naming the base model and
+// its config) goes into base_model_name_or_path. A new directory is built beside dir and renamed
+// into place; an existing one gets each file replaced atomically (weights first, config last).
+void save_peft(const std::string& dir, torch::nn::Module& root, const LoraConfig& cfg,
+               const std::string& base_description);
+// Same from tensors already named by PEFT file keys (for converters that have no model).
+void save_peft_tensors(const std::string& dir, const std::map<std::string, torch::Tensor>& tensors,
+                       const LoraConfig& cfg, const std::string& base_description);
+
+// Reads adapter_config.json of a PEFT LoRA directory (features we do not implement -> error).
+LoraConfig read_peft_config(const std::string& dir);
+// Loads a PEFT directory into root: injects with the file's config when root has no adapters yet
+// (otherwise the existing adapters get the file's scale/dropout), then loads strictly: one error
+// lists every missing key, unexpected key, and shape mismatch (file [..] vs model [..]).
+LoraConfig load_peft(const std::string& dir, torch::nn::Module& root);
+// Strict load of adapter tensors (PEFT file or in-memory names, or model names) into the existing
+// adapters of root; source names the file for messages.
+void load_lora_tensors(torch::nn::Module& root, const std::map<std::string, torch::Tensor>& tensors,
+                       const std::string& source);
+
+// Writes the base model with the adapters merged (root itself is not modified) as one safetensors
+// file with official key names: prefix + parameter/buffer name (no lora_* keys).
+void save_merged(const std::string& path, torch::nn::Module& root,
+                 const std::string& prefix = "_base_models.generator.");
+
+}  // namespace simu::lora

@@ -1,0 +1,610 @@
+#include "models/flow_model.h"
+
+#include <ATen/autocast_mode.h>
+#include <fmt/ranges.h>
+
+#include <cmath>
+#include <set>
+
+#include "common/config.h"
+#include "common/error.h"
+
+namespace simu::models {
+
+namespace {
+
+// Official `_target_` names are full Python paths; compare by the last component.
+std::string short_target(const YAML::Node& node) {
+  if (!node || !node.IsMap() || !node["_target_"]) return "";
+  std::string t = node["_target_"].as<std::string>();
+  const auto dot = t.rfind('.');
+  return dot == std::string::npos ? t : t.substr(dot + 1);
+}
+
+template <typename T>
+T get_or(const YAML::Node& node, const std::string& key, const T& fallback, const std::string& file) {
+  if (!node[key] || node[key].IsNull()) return fallback;
+  try {
+    return node[key].as<T>();
+  } catch (const YAML::Exception&) {
+    fail("{}: key '{}': expected {}, got '{}'", file, key, config::type_name<T>(),
+         node[key].IsScalar() ? node[key].Scalar() : std::string("a non-scalar"));
+  }
+}
+
+// Registers `modules` under one ModuleDict named `name` (keys = stream names) so state-dict keys read
+// `<name>.<stream>.<param>` like the official torch.nn.ModuleDict.
+template <typename Holder>
+void register_dict(torch::nn::Module& owner, const std::string& name, const std::vector<std::string>& keys,
+                   const std::vector<Holder>& modules) {
+  std::vector<std::pair<std::string, std::shared_ptr<torch::nn::Module>>> items;
+  for (size_t i = 0; i < keys.size(); ++i) items.emplace_back(keys[i], modules[i].ptr());
+  owner.register_module(name, torch::nn::ModuleDict(items));
+}
+
+// SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend).
+torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
+  auto out = at::scaled_dot_product_attention(q.permute({0, 2, 1, 3}), k.permute({0, 2, 1, 3}),
+                                              v.permute({0, 2, 1, 3}));  // [B, H, L, D]
+  return out.permute({0, 2, 1, 3});                                       // [B, L, H, D]
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Config
+
+int64_t LatentSpec::tokens() const {
+  if (pos_embedder == "shape") {
+    const int64_t side = resolution / patch_size;
+    return side * side * side;
+  }
+  return token_len;
+}
+
+std::vector<std::string> FlowModelConfig::stream_names() const {
+  std::set<std::string> merged;
+  for (const auto& [_, members] : share_groups) merged.insert(members.begin(), members.end());
+  std::vector<std::string> out;
+  for (const auto& l : latents)
+    if (!merged.count(l.name)) out.push_back(l.name);
+  for (const auto& [name, _] : share_groups) out.push_back(name);
+  return out;
+}
+
+const LatentSpec& FlowModelConfig::latent(const std::string& name) const {
+  for (const auto& l : latents)
+    if (l.name == name) return l;
+  fail("flow model config: no latent named '{}'", name);
+}
+
+void FlowModelConfig::validate(const std::string& where) const {
+  const std::string w = where.empty() ? "flow model config" : where;
+  SIMU_CHECK(model_channels > 0 && num_heads > 0 && model_channels % num_heads == 0,
+             "{}: model_channels {} must be a positive multiple of num_heads {}", w, model_channels, num_heads);
+  SIMU_CHECK(num_blocks > 0, "{}: num_blocks must be positive, got {}", w, num_blocks);
+  SIMU_CHECK(cond_channels > 0, "{}: cond_channels must be positive, got {}", w, cond_channels);
+  SIMU_CHECK(pe_mode == "ape", "{}: pe_mode '{}' is not supported by the MOT flow model (only 'ape')", w, pe_mode);
+  SIMU_CHECK(qk_rms_norm, "{}: the MOT self-attention needs qk_rms_norm: true (the official model raises otherwise)", w);
+  SIMU_CHECK(!latents.empty(), "{}: latent_mapping is empty", w);
+  std::set<std::string> names;
+  for (const auto& l : latents) {
+    SIMU_CHECK(names.insert(l.name).second, "{}: latent '{}' listed twice", w, l.name);
+    SIMU_CHECK(l.in_channels > 0, "{}: latent '{}' needs in_channels > 0", w, l.name);
+    SIMU_CHECK(l.tokens() > 0, "{}: latent '{}' has no tokens (resolution/token_len)", w, l.name);
+  }
+  std::set<std::string> grouped;
+  for (const auto& [g, members] : share_groups) {
+    SIMU_CHECK(!members.empty(), "{}: latent_share_transformer group '{}' is empty", w, g);
+    for (const auto& m : members) {
+      SIMU_CHECK(names.count(m), "{}: latent_share_transformer group '{}' names unknown latent '{}'", w, g, m);
+      SIMU_CHECK(grouped.insert(m).second, "{}: latent '{}' is in two latent_share_transformer groups", w, m);
+    }
+  }
+  const auto streams = stream_names();
+  for (const auto& p : protected_modalities)
+    SIMU_CHECK(std::find(streams.begin(), streams.end(), p) != streams.end(),
+               "{}: protected modality '{}' is not a transformer stream (streams: {})", w, p, fmt::join(streams, ", "));
+}
+
+FlowModelConfig FlowModelConfig::from_official(const YAML::Node& b, const std::string& file) {
+  SIMU_CHECK(b && b.IsMap(), "{}: flow model (reverse_fn.backbone) section missing or not a mapping", file);
+  const std::string target = short_target(b);
+  SIMU_CHECK(target.empty() || target == "SparseStructureFlowTdfyWrapper",
+             "{}: backbone _target_ '{}' is not SparseStructureFlowTdfyWrapper", file, target);
+  FlowModelConfig c;
+  c.in_channels = get_or<int64_t>(b, "in_channels", c.in_channels, file);
+  c.model_channels = get_or<int64_t>(b, "model_channels", c.model_channels, file);
+  c.cond_channels = get_or<int64_t>(b, "cond_channels", c.cond_channels, file);
+  c.out_channels = get_or<int64_t>(b, "out_channels", c.out_channels, file);
+  c.num_blocks = get_or<int64_t>(b, "num_blocks", c.num_blocks, file);
+  const int64_t head_channels = get_or<int64_t>(b, "num_head_channels", 64, file);
+  c.num_heads = get_or<int64_t>(b, "num_heads", 0, file);
+  if (c.num_heads == 0) c.num_heads = c.model_channels / head_channels;
+  c.mlp_ratio = get_or<double>(b, "mlp_ratio", 4.0, file);
+  c.pe_mode = get_or<std::string>(b, "pe_mode", "ape", file);
+  c.share_mod = get_or<bool>(b, "share_mod", false, file);
+  c.qk_rms_norm = get_or<bool>(b, "qk_rms_norm", false, file);
+  c.qk_rms_norm_cross = get_or<bool>(b, "qk_rms_norm_cross", false, file);
+  c.is_shortcut_model = get_or<bool>(b, "is_shortcut_model", false, file);
+  c.force_zeros_cond = get_or<bool>(b, "force_zeros_cond", false, file);
+  // latent_mapping: name -> {in_channels, pos_embedder: {_target_, ...}}
+  const YAML::Node lm = b["latent_mapping"];
+  SIMU_CHECK(lm && lm.IsMap(), "{}: backbone.latent_mapping missing or not a mapping", file);
+  for (const auto& kv : lm) {
+    LatentSpec s;
+    s.name = kv.first.as<std::string>();
+    const YAML::Node n = kv.second;
+    s.in_channels = get_or<int64_t>(n, "in_channels", 0, file);
+    const YAML::Node pe = n["pos_embedder"];
+    const std::string pt = short_target(pe);
+    if (pt == "ShapePositionEmbedder") {
+      s.pos_embedder = "shape";
+      s.resolution = get_or<int64_t>(pe, "resolution", get_or<int64_t>(b, "resolution", 0, file), file);
+      s.patch_size = get_or<int64_t>(pe, "patch_size", get_or<int64_t>(b, "patch_size", 1, file), file);
+    } else if (pt == "LearntPositionEmbedder" || pt == "RandomPositionEmbedder") {
+      s.pos_embedder = pt == "LearntPositionEmbedder" ? "learnt" : "random";
+      s.token_len = get_or<int64_t>(pe, "token_len", 1, file);
+    } else {
+      fail("{}: latent_mapping.{}.pos_embedder: unknown _target_ '{}' (expected ShapePositionEmbedder, "
+           "LearntPositionEmbedder or RandomPositionEmbedder)", file, s.name, pt);
+    }
+    c.latents.push_back(s);
+  }
+  // latent_share_transformer: merged name -> [latent names]
+  if (const YAML::Node st = b["latent_share_transformer"]; st && st.IsMap()) {
+    for (const auto& kv : st) c.share_groups.emplace_back(kv.first.as<std::string>(), kv.second.as<std::vector<std::string>>());
+  }
+  c.validate(file + ": module.generator.backbone.reverse_fn.backbone");
+  return c;
+}
+
+FlowModelConfig FlowModelConfig::from(config::Reader& r) {
+  FlowModelConfig c;
+  r.field("in_channels", c.in_channels);
+  r.field("model_channels", c.model_channels);
+  r.field("cond_channels", c.cond_channels);
+  r.field("out_channels", c.out_channels);
+  r.field("num_blocks", c.num_blocks);
+  r.field("num_heads", c.num_heads);
+  r.field("mlp_ratio", c.mlp_ratio);
+  r.field("pe_mode", c.pe_mode);
+  r.field("share_mod", c.share_mod);
+  r.field("qk_rms_norm", c.qk_rms_norm);
+  r.field("qk_rms_norm_cross", c.qk_rms_norm_cross);
+  r.field("is_shortcut_model", c.is_shortcut_model);
+  r.field("force_zeros_cond", c.force_zeros_cond);
+  r.field("protected_modalities", c.protected_modalities);
+  // latents: list of {name, in_channels, pos_embedder: shape|learnt|random, resolution, patch_size, token_len}
+  const YAML::Node list = r.raw("latents");
+  SIMU_CHECK(list && list.IsSequence(), "{}: key '{}': expected a list of latents", r.file(), r.full("latents"));
+  for (size_t i = 0; i < list.size(); ++i) {
+    config::Reader lr(list[i], r.file(), r.full(fmt::format("latents[{}]", i)));
+    LatentSpec s;
+    s.name = lr.require<std::string>("name");
+    s.in_channels = lr.require<int64_t>("in_channels");
+    lr.field("pos_embedder", s.pos_embedder);
+    lr.field("resolution", s.resolution);
+    lr.field("patch_size", s.patch_size);
+    lr.field("token_len", s.token_len);
+    lr.finish();
+    SIMU_CHECK(s.pos_embedder == "shape" || s.pos_embedder == "learnt" || s.pos_embedder == "random",
+               "{}: latents[{}].pos_embedder: expected shape, learnt or random, got '{}'", r.file(), i, s.pos_embedder);
+    c.latents.push_back(s);
+  }
+  // share_groups: mapping merged name -> list of latent names (order kept)
+  if (r.has("share_groups")) {
+    const YAML::Node g = r.raw("share_groups");
+    SIMU_CHECK(g.IsMap(), "{}: key '{}': expected a mapping name -> list of latents", r.file(), r.full("share_groups"));
+    for (const auto& kv : g) c.share_groups.emplace_back(kv.first.as<std::string>(), kv.second.as<std::vector<std::string>>());
+  }
+  c.validate(r.file() + ": " + (r.full("").empty() ? "flow_model" : r.full("")));
+  return c;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Autocast
+
+Bf16Autocast::Bf16Autocast(bool enable) : enabled_(enable) {
+  if (!enabled_) return;
+  prev_enabled_ = at::autocast::is_autocast_enabled(at::kCUDA);
+  prev_dtype_ = at::autocast::get_autocast_dtype(at::kCUDA);
+  at::autocast::set_autocast_enabled(at::kCUDA, true);
+  at::autocast::set_autocast_dtype(at::kCUDA, at::kBFloat16);
+  at::autocast::increment_nesting();
+}
+
+Bf16Autocast::~Bf16Autocast() {
+  if (!enabled_) return;
+  if (at::autocast::decrement_nesting() == 0) at::autocast::clear_cache();
+  at::autocast::set_autocast_enabled(at::kCUDA, prev_enabled_);
+  at::autocast::set_autocast_dtype(at::kCUDA, prev_dtype_);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Modules
+
+TimestepEmbedderImpl::TimestepEmbedderImpl(int64_t hidden_size, int64_t freq_size) : frequency_embedding_size(freq_size) {
+  mlp = register_module("mlp", torch::nn::Sequential(Linear(freq_size, hidden_size), torch::nn::SiLU(),
+                                                     Linear(hidden_size, hidden_size)));
+}
+
+torch::Tensor TimestepEmbedderImpl::timestep_embedding(const torch::Tensor& t, int64_t dim, double max_period) {
+  const int64_t half = dim / 2;
+  // freqs = exp(-ln(max_period) * arange(half) / half), float32 like the official
+  auto freqs = torch::exp(-std::log(max_period) * torch::arange(half, torch::kFloat32) / static_cast<double>(half))
+                   .to(t.device());
+  auto args = t.reshape({-1, 1}).to(torch::kFloat32) * freqs.unsqueeze(0);  // [B, half]
+  auto emb = torch::cat({torch::cos(args), torch::sin(args)}, -1);         // [B, 2*half]
+  if (dim % 2) emb = torch::cat({emb, torch::zeros_like(emb.narrow(1, 0, 1))}, -1);
+  return emb;
+}
+
+torch::Tensor TimestepEmbedderImpl::forward(const torch::Tensor& t) {
+  auto tt = t.dim() == 0 ? t.unsqueeze(0) : t;
+  return mlp->forward(timestep_embedding(tt, frequency_embedding_size));  // [B, C]
+}
+
+LayerNorm32Impl::LayerNorm32Impl(int64_t c, bool affine, double e) : channels(c), eps(e) {
+  if (affine) {
+    weight = register_parameter("weight", torch::ones({c}));
+    bias = register_parameter("bias", torch::zeros({c}));
+  }
+}
+
+torch::Tensor LayerNorm32Impl::forward(const torch::Tensor& x) {
+  auto y = at::layer_norm(x.to(torch::kFloat32), {channels}, weight, bias, eps);
+  return y.to(x.scalar_type());
+}
+
+MultiHeadRMSNormImpl::MultiHeadRMSNormImpl(int64_t dim, int64_t heads) : scale(std::sqrt(static_cast<double>(dim))) {
+  gamma = register_parameter("gamma", torch::ones({heads, dim}));
+}
+
+torch::Tensor MultiHeadRMSNormImpl::forward(const torch::Tensor& x) {
+  // Official: (F.normalize(x, dim=-1) * gamma * scale).to(x.dtype), i.e. x / max(|x|, 1e-12) in
+  // float32 (under autocast the norm runs in fp32). Written as two full-size passes instead of four:
+  // x * (1 / max(|x|, eps)) then * (gamma * scale).
+  auto inv = at::linalg_vector_norm(x, 2, {-1}, /*keepdim=*/true, torch::kFloat32).clamp_min(1e-12).reciprocal();
+  auto y = x * inv;                 // [B, L, H, D] float32
+  y.mul_(gamma.to(torch::kFloat32) * scale);
+  return y.to(x.scalar_type());
+}
+
+FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
+  const auto hidden = static_cast<int64_t>(channels * mlp_ratio);
+  fc1 = Linear(channels, hidden);
+  fc2 = Linear(hidden, channels);
+  register_module("mlp", torch::nn::Sequential(fc1, torch::nn::GELU(torch::nn::GELUOptions().approximate("tanh")), fc2));
+}
+
+torch::Tensor FeedForwardNetImpl::forward(const torch::Tensor& x) {
+  return fc2->forward(torch::gelu(fc1->forward(x), "tanh"));
+}
+
+CrossAttentionImpl::CrossAttentionImpl(int64_t channels, int64_t ctx_channels, int64_t heads, bool qk_rms_norm)
+    : num_heads(heads) {
+  to_q = register_module("to_q", Linear(channels, channels));
+  to_kv = register_module("to_kv", Linear(ctx_channels, 2 * channels));
+  if (qk_rms_norm) {
+    q_rms_norm = register_module("q_rms_norm", MultiHeadRMSNorm(channels / heads, heads));
+    k_rms_norm = register_module("k_rms_norm", MultiHeadRMSNorm(channels / heads, heads));
+  }
+  to_out = register_module("to_out", Linear(channels, channels));
+}
+
+std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::context_kv(const torch::Tensor& context) {
+  const int64_t B = context.size(0), Lc = context.size(1);
+  auto kv = to_kv->forward(context).reshape({B, Lc, 2, num_heads, -1});  // [B, Lc, 2, H, D]
+  auto k = kv.select(2, 0), v = kv.select(2, 1);                         // [B, Lc, H, D]
+  if (k_rms_norm) k = k_rms_norm->forward(k);
+  return {k, v};
+}
+
+torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
+  const int64_t B = x.size(0), L = x.size(1);
+  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
+  if (q_rms_norm) q = q_rms_norm->forward(q);
+  auto h = attention(q, k, v).reshape({B, L, -1});  // [B, L, C]
+  return to_out->forward(h);
+}
+
+torch::Tensor CrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& context) {
+  const auto [k, v] = context_kv(context);
+  return attend(x, k, v);
+}
+
+MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, const std::vector<std::string>& streams,
+                                           const std::vector<std::string>& protected_modalities)
+    : names(streams), num_heads(heads) {
+  for (const auto& n : names) {
+    to_qkv.push_back(Linear(channels, 3 * channels));
+    to_out.push_back(Linear(channels, channels));
+    q_rms_norm.push_back(MultiHeadRMSNorm(channels / heads, heads));
+    k_rms_norm.push_back(MultiHeadRMSNorm(channels / heads, heads));
+    is_protected.push_back(std::find(protected_modalities.begin(), protected_modalities.end(), n) !=
+                           protected_modalities.end());
+  }
+  register_dict(*this, "to_qkv", names, to_qkv);
+  register_dict(*this, "q_rms_norm", names, q_rms_norm);
+  register_dict(*this, "k_rms_norm", names, k_rms_norm);
+  register_dict(*this, "to_out", names, to_out);
+}
+
+std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch::Tensor>& x) {
+  const size_t S = x.size();
+  // Per-stream q, k, v: [B, L_i, H, D], with RMS norm on q and k.
+  std::vector<torch::Tensor> q(S), k(S), v(S), h(S);
+  for (size_t i = 0; i < S; ++i) {
+    const int64_t B = x[i].size(0), L = x[i].size(1);
+    auto qkv = to_qkv[i]->forward(x[i]).reshape({B, L, 3, num_heads, -1});
+    q[i] = q_rms_norm[i]->forward(qkv.select(2, 0));
+    k[i] = k_rms_norm[i]->forward(qkv.select(2, 1));
+    v[i] = qkv.select(2, 2);
+  }
+  // Protected streams (shape) attend only to themselves.
+  std::vector<torch::Tensor> oq, ok, ov, pk, pv;
+  std::vector<size_t> others;
+  for (size_t i = 0; i < S; ++i) {
+    if (is_protected[i]) {
+      h[i] = attention(q[i], k[i], v[i]);
+      pk.push_back(k[i].detach());
+      pv.push_back(v[i].detach());
+    } else {
+      others.push_back(i);
+      oq.push_back(q[i]);
+      ok.push_back(k[i]);
+      ov.push_back(v[i]);
+    }
+  }
+  // The other streams attend to [others, protected (detached)] keys/values together.
+  if (!others.empty()) {
+    auto keys = ok, values = ov;
+    keys.insert(keys.end(), pk.begin(), pk.end());
+    values.insert(values.end(), pv.begin(), pv.end());
+    auto ho = attention(torch::cat(oq, 1), torch::cat(keys, 1), torch::cat(values, 1));  // [B, sum L, H, D]
+    int64_t start = 0;
+    for (size_t i : others) {
+      const int64_t L = x[i].size(1);
+      h[i] = ho.narrow(1, start, L);
+      start += L;
+    }
+  }
+  // Output projection per stream.
+  for (size_t i = 0; i < S; ++i) h[i] = to_out[i]->forward(h[i].reshape({x[i].size(0), x[i].size(1), -1}));
+  return h;
+}
+
+MOTBlockImpl::MOTBlockImpl(const FlowModelConfig& c) : share_mod(c.share_mod) {
+  const auto names = c.stream_names();
+  const int64_t C = c.model_channels;
+  for (size_t i = 0; i < names.size(); ++i) {
+    norm1.push_back(LayerNorm32(C, false, 1e-6));
+    norm2.push_back(LayerNorm32(C, true, 1e-6));
+    norm3.push_back(LayerNorm32(C, false, 1e-6));
+    cross_attn.push_back(CrossAttention(C, c.cond_channels, c.num_heads, c.qk_rms_norm_cross));
+    mlp.push_back(FeedForwardNet(C, c.mlp_ratio));
+  }
+  register_dict(*this, "norm1", names, norm1);
+  register_dict(*this, "norm2", names, norm2);
+  register_dict(*this, "norm3", names, norm3);
+  self_attn = register_module("self_attn", MOTSelfAttention(C, c.num_heads, names, c.protected_modalities));
+  register_dict(*this, "cross_attn", names, cross_attn);
+  register_dict(*this, "mlp", names, mlp);
+  if (!share_mod) {
+    ada_linear = Linear(C, 6 * C);
+    adaLN_modulation = register_module("adaLN_modulation", torch::nn::Sequential(torch::nn::SiLU(), ada_linear));
+  }
+}
+
+std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_in, const torch::Tensor& mod,
+                                                 const torch::Tensor& cond,
+                                                 const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv) {
+  // Modulation: six [B, 1, C] chunks (shift/scale/gate for attention and MLP).
+  auto m = share_mod ? mod : ada_linear->forward(torch::silu(mod));
+  auto chunks = m.chunk(6, 1);
+  auto shift_msa = chunks[0].unsqueeze(1), scale_msa = chunks[1].unsqueeze(1), gate_msa = chunks[2].unsqueeze(1);
+  auto shift_mlp = chunks[3].unsqueeze(1), scale_mlp = chunks[4].unsqueeze(1), gate_mlp = chunks[5].unsqueeze(1);
+  const size_t S = x_in.size();
+  std::vector<torch::Tensor> x = x_in, h(S);
+  // norm(x) * (1 + scale) + shift. When the modulation is one row (the same t for the whole batch,
+  // as in sampling) it is a LayerNorm with weight 1 + scale and bias shift: one fused fp32 kernel.
+  const bool one_row = m.size(0) == 1;
+  auto modulate = [&](LayerNorm32& norm, const torch::Tensor& xi, const torch::Tensor& scale, const torch::Tensor& shift) {
+    if (one_row) {
+      auto w = (1 + scale).reshape({-1}).to(torch::kFloat32), b = shift.reshape({-1}).to(torch::kFloat32);
+      return at::layer_norm(xi.to(torch::kFloat32), {xi.size(-1)}, w, b, norm->eps).to(xi.scalar_type());
+    }
+    return norm->forward(xi) * (1 + scale) + shift;
+  };
+  // Self attention on the modulated norm1; gated residual x + h * gate.
+  for (size_t i = 0; i < S; ++i) h[i] = modulate(norm1[i], x[i], scale_msa, shift_msa);
+  h = self_attn->forward(h);
+  for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], h[i], gate_msa);
+  // Cross attention over the condition on the affine norm2 (no modulation).
+  for (size_t i = 0; i < S; ++i) {
+    auto hi = norm2[i]->forward(x[i]);
+    x[i] = x[i] + (kv ? cross_attn[i]->attend(hi, (*kv)[i].first, (*kv)[i].second) : cross_attn[i]->forward(hi, cond));
+  }
+  // MLP on the modulated norm3; gated residual.
+  for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], mlp[i]->forward(modulate(norm3[i], x[i], scale_mlp, shift_mlp)), gate_mlp);
+  return x;
+}
+
+torch::Tensor shape_position_embedding(int64_t channels, int64_t resolution, int64_t patch_size) {
+  const int64_t side = resolution / patch_size;
+  const int64_t freq_dim = channels / 3 / 2;
+  // freqs = 1 / 10000^(arange(freq_dim)/freq_dim)
+  auto freqs = 1.0 / torch::pow(10000.0, torch::arange(freq_dim, torch::kFloat32) / static_cast<double>(freq_dim));
+  auto r = torch::arange(side, torch::kFloat32);
+  auto grids = torch::meshgrid({r, r, r}, "ij");
+  auto coords = torch::stack({grids[0], grids[1], grids[2]}, -1).reshape({-1, 3});  // [N, 3]
+  const int64_t N = coords.size(0);
+  auto out = torch::outer(coords.reshape({-1}), freqs);               // [N*3, freq_dim]
+  auto emb = torch::cat({torch::sin(out), torch::cos(out)}, -1).reshape({N, -1});  // [N, 6*freq_dim]
+  if (emb.size(1) < channels) emb = torch::cat({emb, torch::zeros({N, channels - emb.size(1)})}, -1);
+  return emb;
+}
+
+LatentMappingImpl::LatentMappingImpl(const LatentSpec& s, int64_t C) {
+  input_layer = register_module("input_layer", Linear(s.in_channels, C));
+  out_layer = register_module("out_layer", Linear(C, s.in_channels));
+  if (s.pos_embedder == "shape")
+    pos_emb = register_buffer("pos_emb", shape_position_embedding(C, s.resolution, s.patch_size));
+  else if (s.pos_embedder == "learnt")
+    pos_emb = register_parameter("pos_emb", torch::randn({s.token_len, C}));
+  else
+    pos_emb = register_buffer("pos_emb", torch::randn({s.token_len, C}));
+}
+
+torch::Tensor LatentMappingImpl::to_input(const torch::Tensor& x) { return input_layer->forward(x) + pos_emb.unsqueeze(0); }
+
+torch::Tensor LatentMappingImpl::to_output(const torch::Tensor& h) {
+  auto n = at::layer_norm(h, {h.size(-1)});  // no affine, eps 1e-5 (F.layer_norm default)
+  return out_layer->forward(n);
+}
+
+SparseStructureFlowTdfyWrapperImpl::SparseStructureFlowTdfyWrapperImpl(FlowModelConfig c) : config_(std::move(c)) {
+  config_.validate();
+  streams_ = config_.stream_names();
+  const int64_t C = config_.model_channels;
+  if (config_.is_shortcut_model) d_embedder = register_module("d_embedder", TimestepEmbedder(C));
+  t_embedder = register_module("t_embedder", TimestepEmbedder(C));
+  if (config_.share_mod)
+    adaLN_modulation = register_module("adaLN_modulation", torch::nn::Sequential(torch::nn::SiLU(), Linear(C, 6 * C)));
+  blocks = register_module("blocks", torch::nn::ModuleList());
+  for (int64_t i = 0; i < config_.num_blocks; ++i) {
+    block_list_.push_back(MOTBlock(config_));
+    blocks->push_back(block_list_.back());
+  }
+  std::vector<std::string> names;
+  std::vector<LatentMapping> maps;
+  for (const auto& s : config_.latents) {
+    names.push_back(s.name);
+    maps.push_back(LatentMapping(s, C));
+    latent_mapping.emplace(s.name, maps.back());
+  }
+  register_dict(*this, "latent_mapping", names, maps);
+}
+
+ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond) {
+  ConditionCache cache;
+  cache.cond = cond;
+  auto cond32 = cond.to(torch::kFloat32);
+  for (auto& block : block_list_) {
+    std::vector<std::pair<torch::Tensor, torch::Tensor>> per_stream;
+    for (auto& ca : block->cross_attn) per_stream.push_back(ca->context_kv(cond32));
+    cache.kv.push_back(std::move(per_stream));
+  }
+  return cache;
+}
+
+Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
+                                                    const c10::optional<torch::Tensor>& d, const ConditionCache* cache) {
+  SIMU_CHECK(!cache || (cache->cond.is_same(cond) && cache->kv.size() == block_list_.size()),
+             "flow model: the condition cache was computed for another condition tensor");
+  const auto& c = config_;
+  SIMU_CHECK(cond.dim() == 3 && cond.size(2) == c.cond_channels, "flow model: cond must be [B, L, {}], got [{}]",
+             c.cond_channels, fmt::join(cond.sizes(), ", "));
+  // Timestep embedding (+ shortcut step embedding), then the shared modulation when share_mod.
+  auto t_emb = t_embedder->forward(t);  // [B, C]
+  if (d.has_value()) {
+    SIMU_CHECK(d_embedder, "flow model: a shortcut step d was given but the model has no d_embedder "
+                           "(is_shortcut_model: false)");
+    t_emb = t_emb + d_embedder->forward(*d);
+  }
+  if (c.share_mod) t_emb = adaLN_modulation->forward(t_emb);  // [B, 6C]
+  t_emb = t_emb.to(torch::kFloat32);
+
+  // Input projection per latent, then merge shared groups into streams.
+  std::map<std::string, torch::Tensor> projected;
+  for (const auto& s : c.latents) {
+    const auto it = x.find(s.name);
+    SIMU_CHECK(it != x.end(), "flow model: latent '{}' missing from the input", s.name);
+    const auto& xi = it->second;
+    SIMU_CHECK(xi.dim() == 3 && xi.size(1) == s.tokens() && xi.size(2) == s.in_channels,
+               "flow model: latent '{}' must be [B, {}, {}], got [{}]", s.name, s.tokens(), s.in_channels,
+               fmt::join(xi.sizes(), ", "));
+    projected[s.name] = latent_mapping.at(s.name)->to_input(xi);  // [B, T, C]
+  }
+  std::vector<torch::Tensor> h;
+  for (const auto& name : streams_) {
+    const auto g = std::find_if(c.share_groups.begin(), c.share_groups.end(), [&](const auto& p) { return p.first == name; });
+    if (g == c.share_groups.end()) {
+      h.push_back(projected.at(name));
+    } else {
+      std::vector<torch::Tensor> parts;
+      for (const auto& m : g->second) parts.push_back(projected.at(m));
+      h.push_back(torch::cat(parts, 1));
+    }
+  }
+  const auto input_dtype = h.front().scalar_type();
+  for (auto& hi : h) hi = hi.to(torch::kFloat32);
+  auto cond32 = cond.to(torch::kFloat32);
+
+  // Transformer blocks.
+  for (size_t b = 0; b < block_list_.size(); ++b) h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
+  for (auto& hi : h) hi = hi.to(input_dtype);
+
+  // Split streams back into latents and project out.
+  std::map<std::string, torch::Tensor> split;
+  for (size_t i = 0; i < streams_.size(); ++i) {
+    const auto g = std::find_if(c.share_groups.begin(), c.share_groups.end(), [&](const auto& p) { return p.first == streams_[i]; });
+    if (g == c.share_groups.end()) {
+      split[streams_[i]] = h[i];
+    } else {
+      int64_t start = 0;
+      for (const auto& m : g->second) {
+        const int64_t len = c.latent(m).tokens();
+        split[m] = h[i].narrow(1, start, len);
+        start += len;
+      }
+    }
+  }
+  Latents out;
+  for (const auto& s : c.latents) out[s.name] = latent_mapping.at(s.name)->to_output(split.at(s.name));
+  return out;
+}
+
+double flow_forward_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len) {
+  const double C = static_cast<double>(c.model_channels), Cc = static_cast<double>(c.cond_channels);
+  const double Lc = static_cast<double>(cond_len), hidden = std::floor(C * c.mlp_ratio);
+  // Tokens per stream and keys each stream attends to.
+  const auto streams = c.stream_names();
+  double total_tokens = 0, protected_tokens = 0;
+  std::map<std::string, double> tokens;
+  for (const auto& s : streams) {
+    double t = 0;
+    const auto g = std::find_if(c.share_groups.begin(), c.share_groups.end(), [&](const auto& p) { return p.first == s; });
+    if (g == c.share_groups.end()) t = static_cast<double>(c.latent(s).tokens());
+    else
+      for (const auto& m : g->second) t += static_cast<double>(c.latent(m).tokens());
+    tokens[s] = t;
+    total_tokens += t;
+    if (std::find(c.protected_modalities.begin(), c.protected_modalities.end(), s) != c.protected_modalities.end())
+      protected_tokens += t;
+  }
+  double block = 0;
+  for (const auto& s : streams) {
+    const double T = tokens[s];
+    const bool prot = std::find(c.protected_modalities.begin(), c.protected_modalities.end(), s) != c.protected_modalities.end();
+    const double keys = prot ? T : total_tokens;  // protected: itself; others: everything
+    block += 2 * T * C * 3 * C + 2 * T * C * C;                 // self qkv + out
+    block += 2 * 2 * T * keys * C;                              // self QK^T + PV
+    block += 2 * T * C * C + 2 * Lc * Cc * 2 * C + 2 * T * C * C;  // cross q, kv, out
+    block += 2 * 2 * T * Lc * C;                                // cross QK^T + PV
+    block += 2 * 2 * T * C * hidden;                            // MLP
+  }
+  (void)protected_tokens;
+  double io = 0;
+  for (const auto& l : c.latents) io += 2 * 2 * static_cast<double>(l.tokens()) * C * l.in_channels;
+  const double ada = (c.share_mod ? 1.0 : static_cast<double>(c.num_blocks)) * 2 * C * 6 * C;
+  return batch * (c.num_blocks * block + io + ada);
+}
+
+double flow_condition_kv_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len) {
+  const double streams = static_cast<double>(c.stream_names().size());
+  return batch * c.num_blocks * streams * 2.0 * cond_len * c.cond_channels * 2.0 * c.model_channels;
+}
+
+}  // namespace simu::models

@@ -1,0 +1,259 @@
+// SAM 3D Objects Stage-1 flow model: the mixture-of-transformers DiT `SparseStructureFlowTdfyWrapper`.
+//
+// Port of sam3d_objects/model/backbone/tdfy_dit/models/mot_sparse_structure_flow.py and the modules it
+// uses (TimestepEmbedder, MOTModulatedTransformerCrossBlock, MOTMultiHeadSelfAttention,
+// MultiHeadAttention, MultiHeadRMSNorm, FeedForwardNet, LayerNorm32, mm_latent.Latent).
+//
+// Data flow (B = batch, C = model_channels):
+//   latents {name: [B, tokens, in_ch]} --Latent.input_layer + pos_emb--> {name: [B, tokens, C]}
+//   --latent_share_transformer merge (cat along tokens)--> transformer streams (e.g. "shape" and the
+//   merged pose stream "6drotation_normalized") --num_blocks x MOT block--> split back per latent
+//   --layer_norm + Latent.out_layer--> {name: [B, tokens, in_ch]} (the predicted velocity).
+// Each block has per-stream weights (norms, qkv/out projections, cross attention, MLP) and one shared
+// adaLN modulation from the timestep embedding. Self-attention: the protected stream ("shape")
+// attends only to itself; every other stream attends to all streams, with the shape keys/values
+// detached (no gradient into shape through pose).
+//
+// Module names reproduce the official state-dict keys after stripping "_base_models.generator." and
+// "reverse_fn.backbone." (e.g. `blocks.0.self_attn.to_qkv.shape.weight`). Every linear projection is a
+// simu::models::Linear (LoRA attaches there).
+//
+// Numerics: written so that the same ops run in fp32 on CPU (reference) and under CUDA bf16 autocast
+// (see Bf16Autocast): LayerNorms in fp32, the residual stream in fp32, projections in bf16,
+// attention through at::scaled_dot_product_attention.
+#pragma once
+
+#include <torch/torch.h>
+#include <yaml-cpp/yaml.h>
+
+#include <map>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "models/linear.h"
+
+namespace simu::config {
+class Reader;
+}
+
+namespace simu::models {
+
+// Modality name -> tensor [B, tokens, channels].
+using Latents = std::map<std::string, torch::Tensor>;
+
+// One entry of `latent_mapping`: a latent modality with its input channels and position embedding.
+struct LatentSpec {
+  std::string name;
+  int64_t in_channels = 0;
+  // "shape": fixed 3-D sin/cos (ShapePositionEmbedder, a buffer); "learnt": a parameter
+  // (LearntPositionEmbedder); "random": a fixed random buffer (RandomPositionEmbedder).
+  std::string pos_embedder = "learnt";
+  int64_t resolution = 0;  // shape only: grid side
+  int64_t patch_size = 1;  // shape only
+  int64_t token_len = 1;   // learnt / random only
+  // Number of tokens of this latent: (resolution/patch_size)^3 or token_len.
+  int64_t tokens() const;
+};
+
+struct FlowModelConfig {
+  int64_t in_channels = 8;
+  int64_t model_channels = 1024;
+  int64_t cond_channels = 1024;
+  int64_t out_channels = 8;
+  int64_t num_blocks = 24;
+  int64_t num_heads = 16;
+  double mlp_ratio = 4.0;
+  std::string pe_mode = "ape";  // only "ape" (the MOT model raises on rope)
+  bool share_mod = false;
+  bool qk_rms_norm = true;  // the MOT self-attention requires it (official raises otherwise)
+  bool qk_rms_norm_cross = false;
+  bool is_shortcut_model = false;  // has d_embedder (shortcut step size)
+  bool force_zeros_cond = true;    // unconditional branch ("add_flag") multiplies the condition by 0
+  std::vector<LatentSpec> latents;  // latent_mapping, in file order
+  // latent_share_transformer: merged stream name -> the latents concatenated into it, in order.
+  std::vector<std::pair<std::string, std::vector<std::string>>> share_groups;
+  std::vector<std::string> protected_modalities = {"shape"};
+
+  // Transformer stream names (official `latent_names`): latents not merged, then merged stream names.
+  std::vector<std::string> stream_names() const;
+  const LatentSpec& latent(const std::string& name) const;
+  int64_t head_dim() const { return model_channels / num_heads; }
+  // Throws simu::Error on an inconsistent config (heads not dividing channels, unknown merged names...).
+  void validate(const std::string& where = "") const;
+
+  // From the official YAML/JSON node `module.generator.backbone.reverse_fn.backbone` (the
+  // SparseStructureFlowTdfyWrapper kwargs). Unknown training-only keys are ignored.
+  static FlowModelConfig from_official(const YAML::Node& backbone, const std::string& file = "");
+  // From the project layout (configs/*.yaml `flow_model:` section); strict keys.
+  static FlowModelConfig from(config::Reader& r);
+};
+
+// Enables CUDA bf16 autocast for its lifetime when `enable` (no-op otherwise); restores the state after.
+class Bf16Autocast {
+ public:
+  explicit Bf16Autocast(bool enable);
+  ~Bf16Autocast();
+  Bf16Autocast(const Bf16Autocast&) = delete;
+  Bf16Autocast& operator=(const Bf16Autocast&) = delete;
+
+ private:
+  bool enabled_ = false;
+  bool prev_enabled_ = false;
+  at::ScalarType prev_dtype_ = at::kBFloat16;
+};
+
+// Sinusoidal embedding of scalar times, then Linear-SiLU-Linear. t: [B] -> [B, C].
+class TimestepEmbedderImpl : public torch::nn::Module {
+ public:
+  TimestepEmbedderImpl(int64_t hidden_size, int64_t frequency_embedding_size = 256);
+  torch::Tensor forward(const torch::Tensor& t);
+  // cos/sin features of t: [B] -> [B, dim] (first half cos, second half sin, max_period 10000).
+  static torch::Tensor timestep_embedding(const torch::Tensor& t, int64_t dim, double max_period = 10000.0);
+  torch::nn::Sequential mlp{nullptr};
+  int64_t frequency_embedding_size;
+};
+TORCH_MODULE(TimestepEmbedder);
+
+// LayerNorm computed in float32, output cast back to the input dtype (official LayerNorm32).
+class LayerNorm32Impl : public torch::nn::Module {
+ public:
+  LayerNorm32Impl(int64_t channels, bool affine, double eps);
+  torch::Tensor forward(const torch::Tensor& x);
+  torch::Tensor weight, bias;  // [C] when affine
+  int64_t channels;
+  double eps;
+};
+TORCH_MODULE(LayerNorm32);
+
+// Per-head RMS norm on q/k: normalize(x, dim=-1) * gamma * sqrt(dim). x: [B, L, H, D]; gamma [H, D].
+class MultiHeadRMSNormImpl : public torch::nn::Module {
+ public:
+  MultiHeadRMSNormImpl(int64_t dim, int64_t heads);
+  torch::Tensor forward(const torch::Tensor& x);
+  torch::Tensor gamma;
+  double scale;
+};
+TORCH_MODULE(MultiHeadRMSNorm);
+
+// Linear - GELU(tanh) - Linear, hidden = channels * mlp_ratio. Keys mlp.0.*, mlp.2.*.
+class FeedForwardNetImpl : public torch::nn::Module {
+ public:
+  FeedForwardNetImpl(int64_t channels, double mlp_ratio);
+  torch::Tensor forward(const torch::Tensor& x);
+  Linear fc1{nullptr}, fc2{nullptr};  // registered as mlp.0 and mlp.2
+};
+TORCH_MODULE(FeedForwardNet);
+
+// Cross attention of tokens over the condition tokens (official MultiHeadAttention, type "cross").
+class CrossAttentionImpl : public torch::nn::Module {
+ public:
+  CrossAttentionImpl(int64_t channels, int64_t ctx_channels, int64_t num_heads, bool qk_rms_norm);
+  // x: [B, L, C], context: [B, Lc, Cc] -> [B, L, C]
+  torch::Tensor forward(const torch::Tensor& x, const torch::Tensor& context);
+  // Keys (RMS-normed when enabled) and values of the context: [B, Lc, H, D] each.
+  std::pair<torch::Tensor, torch::Tensor> context_kv(const torch::Tensor& context);
+  // Attention of x over precomputed keys/values, then to_out: [B, L, C].
+  torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
+  Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
+  MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
+  int64_t num_heads;
+};
+TORCH_MODULE(CrossAttention);
+
+// Mixture-of-transformers self attention (official MOTMultiHeadSelfAttention, qk RMS norm on).
+class MOTSelfAttentionImpl : public torch::nn::Module {
+ public:
+  MOTSelfAttentionImpl(int64_t channels, int64_t num_heads, const std::vector<std::string>& stream_names,
+                       const std::vector<std::string>& protected_modalities);
+  // x[i]: [B, L_i, C] for stream_names[i] -> same shapes.
+  std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x);
+  std::vector<Linear> to_qkv, to_out;                      // per stream
+  std::vector<MultiHeadRMSNorm> q_rms_norm, k_rms_norm;    // per stream
+  std::vector<std::string> names;
+  std::vector<bool> is_protected;
+  int64_t num_heads;
+};
+TORCH_MODULE(MOTSelfAttention);
+
+// Cross-attention keys/values of the condition for every block and stream, computed once and reused
+// over the sampling steps (the condition is the same at every step). kv[block][stream] = (k, v).
+struct ConditionCache {
+  torch::Tensor cond;  // the condition they were computed from
+  std::vector<std::vector<std::pair<torch::Tensor, torch::Tensor>>> kv;
+};
+
+// One MOT block: adaLN-modulated self attention, cross attention, MLP; per-stream weights.
+class MOTBlockImpl : public torch::nn::Module {
+ public:
+  explicit MOTBlockImpl(const FlowModelConfig& c);
+  // x[i]: [B, L_i, C]; mod: [B or 1, C] (t embedding) or [B or 1, 6C] when share_mod; cond: [B, Lc, Cc].
+  // kv: this block's precomputed condition keys/values per stream (ConditionCache), or null.
+  std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x, const torch::Tensor& mod,
+                                     const torch::Tensor& cond,
+                                     const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv = nullptr);
+  std::vector<LayerNorm32> norm1, norm2, norm3;
+  MOTSelfAttention self_attn{nullptr};
+  std::vector<CrossAttention> cross_attn;
+  std::vector<FeedForwardNet> mlp;
+  torch::nn::Sequential adaLN_modulation{nullptr};  // SiLU, Linear(C, 6C); absent when share_mod
+  Linear ada_linear{nullptr};
+  bool share_mod;
+};
+TORCH_MODULE(MOTBlock);
+
+// One latent modality's input/output mapping (official mm_latent.Latent).
+class LatentMappingImpl : public torch::nn::Module {
+ public:
+  LatentMappingImpl(const LatentSpec& spec, int64_t model_channels);
+  // [B, T, in] -> [B, T, C]: input_layer(x) + pos_emb
+  torch::Tensor to_input(const torch::Tensor& x);
+  // [B, T, C] -> [B, T, in]: out_layer(layer_norm(h))
+  torch::Tensor to_output(const torch::Tensor& h);
+  Linear input_layer{nullptr}, out_layer{nullptr};
+  torch::Tensor pos_emb;  // [T, C]
+};
+TORCH_MODULE(LatentMapping);
+
+// 3-D sin/cos position embedding of a res^3 grid (official AbsolutePositionEmbedder over ij-meshgrid
+// coordinates, zero padded to `channels`): [res^3, channels].
+torch::Tensor shape_position_embedding(int64_t channels, int64_t resolution, int64_t patch_size);
+
+class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
+ public:
+  explicit SparseStructureFlowTdfyWrapperImpl(FlowModelConfig config);
+
+  // x: one tensor per latent of the config [B, tokens, in_ch]; t: [B] (or [1]) in time_scale units
+  // (t*1000); cond: [B, L, cond_channels]; d: [B] shortcut step in time_scale units, only for shortcut
+  // models (when given, its embedding is added, also for d = 0). Returns the velocity per latent.
+  // cache: condition keys/values from condition_cache(cond) for this same cond (skips the to_kv
+  // projections); null computes them.
+  Latents forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
+                  const c10::optional<torch::Tensor>& d = c10::nullopt, const ConditionCache* cache = nullptr);
+  // Cross-attention keys/values of cond for every block (run under the same autocast as forward).
+  ConditionCache condition_cache(const torch::Tensor& cond);
+
+  const FlowModelConfig& config() const { return config_; }
+
+  TimestepEmbedder t_embedder{nullptr}, d_embedder{nullptr};
+  torch::nn::Sequential adaLN_modulation{nullptr};  // share_mod only
+  torch::nn::ModuleList blocks{nullptr};
+  std::map<std::string, LatentMapping> latent_mapping;
+
+ private:
+  FlowModelConfig config_;
+  std::vector<std::string> streams_;
+  std::vector<MOTBlock> block_list_;
+};
+TORCH_MODULE(SparseStructureFlowTdfyWrapper);
+
+// Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:
+// per block and per stream of T tokens: self qkv 2*T*C*3C + out 2*T*C*C; self attention QK^T and PV
+// 2*2*T*Tk*C (Tk = keys seen); cross q 2*T*C*C + kv 2*Lc*Cc*2C + out 2*T*C*C; cross attention
+// 2*2*T*Lc*C; MLP 2*2*T*C*(C*mlp_ratio); plus adaLN and latent in/out layers. Times batch.
+double flow_forward_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len);
+// The part of flow_forward_flops spent on the condition key/value projections (2*Lc*Cc*2C per block
+// and stream, times batch): what a ConditionCache saves per reuse.
+double flow_condition_kv_flops(const FlowModelConfig& c, int64_t batch, int64_t cond_len);
+
+}  // namespace simu::models

@@ -1,0 +1,318 @@
+#include "models/generator.h"
+
+#include <fmt/ranges.h>
+
+#include <cmath>
+#include <limits>
+
+#include "common/config.h"
+#include "common/error.h"
+#include "common/log.h"
+#include "data/safetensors.h"
+#include "models/weights.h"
+
+namespace simu::models {
+
+namespace {
+
+std::string short_target(const YAML::Node& node) {
+  if (!node || !node.IsMap() || !node["_target_"]) return "";
+  std::string t = node["_target_"].as<std::string>();
+  const auto dot = t.rfind('.');
+  return dot == std::string::npos ? t : t.substr(dot + 1);
+}
+
+template <typename T>
+T get_or(const YAML::Node& node, const std::string& key, const T& fallback, const std::string& file) {
+  if (!node[key] || node[key].IsNull()) return fallback;
+  try {
+    return node[key].as<T>();
+  } catch (const YAML::Exception&) {
+    fail("{}: key '{}': expected {}, got '{}'", file, key, config::type_name<T>(),
+         node[key].IsScalar() ? node[key].Scalar() : std::string("a non-scalar"));
+  }
+}
+
+// interval: [lo, hi] or null (CFG never active: {inf, -inf}).
+std::pair<double, double> read_interval(const YAML::Node& n, const std::string& file) {
+  if (!n || n.IsNull()) return {std::numeric_limits<double>::infinity(), -std::numeric_limits<double>::infinity()};
+  SIMU_CHECK(n.IsSequence() && n.size() == 2, "{}: cfg interval must be [lo, hi] or null", file);
+  return {n[0].as<double>(), n[1].as<double>()};
+}
+
+Latents combine(const Latents& a, const Latents& b, double wa, double wb) {
+  Latents out;
+  for (const auto& [k, v] : a) out[k] = v * wa + b.at(k) * wb;
+  return out;
+}
+
+// x + v * dt per latent (official linear_approximation_step).
+Latents step(const Latents& x, const Latents& v, double dt) {
+  Latents out;
+  for (const auto& [k, xi] : x) out[k] = xi + v.at(k) * dt;
+  return out;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Config
+
+GeneratorConfig GeneratorConfig::from_official(const YAML::Node& root, const std::string& file) {
+  const YAML::Node g = root["module"]["generator"]["backbone"];
+  SIMU_CHECK(g && g.IsMap(), "{}: module.generator.backbone missing (official ss_generator layout expected)", file);
+  GeneratorConfig c;
+  c.kind = short_target(g);
+  SIMU_CHECK(c.kind == "ShortCut" || c.kind == "FlowMatching",
+             "{}: module.generator.backbone._target_ '{}' is not ShortCut or FlowMatching", file, c.kind);
+  c.time_scale = get_or<double>(g, "time_scale", c.time_scale, file);
+  c.inference_steps = get_or<int>(g, "inference_steps", 100, file);
+  c.rescale_t = get_or<double>(g, "rescale_t", c.rescale_t, file);
+  c.reversed_timestamp = get_or<bool>(g, "reversed_timestamp", false, file);
+  c.sigma_min = get_or<double>(g, "sigma_min", 0.0, file);
+  c.no_shortcut = get_or<bool>(g, "no_shortcut", false, file);
+  c.solver = get_or<std::string>(g, "solver_method", "euler", file);
+  const YAML::Node r = g["reverse_fn"];
+  SIMU_CHECK(r && r.IsMap(), "{}: module.generator.backbone.reverse_fn missing", file);
+  const std::string rt = short_target(r);
+  SIMU_CHECK(rt.rfind("ClassifierFreeGuidance", 0) == 0,
+             "{}: reverse_fn._target_ '{}' is not a ClassifierFreeGuidance", file, rt);
+  c.cfg_strength = get_or<double>(r, "strength", 3.0, file);
+  c.cfg_interval = read_interval(r["interval"], file);
+  c.unconditional_handling = get_or<std::string>(r, "unconditional_handling", "zeros", file);
+  c.p_unconditional = get_or<double>(r, "p_unconditional", 0.1, file);
+  c.backbone = FlowModelConfig::from_official(r["backbone"], file);
+  SIMU_CHECK(c.unconditional_handling == "add_flag" || c.unconditional_handling == "zeros",
+             "{}: unconditional_handling '{}' is not supported (add_flag or zeros)", file, c.unconditional_handling);
+  SIMU_CHECK(c.solver == "euler" || c.solver == "midpoint" || c.solver == "rk4",
+             "{}: solver_method '{}' is not supported (euler, midpoint, rk4)", file, c.solver);
+  SIMU_CHECK(!c.is_shortcut() || c.backbone.is_shortcut_model,
+             "{}: a ShortCut generator needs a backbone with is_shortcut_model: true (it always passes d)", file);
+  return c;
+}
+
+GeneratorConfig GeneratorConfig::from(config::Reader& root) {
+  GeneratorConfig c;
+  auto g = root.child("generator");
+  g.field("kind", c.kind);
+  g.field("time_scale", c.time_scale);
+  g.field("inference_steps", c.inference_steps);
+  g.field("rescale_t", c.rescale_t);
+  g.field("reversed_timestamp", c.reversed_timestamp);
+  g.field("sigma_min", c.sigma_min);
+  g.field("no_shortcut", c.no_shortcut);
+  g.field("solver", c.solver);
+  g.field("cfg_strength", c.cfg_strength);
+  if (g.has("cfg_interval")) c.cfg_interval = read_interval(g.raw("cfg_interval"), root.file());
+  g.field("unconditional_handling", c.unconditional_handling);
+  g.field("p_unconditional", c.p_unconditional);
+  auto f = root.child("flow_model");
+  c.backbone = FlowModelConfig::from(f);
+  root.finish();
+  SIMU_CHECK(c.kind == "ShortCut" || c.kind == "FlowMatching", "{}: generator.kind must be ShortCut or FlowMatching, got '{}'",
+             root.file(), c.kind);
+  SIMU_CHECK(c.solver == "euler" || c.solver == "midpoint" || c.solver == "rk4",
+             "{}: generator.solver must be euler, midpoint or rk4, got '{}'", root.file(), c.solver);
+  SIMU_CHECK(c.unconditional_handling == "add_flag" || c.unconditional_handling == "zeros",
+             "{}: generator.unconditional_handling must be add_flag or zeros, got '{}'", root.file(), c.unconditional_handling);
+  SIMU_CHECK(!c.is_shortcut() || c.backbone.is_shortcut_model,
+             "{}: a ShortCut generator needs flow_model.is_shortcut_model: true", root.file());
+  return c;
+}
+
+GeneratorConfig GeneratorConfig::from_official_file(const std::string& path, const std::vector<std::string>& overrides) {
+  const YAML::Node root = config::load_file(path, overrides);
+  if (root["module"]) return from_official(root, path);
+  config::Reader r(root, path);
+  return from(r);
+}
+
+SampleOptions SampleOptions::from(const GeneratorConfig& c) {
+  SampleOptions o;
+  o.steps = c.inference_steps;
+  o.cfg_strength = c.cfg_strength;
+  o.cfg_interval = c.cfg_interval;
+  o.rescale_t = c.rescale_t;
+  o.reversed_timestamp = c.reversed_timestamp;
+  o.shortcut = c.is_shortcut() && !c.no_shortcut;
+  o.solver = c.solver;
+  return o;
+}
+
+// ---------------------------------------------------------------------------------------------
+// CFG
+
+ClassifierFreeGuidanceImpl::ClassifierFreeGuidanceImpl(const GeneratorConfig& c)
+    : unconditional_handling(c.unconditional_handling) {
+  backbone = register_module("backbone", SparseStructureFlowTdfyWrapper(c.backbone));
+}
+
+PreparedCondition ClassifierFreeGuidanceImpl::prepare(const torch::Tensor& cond, bool cache) {
+  PreparedCondition pc;
+  pc.cond = cond;
+  torch::Tensor cond_u = cond;
+  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) cond_u = cond * 0;
+  pc.pair = torch::cat({cond, cond_u}, 0);
+  pc.cache = cache;
+  return pc;
+}
+
+Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, const torch::Tensor& cond,
+                                            c10::optional<double> d_scaled, double strength,
+                                            std::pair<double, double> interval) {
+  auto pc = prepare(cond, false);
+  return forward(x, t_scaled, pc, d_scaled, strength, interval);
+}
+
+Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, PreparedCondition& pc,
+                                            c10::optional<double> d_scaled, double strength,
+                                            std::pair<double, double> interval) {
+  const auto& cond = pc.cond;
+  const int64_t B = cond.size(0);
+  const auto opts = torch::TensorOptions().dtype(torch::kFloat32).device(cond.device());
+  // The official compares the float32 time tensor with the interval bounds.
+  const double tf = static_cast<float>(t_scaled);
+  const bool guided = strength > 0.0 && interval.first <= tf && tf <= interval.second;
+  // t (and d) as one value for the whole batch ([1], like the official ShortCut): the modulation is
+  // then computed once and broadcast, which lets the blocks fuse it into the LayerNorms.
+  if (!guided) {
+    c10::optional<torch::Tensor> d;
+    if (d_scaled) d = torch::full({1}, *d_scaled, opts);
+    if (pc.cache && !pc.single_kv) pc.single_kv = backbone->condition_cache(cond);
+    return backbone->forward(x, torch::full({1}, t_scaled, opts), cond, d, pc.single_kv ? &*pc.single_kv : nullptr);
+  }
+  // One batched forward: first half conditional, second half unconditional.
+  Latents x2;
+  for (const auto& [k, v] : x) x2[k] = torch::cat({v, v}, 0);
+  c10::optional<torch::Tensor> d2;
+  if (d_scaled) {
+    if (unconditional_handling == "zeros")  // zero_out also zeroes d in the unconditional half
+      d2 = torch::cat({torch::full({B}, *d_scaled, opts), torch::zeros({B}, opts)});
+    else
+      d2 = torch::full({1}, *d_scaled, opts);
+  }
+  if (pc.cache && !pc.pair_kv) pc.pair_kv = backbone->condition_cache(pc.pair);
+  auto y = backbone->forward(x2, torch::full({1}, t_scaled, opts), pc.pair, d2, pc.pair_kv ? &*pc.pair_kv : nullptr);
+  Latents out;
+  for (const auto& [k, v] : y) {
+    auto yc = v.narrow(0, 0, B), yu = v.narrow(0, B, B);
+    out[k] = (1 + strength) * yc - strength * yu;  // y = (1+s) y_cond - s y_uncond
+  }
+  return out;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Generator
+
+GeneratorImpl::GeneratorImpl(GeneratorConfig c) : config_(std::move(c)) {
+  reverse_fn = register_module("reverse_fn", ClassifierFreeGuidance(config_));
+}
+
+std::vector<double> GeneratorImpl::time_grid(int steps, double rescale_t, bool reversed) const {
+  SIMU_CHECK(steps > 0, "sampling: steps must be positive, got {}", steps);
+  std::vector<double> t(steps + 1);
+  if (config_.is_shortcut()) {
+    // numpy float64 (official ShortCut._prepare_t_and_d)
+    for (int i = 0; i <= steps; ++i) {
+      double s = static_cast<double>(i) / steps;
+      if (rescale_t != 0) s = s / (1 + (rescale_t - 1) * (1 - s));
+      t[i] = reversed ? 1 - s : s;
+    }
+  } else {
+    // torch float32 (official FlowMatching._prepare_t)
+    auto s = torch::linspace(0, 1, steps + 1, torch::kFloat32);
+    if (rescale_t != 0) s = s / (1 + (rescale_t - 1) * (1 - s));
+    if (reversed) s = 1 - s;
+    for (int i = 0; i <= steps; ++i) t[i] = s[i].item<float>();
+  }
+  return t;
+}
+
+Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, const SampleOptions& o) {
+  torch::NoGradGuard no_grad;
+  const auto& c = config_;
+  SIMU_CHECK(o.solver == "euler" || o.solver == "midpoint" || o.solver == "rk4",
+             "sampling: solver must be euler, midpoint or rk4, got '{}'", o.solver);
+  SIMU_CHECK(!o.shortcut || c.is_shortcut(), "sampling: shortcut mode needs a ShortCut generator (this one is {})", c.kind);
+  const auto grid = time_grid(o.steps, o.rescale_t, o.reversed_timestamp);
+  // Time arithmetic in the official precision: float64 for ShortCut, float32 for FlowMatching.
+  const bool f32 = !c.is_shortcut();
+  auto tp = [&](double v) { return f32 ? static_cast<double>(static_cast<float>(v)) : v; };
+  c10::optional<double> d;
+  if (c.is_shortcut()) d = (o.shortcut ? 1.0 / o.steps : 0.0) * c.time_scale;
+  Bf16Autocast autocast(o.bf16_autocast && cond.is_cuda());
+
+  Latents x;
+  for (const auto& [k, v] : x0) x[k] = v.to(torch::kFloat32);
+  auto pc = reverse_fn->prepare(cond, o.cache_condition);
+  // Velocity at time t (in [0, 1]).
+  auto velocity = [&](const Latents& xt, double t) {
+    return reverse_fn->forward(xt, tp(t * c.time_scale), pc, d, o.cfg_strength, o.cfg_interval);
+  };
+  for (int i = 0; i < o.steps; ++i) {
+    const double t0 = grid[i], dt = tp(grid[i + 1] - grid[i]);
+    if (o.solver == "euler") {
+      x = step(x, velocity(x, t0), dt);
+    } else if (o.solver == "midpoint") {
+      const double half = tp(0.5 * dt);
+      auto x_mid = step(x, velocity(x, t0), half);
+      x = step(x, velocity(x_mid, tp(t0 + half)), dt);
+    } else {  // rk4
+      const double half = tp(dt * 0.5);
+      auto k1 = velocity(x, t0);
+      auto k2 = velocity(step(x, k1, half), tp(t0 + half));
+      auto k3 = velocity(step(x, k2, half), tp(t0 + half));
+      auto k4 = velocity(step(x, k3, dt), tp(t0 + dt));
+      Latents v;
+      for (const auto& [k, a] : k1) v[k] = (a + 2 * k2.at(k) + 2 * k3.at(k) + k4.at(k)) / 6;
+      x = step(x, v, dt);
+    }
+    if (o.on_step) o.on_step(i + 1, o.steps);
+  }
+  for (auto& [k, v] : x) v = v.to(torch::kFloat32);
+  return x;
+}
+
+Latents GeneratorImpl::noise(int64_t batch, torch::Generator& gen, torch::Device device) const {
+  Latents out;
+  for (const auto& s : config_.backbone.latents) {
+    auto opts = torch::TensorOptions().dtype(torch::kFloat32).device(gen.device());
+    out[s.name] = torch::randn({batch, s.tokens(), s.in_channels}, gen, opts).to(device);
+  }
+  return out;
+}
+
+Generator load_generator(const std::string& config_path, const std::string& weights_path, torch::Device device,
+                         const std::vector<std::string>& overrides) {
+  auto cfg = GeneratorConfig::from_official_file(config_path, overrides);
+  Generator g(cfg);
+  if (!weights_path.empty()) {
+    LoadOptions lo;
+    // A condition embedder passed into the wrapper (official `condition_embedder` kwarg) is another
+    // component (loaded by the condition-embedder code), not part of this flow model.
+    lo.ignore_prefixes = {"reverse_fn.backbone.condition_embedder."};
+    // The official checkpoint prefixes generator weights with "_base_models.generator."; other
+    // sub-models (condition embedder) live under other prefixes and are skipped by the prefix filter.
+    const std::string ext = ".safetensors";
+    if (weights_path.size() >= ext.size() && weights_path.compare(weights_path.size() - ext.size(), ext.size(), ext) == 0) {
+      const auto f = data::SafeTensorsFile::open(weights_path);
+      for (const auto& k : f.keys())
+        if (k.rfind("_base_models.generator.", 0) == 0) {
+          lo.strip_prefix = "_base_models.generator.";
+          break;
+        }
+    }
+    const auto n = load_safetensors_into(*g, weights_path, lo);
+    log::info("loaded {} generator tensors from {}", n, weights_path);
+  }
+  g->to(device);
+  g->eval();
+  return g;
+}
+
+torch::Tensor sample_training_t(int64_t batch, torch::Generator& gen) {
+  auto opts = torch::TensorOptions().dtype(torch::kFloat32).device(gen.device());
+  return torch::sigmoid(torch::randn({batch}, gen, opts) * 1.0 + 0.0);
+}
+
+}  // namespace simu::models

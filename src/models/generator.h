@@ -1,0 +1,139 @@
+// Stage-1 generator: flow-matching / shortcut sampling with classifier-free guidance around the MOT
+// flow model. Port of sam3d_objects/model/backbone/generator/{base.py, flow_matching/model.py,
+// flow_matching/solver.py, shortcut/model.py, classifier_free_guidance.py}.
+//
+// Module tree (so weights load by the official names after stripping "_base_models.generator."):
+//   Generator
+//     reverse_fn  (ClassifierFreeGuidance)
+//       backbone  (SparseStructureFlowTdfyWrapper)
+//
+// Sampling (official generate_iter): x starts at the noise x0 (t = 0) and integrates the predicted
+// velocity to t = 1 over the grid t_i = s_i / (1 + (rescale_t - 1) (1 - s_i)), s = linspace(0, 1,
+// steps + 1) (then 1 - t when reversed_timestamp). The backbone sees t * time_scale. ShortCut passes
+// d = 0 (no_shortcut) or d = 1/steps, times time_scale; FlowMatching passes no d.
+// CFG: when strength > 0 and interval[0] <= t*time_scale <= interval[1], the conditional and the
+// unconditional branch run as ONE batched forward ([x; x], [cond; cond_uncond]) and
+// y = (1 + s) y_cond - s y_uncond; otherwise one conditional forward. Unconditional branch:
+// "add_flag" -> cond * 0 when the backbone has force_zeros_cond (else cond unchanged), "zeros" ->
+// cond and d set to zero (official zero_out).
+#pragma once
+
+#include <torch/torch.h>
+
+#include <functional>
+#include <string>
+#include <utility>
+
+#include "models/flow_model.h"
+
+namespace simu::models {
+
+struct GeneratorConfig {
+  std::string kind = "ShortCut";  // "ShortCut" or "FlowMatching"
+  double time_scale = 1000.0;
+  int inference_steps = 25;
+  double rescale_t = 1.0;
+  bool reversed_timestamp = false;
+  double sigma_min = 0.0;  // training only (x_t = (1 - (1 - sigma_min) t) x0 + t x1)
+  bool no_shortcut = false;  // ShortCut: d = 0 at inference instead of 1/steps
+  std::string solver = "euler";  // euler | midpoint | rk4
+  // ClassifierFreeGuidance
+  double cfg_strength = 0.0;
+  std::pair<double, double> cfg_interval{0.0, 1000.0};  // time_scale units; null in YAML -> {inf, -inf} (never)
+  std::string unconditional_handling = "add_flag";      // add_flag | zeros
+  double p_unconditional = 0.1;                          // training: condition dropout probability
+  FlowModelConfig backbone;
+
+  bool is_shortcut() const { return kind == "ShortCut"; }
+  // Official layout (module.generator.backbone ... with _target_ names), as YAML or JSON.
+  static GeneratorConfig from_official(const YAML::Node& root, const std::string& file = "");
+  // Either layout, detected from the file: official (`module:` at the top) or the project's own
+  // (`generator:` + `flow_model:` sections, see configs/stage1_small.yaml). Overrides "a.b=v" apply.
+  static GeneratorConfig from_official_file(const std::string& json_or_yaml,
+                                            const std::vector<std::string>& overrides = {});
+  // Project layout from a reader at the file root (strict keys).
+  static GeneratorConfig from(config::Reader& r);
+};
+
+struct SampleOptions {
+  int steps = 25;
+  double cfg_strength = 0.0;
+  std::pair<double, double> cfg_interval{0.0, 1000.0};
+  double rescale_t = 1.0;
+  bool reversed_timestamp = false;
+  // ShortCut generators: true -> d = 1/steps (shortcut mode), false -> d = 0. Ignored (no d) for
+  // FlowMatching generators.
+  bool shortcut = false;
+  std::string solver = "euler";  // euler | midpoint | rk4
+  // On CUDA: run the backbone under bf16 autocast (official inference). Ignored on CPU.
+  bool bf16_autocast = true;
+  // Compute the condition's cross-attention keys/values once and reuse them at every step (same
+  // result up to rounding order: none, the same ops run once instead of per step).
+  bool cache_condition = true;
+  // Called after each solver step with (step index from 1, steps).
+  std::function<void(int, int)> on_step;
+
+  // Defaults from the config (inference_steps, CFG strength/interval, rescale_t, !no_shortcut, solver).
+  static SampleOptions from(const GeneratorConfig& c);
+};
+
+// A condition prepared for repeated guided evaluations: the conditional/unconditional pair built once,
+// and (when `cache`) the cross-attention keys/values of both computed on first use and reused.
+struct PreparedCondition {
+  torch::Tensor cond;  // [B, L, Cc]
+  torch::Tensor pair;  // [2B, L, Cc]: cond, then the unconditional condition
+  bool cache = false;
+  c10::optional<ConditionCache> single_kv, pair_kv;
+};
+
+// ClassifierFreeGuidance: holds the backbone; `forward` evaluates the guided velocity at one time.
+class ClassifierFreeGuidanceImpl : public torch::nn::Module {
+ public:
+  ClassifierFreeGuidanceImpl(const GeneratorConfig& c);
+  // x: latents [B, T, ch]; t_scaled: time in time_scale units; d_scaled: shortcut step in time_scale
+  // units or nullopt (no d); strength/interval: CFG settings. Returns the velocity per latent.
+  Latents forward(const Latents& x, double t_scaled, const torch::Tensor& cond, c10::optional<double> d_scaled,
+                  double strength, std::pair<double, double> interval);
+  // Same with a prepared condition (reuses its condition keys/values when pc.cache).
+  Latents forward(const Latents& x, double t_scaled, PreparedCondition& pc, c10::optional<double> d_scaled,
+                  double strength, std::pair<double, double> interval);
+  // The unconditional condition of the official handling ("add_flag" + force_zeros_cond / "zeros": cond * 0).
+  PreparedCondition prepare(const torch::Tensor& cond, bool cache);
+  SparseStructureFlowTdfyWrapper backbone{nullptr};
+  std::string unconditional_handling;
+};
+TORCH_MODULE(ClassifierFreeGuidance);
+
+class GeneratorImpl : public torch::nn::Module {
+ public:
+  explicit GeneratorImpl(GeneratorConfig config);
+  SparseStructureFlowTdfyWrapper backbone() { return reverse_fn->backbone; }
+  const GeneratorConfig& config() const { return config_; }
+
+  // The official time grid (steps + 1 values in [0, 1]).
+  std::vector<double> time_grid(int steps, double rescale_t, bool reversed) const;
+  // Integrates from x0 (t = 0) to t = 1. cond: [B, L, cond_channels]; x0: one tensor per latent
+  // [B, T, ch] on cond's device. Runs without gradients. Returns the final latents (float32).
+  Latents sample(const torch::Tensor& cond, const Latents& x0, const SampleOptions& o);
+  // Gaussian noise x0 per latent ([batch, T, ch], float32), drawn in latent_mapping order from `gen`
+  // (on the generator's device), then moved to `device`. Same generator state -> same noise.
+  Latents noise(int64_t batch, torch::Generator& gen, torch::Device device) const;
+
+  ClassifierFreeGuidance reverse_fn{nullptr};
+
+ private:
+  GeneratorConfig config_;
+};
+TORCH_MODULE(Generator);
+
+// Builds the generator from a config file (official or project layout), loads weights from a
+// safetensors file (official names, "_base_models.generator." stripped if present; "" = keep the
+// random init) strictly, moves it to `device` and sets eval mode. `overrides` ("a.b=v") edit the config.
+Generator load_generator(const std::string& config_path, const std::string& weights_path, torch::Device device,
+                         const std::vector<std::string>& overrides = {});
+
+// Training-time t sampler of the official FlowMatching (lognorm_sampler, mean 0, std 1):
+// sigmoid(N(0,1)) -> [batch] float32 in (0, 1), on the generator's device.
+torch::Tensor sample_training_t(int64_t batch, torch::Generator& gen);
+
+}  // namespace simu::models

@@ -1,0 +1,62 @@
+// Marching cubes on a dense 3-D scalar grid (the decoder's 64^3 occupancy logits) and the canonical
+// object frame (AABB centred, longest side 1).
+//
+// Inside is value > iso. The grid is padded with a border below iso, so the surface is always closed.
+// Each cube's case table is derived at start-up (no copied tables): on every cube face the crossing
+// points are joined so that each inside corner is cut off on its own (a face whose two inside corners
+// are diagonal gets two segments; the rule depends only on the face's four values, so the two cubes
+// sharing a face agree, which makes the mesh watertight). The segments form closed loops; a loop of 3
+// points is one triangle, longer loops are fanned from their first point, or, in cubes with such a
+// two-segment face, from an extra vertex at the loop's centroid (so no edge is ever shared by more than
+// two triangles). Triangles are counter-clockwise seen from outside (normals point from inside to
+// outside); every edge of the result is shared by exactly two triangles with opposite directions.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+#include <array>
+#include <string>
+
+namespace simu::pipeline {
+
+// Triangle mesh: V [n, 3] positions, F [m, 3] vertex indices, counter-clockwise seen from outside.
+// (Same layout and member names as the probe's pipeline::Mesh.)
+struct TriangleMesh {
+  Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor> V;
+  Eigen::Matrix<int, Eigen::Dynamic, 3, Eigen::RowMajor> F;
+  bool empty() const { return V.rows() == 0 || F.rows() == 0; }
+};
+
+struct MarchingCubesOptions {
+  double iso = 0.0;  // surface level; inside is value > iso
+};
+
+// grid: [X, Y, Z] (or [1, 1, X, Y, Z]) values on any device/dtype (copied to CPU float32).
+// Vertex coordinates are in grid index units: grid[i][j][k] sits at (i, j, k).
+TriangleMesh marching_cubes(const torch::Tensor& grid, const MarchingCubesOptions& options = {});
+
+// Official Stage-1 voxel frame: index p -> p / resolution - 0.5 (the official `coords / 64 - 0.5`).
+void grid_to_voxel_frame(TriangleMesh& mesh, int64_t resolution);
+
+// Canonical frame: centres the mesh's axis-aligned bounding box at the origin and scales its longest side
+// to 1. Returns {centre, factor} such that canonical = (v - centre) * factor. Empty mesh: no change.
+struct CanonicalTransform {
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  double factor = 1.0;
+};
+CanonicalTransform canonicalize_mesh(TriangleMesh& mesh);
+
+// Mesh checks used by the tests and the resampler: volume by the divergence theorem (positive when
+// outward-oriented), and a description of the first closedness/orientation defect ("" when every
+// undirected edge is used by exactly two triangles in opposite directions and no face is degenerate
+// in its indices).
+double mesh_signed_volume(const TriangleMesh& mesh);
+std::string mesh_closedness_problem(const TriangleMesh& mesh);
+
+// Writes the mesh as an ASCII PLY (vertex x y z as float, face vertex_indices), atomically.
+void write_mesh_ply(const TriangleMesh& mesh, const std::string& path);
+
+}  // namespace simu::pipeline

@@ -1,0 +1,319 @@
+// Condition embedder (DINOv2 + PointPatchEmbed + EmbedderFuser) against the official fixtures
+// (cond_embedder_small*, made by the official Python modules) and against independent math.
+#include <array>
+#include <cmath>
+#include <fstream>
+
+#include "common/error.h"
+#include "data/safetensors.h"
+#include "models/cond_embedder.h"
+#include "models/weights.h"
+#include "test_util.h"
+
+namespace sm = simu::models;
+using simu::testing::close;
+using simu::testing::fixture;
+
+namespace {
+
+std::map<std::string, torch::Tensor> io() { return simu::data::load_safetensors(fixture("cond_embedder_small_io.safetensors")); }
+
+std::map<std::string, torch::Tensor> fused_inputs(const std::map<std::string, torch::Tensor>& t) {
+  std::map<std::string, torch::Tensor> in;
+  for (const auto& [k, v] : t)
+    if (k.rfind("in.", 0) == 0) in[k.substr(3)] = v;
+  return in;
+}
+
+// close() plus the figure on stdout (for the record).
+::testing::AssertionResult parity(const torch::Tensor& got, const torch::Tensor& want, const std::string& name) {
+  if (got.sizes() == want.sizes())
+    std::printf("  %s: max rel err %.3g\n", name.c_str(), simu::testing::rel_err(got, want));
+  return close(got, want, 1e-4, name);
+}
+
+sm::CondEmbedder small() {
+  return sm::load_cond_embedder(fixture("cond_embedder_small.json"), fixture("cond_embedder_small.safetensors"), "");
+}
+
+}  // namespace
+
+// Dino on a 518 input (native grid: stored position embedding).
+TEST(CondEmbedder, DinoImageMatchesFixture) {
+  torch::NoGradGuard ng;
+  auto m = small();
+  auto t = io();
+  auto got = m->embed(0, t.at("in.image"));
+  EXPECT_TRUE(parity(got, t.at("out.dino_image"), "out.dino_image"));
+}
+
+// Dino at input_size 70 (5x5 patches): bicubic position-embedding interpolation with offset 0.1.
+TEST(CondEmbedder, DinoMaskMatchesFixtureWithPosEmbedInterpolation) {
+  torch::NoGradGuard ng;
+  auto m = small();
+  auto t = io();
+  ASSERT_EQ(t.at("in.mask").size(1), 1);  // 1 channel -> repeated to 3
+  auto got = m->embed(1, t.at("in.mask"));
+  EXPECT_TRUE(parity(got, t.at("out.dino_mask"), "out.dino_mask"));
+}
+
+// PointPatchEmbed with NaN (invalid) points.
+TEST(CondEmbedder, PointPatchMatchesFixtureWithNaN) {
+  torch::NoGradGuard ng;
+  auto m = small();
+  auto t = io();
+  ASSERT_TRUE(torch::isnan(t.at("in.pointmap")).any().item<bool>()) << "fixture should contain invalid points";
+  auto got = m->embed(2, t.at("in.pointmap"));
+  EXPECT_TRUE(parity(got, t.at("out.pointpatch"), "out.pointpatch"));
+}
+
+// The whole fuser: 6 inputs, projections, idx_emb, concatenation order.
+TEST(CondEmbedder, FusedMatchesFixture) {
+  torch::NoGradGuard ng;
+  auto m = small();
+  auto t = io();
+  EXPECT_EQ(m->num_tokens(), t.at("out.fused").size(1));
+  EXPECT_EQ(m->embed_dims(), t.at("out.fused").size(2));
+  // Reference path (one input at a time, as upstream) and the batched-Dino fast path.
+  m->batch_dino_inputs = false;
+  auto ref = m->forward(fused_inputs(t));
+  EXPECT_TRUE(parity(ref, t.at("out.fused"), "out.fused (one input at a time)"));
+  m->batch_dino_inputs = true;
+  auto fast = m->forward(fused_inputs(t));
+  EXPECT_TRUE(parity(fast, t.at("out.fused"), "out.fused (batched Dino inputs)"));
+  EXPECT_TRUE(close(fast, ref, 1e-5, "batched vs one at a time"));
+}
+
+// The same model written in the official Hydra layout (ss_generator.yaml: module.condition_embedder.
+// backbone) with the weights under the official checkpoint prefix next to generator keys.
+TEST(CondEmbedder, OfficialLayoutAndPrefixLoadTheSameModel) {
+  torch::NoGradGuard ng;
+  const auto dir = simu::testing::temp_dir("cond_embedder_official");
+  const auto yaml = dir + "/ss_generator.yaml";
+  std::ofstream(yaml) << R"(module:
+  generator: {backbone: {_target_: something.Else}}
+  condition_embedder:
+    backbone:
+      _target_: sam3d_objects.model.backbone.dit.embedder.embedder_fuser.EmbedderFuser
+      embedder_list:
+        - - _target_: sam3d_objects.model.backbone.dit.embedder.dino.Dino
+            dino_model: dinov2_vitl14_reg
+            input_size: 518
+            backbone_kwargs: {embed_dim: 64, depth: 2, num_heads: 4, interpolate_antialias: false, interpolate_offset: 0.1, pretrained: false}
+          - [[image, cropped], [rgb_image, full]]
+        - - _target_: sam3d_objects.model.backbone.dit.embedder.dino.Dino
+            dino_model: dinov2_vitl14_reg
+            input_size: 70
+            freeze_backbone: true
+            backbone_kwargs: {embed_dim: 64, depth: 2, num_heads: 4, interpolate_antialias: false, interpolate_offset: 0.1}
+          - [[mask, cropped], [rgb_image_mask, full]]
+        - - _target_: sam3d_objects.model.backbone.dit.embedder.pointmap.PointPatchEmbed
+            input_size: 32
+            patch_size: 8
+            embed_dim: 48
+            remap_output: exp
+          - [[pointmap, cropped], [rgb_pointmap, full]]
+      use_pos_embedding: learned
+      projection_pre_norm: true
+      projection_net_hidden_dim_multiplier: 4.0
+      force_drop_modalities: null
+)";
+  // Checkpoint: embedder keys under the official prefix plus a generator key that must be skipped.
+  std::map<std::string, torch::Tensor> ckpt;
+  for (const auto& [k, v] : simu::data::load_safetensors(fixture("cond_embedder_small.safetensors")))
+    ckpt[std::string(sm::kOfficialCondEmbedderPrefix) + k] = v;
+  ckpt["_base_models.generator.reverse_fn.backbone.some.weight"] = torch::zeros({2});
+  const auto weights = dir + "/ss_generator.safetensors";
+  simu::data::save_safetensors(weights, ckpt, {});
+
+  auto m = sm::load_cond_embedder(yaml, weights, "auto");
+  auto t = io();
+  EXPECT_TRUE(close(m->forward(fused_inputs(t)), t.at("out.fused"), 1e-4, "out.fused (official layout)"));
+  auto m2 = sm::load_cond_embedder(yaml, weights, sm::kOfficialCondEmbedderPrefix);
+  EXPECT_TRUE(close(m2->forward(fused_inputs(t)), t.at("out.fused"), 1e-4, "out.fused (explicit prefix)"));
+}
+
+// Strict loading: a missing and an unexpected key are both reported, in one error.
+TEST(CondEmbedder, StrictLoadingReportsEveryMismatch) {
+  auto cfg = sm::CondEmbedderConfig::load(fixture("cond_embedder_small.json"));
+  sm::CondEmbedder m(cfg);
+  auto state = simu::data::load_safetensors(fixture("cond_embedder_small.safetensors"));
+  state.erase("module_list.0.backbone.register_tokens");
+  state["module_list.2.blocks.0.attn.qkv.weight"] = torch::zeros({3, 3});
+  state["module_list.9.extra"] = torch::zeros({1});
+  sm::LoadOptions o;
+  o.source = "test";
+  try {
+    sm::load_state_strict(*m, state, o);
+    FAIL() << "expected an error";
+  } catch (const simu::Error& e) {
+    const std::string msg = e.what();
+    EXPECT_NE(msg.find("module_list.0.backbone.register_tokens"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("module_list.9.extra"), std::string::npos) << msg;
+    EXPECT_NE(msg.find("module_list.2.blocks.0.attn.qkv.weight: got [3, 3] expected [144, 48]"), std::string::npos)
+        << msg;
+  }
+}
+
+// Forced modality drop: the point-map tokens become 0, everything else is unchanged.
+TEST(CondEmbedder, ForceDropZeroesOnlyThoseModalities) {
+  torch::NoGradGuard ng;
+  auto cfg = sm::CondEmbedderConfig::load(fixture("cond_embedder_small.json"));
+  cfg.force_drop_modalities = {"pointmap", "rgb_pointmap"};
+  sm::CondEmbedder m(cfg);
+  sm::LoadOptions o;
+  sm::load_safetensors_into(*m, fixture("cond_embedder_small.safetensors"), o);
+  m->eval();
+  auto t = io();
+  auto got = m->forward(fused_inputs(t));
+  auto want = t.at("out.fused");
+  // Token layout: image 1370, rgb_image 1370, mask 26, rgb_image_mask 26, pointmap 16, rgb_pointmap 16.
+  const int64_t kept = 1370 * 2 + 26 * 2;
+  EXPECT_TRUE(close(got.slice(1, 0, kept), want.slice(1, 0, kept), 1e-4, "kept tokens"));
+  EXPECT_EQ(got.slice(1, kept).abs().max().item<double>(), 0.0);
+}
+
+// A missing input names what was given and what is expected.
+TEST(CondEmbedder, MissingInputIsAnError) {
+  auto m = small();
+  auto in = fused_inputs(io());
+  in.erase("rgb_pointmap");
+  try {
+    torch::NoGradGuard ng;
+    m->forward(in);
+    FAIL() << "expected an error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("'rgb_pointmap'"), std::string::npos) << e.what();
+  }
+}
+
+// llama3 FeedForward hidden size: int(2h/3), optional multiplier, rounded up to multiple_of.
+TEST(CondEmbedder, FeedForwardHiddenRounding) {
+  EXPECT_EQ(sm::FeedForwardImpl::hidden_size(256), 256);          // 170 -> 256
+  EXPECT_EQ(sm::FeedForwardImpl::hidden_size(4096), 2816);        // 2730 -> 2816
+  EXPECT_EQ(sm::FeedForwardImpl::hidden_size(4096, 256, 1.3), 3584);  // int(1.3*2730)=3549 -> 3584
+  EXPECT_EQ(sm::FeedForwardImpl::hidden_size(300, 64), 256);      // 200 -> 256
+  // Forward = w2(silu(w1 x) * w3 x), checked against the formula.
+  sm::FeedForward ff(8, 12, 5, 4);
+  auto x = torch::randn({3, 8});
+  auto s = torch::matmul(x, ff->w1->weight.t());
+  auto want = torch::matmul(s / (1 + torch::exp(-s)) * torch::matmul(x, ff->w3->weight.t()), ff->w2->weight.t());
+  EXPECT_TRUE(close(ff->forward(x), want, 1e-5, "feed forward"));
+  EXPECT_EQ(ff->w1->weight.size(0), 8);  // int(24/3)=8 -> multiple of 4
+}
+
+// Every remap type against its closed form, and inverse(forward(p)) == p.
+TEST(CondEmbedder, PointRemapperAllTypes) {
+  auto p = torch::tensor({{0.3, -1.2, 0.7}, {2.0, 0.5, 3.0}}, torch::kFloat64);
+  const double x0 = 0.3, y0 = -1.2, z0 = 0.7;
+  struct Case {
+    std::string type;
+    std::array<double, 3> want;
+  };
+  const std::vector<Case> cases = {
+      {"linear", {x0, y0, z0}},
+      {"sinh", {std::asinh(x0), std::asinh(y0), std::asinh(z0)}},
+      {"exp", {x0 / (1 + z0), y0 / (1 + z0), std::log1p(z0)}},
+      {"exp_disparity", {x0 / z0, y0 / z0, std::log(z0)}},
+      {"sinh_exp", {std::asinh(x0), std::asinh(y0), std::log(z0)}},
+  };
+  for (const auto& c : cases) {
+    sm::PointRemapper r(c.type);
+    auto out = r.forward(p);
+    for (int i = 0; i < 3; ++i) EXPECT_NEAR(out[0][i].item<double>(), c.want[i], 1e-12) << c.type << " " << i;
+    EXPECT_TRUE(close(r.inverse(out), p, 1e-12, c.type + " inverse"));
+  }
+  EXPECT_THROW(sm::PointRemapper("cubic"), simu::Error);
+}
+
+// dinov2 hub entry points.
+TEST(CondEmbedder, HubModelNames) {
+  auto l = sm::DinoVitConfig::hub_model("dinov2_vitl14_reg");
+  EXPECT_EQ(l.embed_dim, 1024);
+  EXPECT_EQ(l.depth, 24);
+  EXPECT_EQ(l.num_heads, 16);
+  EXPECT_EQ(l.num_register_tokens, 4);
+  EXPECT_TRUE(l.interpolate_antialias);
+  EXPECT_EQ(l.interpolate_offset, 0.0);
+  auto b = sm::DinoVitConfig::hub_model("dinov2_vitb14");
+  EXPECT_EQ(b.num_register_tokens, 0);
+  EXPECT_EQ(b.interpolate_offset, 0.1);
+  EXPECT_THROW(sm::DinoVitConfig::hub_model("dinov2_vitg14"), simu::Error);
+  EXPECT_THROW(sm::DinoVitConfig::hub_model("resnet50"), simu::Error);
+}
+
+// The shipped real-size config reads as the Stage-1 embedder: 7528 tokens x 1024 channels.
+TEST(CondEmbedder, RealConfigFile) {
+  auto c = sm::CondEmbedderConfig::load(simu::testing::source_dir() + "/configs/cond_embedder_sam3d_stage1.yaml");
+  auto ref = sm::CondEmbedderConfig::sam3d_stage1();
+  ASSERT_EQ(c.embedders.size(), 3u);
+  for (size_t i = 0; i < 3; ++i) {
+    EXPECT_EQ(c.embedders[i].kind, ref.embedders[i].kind);
+    EXPECT_EQ(c.embedders[i].inputs, ref.embedders[i].inputs);
+  }
+  EXPECT_EQ(c.embedders[0].dino.vit.embed_dim, 1024);
+  EXPECT_EQ(c.embedders[1].dino.vit.num_register_tokens, 4);
+  EXPECT_EQ(c.embedders[2].point.embed_dim, 512);
+  EXPECT_EQ(c.embedders[2].point.remap_output, "linear");
+  EXPECT_EQ(c.num_tokens(), 4 * (1 + 37 * 37) + 2 * 32 * 32);
+  EXPECT_EQ(ref.num_tokens(), 7528);
+  EXPECT_EQ(c.embed_dims(), 1024);
+}
+
+// Typos in a config are errors naming the key.
+TEST(CondEmbedder, UnknownConfigKeyIsAnError) {
+  const auto dir = simu::testing::temp_dir("cond_embedder_typo");
+  const auto yaml = dir + "/c.yaml";
+  std::ofstream(yaml) << R"(embedder_list:
+  - - {_target_: x.pointmap.PointPatchEmbed, input_size: 32, patch_size: 8, embed_dim: 48, remap_outptu: exp}
+    - [[pointmap, cropped]]
+)";
+  try {
+    sm::CondEmbedderConfig::load(yaml);
+    FAIL() << "expected an error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("remap_outptu"), std::string::npos) << e.what();
+  }
+}
+
+// prenorm_features: plain layer norm (eps 1e-5, no affine) of the whole pre-norm sequence, registers
+// included. Applying the final norm's affine to its cls + patch rows gives the fixture's normed output
+// up to the eps difference (1e-5 here vs 1e-6 in the ViT's norm), hence 5e-4.
+TEST(CondEmbedder, DinoPrenormFeatures) {
+  torch::NoGradGuard ng;
+  auto cfg = sm::CondEmbedderConfig::load(fixture("cond_embedder_small.json"));
+  auto dcfg = cfg.embedders[0].dino;
+  dcfg.prenorm_features = true;
+  sm::Dino dino(dcfg);
+  std::map<std::string, torch::Tensor> sub;
+  for (const auto& [k, v] : simu::data::load_safetensors(fixture("cond_embedder_small.safetensors")))
+    if (k.rfind("module_list.0.", 0) == 0) sub[k.substr(14)] = v;
+  sm::LoadOptions o;
+  sm::load_state_strict(*dino, sub, o);
+  auto t = io();
+  auto out = dino->forward(t.at("in.image"));
+  ASSERT_EQ(out.sizes(), torch::IntArrayRef({2, 1 + 4 + 1369, 64}));
+  EXPECT_EQ(dino->num_tokens(), 1 + 4 + 1369);
+  auto w = dino->backbone->norm->weight, b = dino->backbone->norm->bias;
+  auto cls_patch = torch::cat({out.slice(1, 0, 1), out.slice(1, 5)}, 1) * w + b;
+  EXPECT_TRUE(close(cls_patch, t.at("out.dino_image"), 5e-4, "prenorm features + affine"));
+}
+
+// Training-time modality dropout: with dropout_prob 1 and a single configuration, the listed kwargs
+// are zeroed for every sample; in eval mode nothing is dropped.
+TEST(CondEmbedder, TrainingModalityDropout) {
+  torch::NoGradGuard ng;
+  auto cfg = sm::CondEmbedderConfig::load(fixture("cond_embedder_small.json"));
+  cfg.dropout_prob = 1.0;
+  cfg.drop_modalities_weight = {{{"mask", "rgb_image_mask"}, 1.0}};
+  sm::CondEmbedder m(cfg);
+  sm::load_safetensors_into(*m, fixture("cond_embedder_small.safetensors"), {});
+  auto t = io();
+  m->eval();
+  EXPECT_TRUE(close(m->forward(fused_inputs(t)), t.at("out.fused"), 1e-4, "eval: no dropout"));
+  m->train();
+  auto got = m->forward(fused_inputs(t));
+  // image 1370 + rgb_image 1370, then mask 26 + rgb_image_mask 26.
+  EXPECT_EQ(got.slice(1, 2740, 2792).abs().max().item<double>(), 0.0);
+  EXPECT_TRUE(close(got.slice(1, 0, 2740), t.at("out.fused").slice(1, 0, 2740), 1e-4, "kept"));
+}

@@ -1,0 +1,127 @@
+// Sparse-structure decoder: parity with the official module (fixture), token->grid order, occupancy.
+#include <fstream>
+#include <set>
+#include <tuple>
+
+#include "common/error.h"
+#include "data/safetensors.h"
+#include "models/ss_decoder.h"
+#include "models/weights.h"
+#include "test_util.h"
+
+using namespace simu::models;
+
+namespace {
+SparseStructureDecoder small_decoder() {
+  return load_ss_decoder(simu::testing::fixture("ss_decoder_small.json"),
+                         simu::testing::fixture("ss_decoder_small.safetensors"));
+}
+}  // namespace
+
+// io.in -> io.out matches the official decoder in float32.
+TEST(SSDecoder, MatchesOfficialFixture) {
+  auto dec = small_decoder();
+  auto file = simu::data::SafeTensorsFile::open(simu::testing::fixture("ss_decoder_small.safetensors"));
+  auto in = file.get("io.in").clone(), want = file.get("io.out").clone();
+  torch::NoGradGuard ng;
+  auto got = dec->forward(in);
+  EXPECT_TRUE(simu::testing::close(got, want, 1e-4, "io.out"));
+  std::printf("ss_decoder_small io.out rel err %.3g\n", simu::testing::rel_err(got, want));
+}
+
+// The module tree names match the fixture exactly (strict load would throw otherwise) and a wrong
+// config is reported with the offending keys.
+TEST(SSDecoder, StrictLoadReportsMismatch) {
+  SSDecoderConfig cfg = SSDecoderConfig::load(simu::testing::fixture("ss_decoder_small.json"));
+  cfg.channels = {32, 8};  // blocks.1.conv and later levels no longer fit
+  SparseStructureDecoder dec(cfg);
+  LoadOptions opt;
+  opt.ignore_prefixes = {"io."};
+  try {
+    load_safetensors_into(*dec, simu::testing::fixture("ss_decoder_small.safetensors"), opt);
+    FAIL() << "expected a shape-mismatch error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("blocks.1.conv.weight"), std::string::npos) << e.what();
+  }
+}
+
+// The official YAML layout (_target_, pretrained_ckpt_path) reads into the same config; unknown keys fail.
+TEST(SSDecoder, ReadsOfficialYamlLayout) {
+  const auto dir = simu::testing::temp_dir("ss_decoder_yaml");
+  {
+    std::ofstream f(dir + "/ss_decoder.yaml");
+    f << "_target_: sam3d_objects.model.backbone.tdfy_dit.models.sparse_structure_vae.SparseStructureDecoderTdfyWrapper\n"
+         "out_channels: 1\nlatent_channels: 8\nnum_res_blocks: 2\nnum_res_blocks_middle: 2\n"
+         "channels: [512, 128, 32]\nreshape_input_to_cube: false\npretrained_ckpt_path: x.ckpt\n";
+  }
+  auto cfg = SSDecoderConfig::load(dir + "/ss_decoder.yaml");
+  EXPECT_EQ(cfg.channels, (std::vector<int64_t>{512, 128, 32}));
+  EXPECT_EQ(cfg.num_res_blocks, 2);
+  EXPECT_EQ(cfg.upsample_factor(), 4);
+  EXPECT_EQ(cfg.norm_type, "layer");
+  {
+    std::ofstream f(dir + "/bad.yaml");
+    f << "channels: [8]\nnum_res_block: 1\n";
+  }
+  EXPECT_THROW(SSDecoderConfig::load(dir + "/bad.yaml"), simu::Error);
+}
+
+// Token t of the shape latent lands at grid (x, y, z) with t = (x*k + y)*k + z, channel c at dim 1,
+// as the official pipeline's permute(0, 2, 1).view(B, C, k, k, k); flat_to_cube agrees.
+TEST(SSDecoder, TokenToGridOrder) {
+  const int64_t B = 2, k = 4, C = 3, T = k * k * k;
+  auto tokens = torch::arange(B * T * C, torch::kFloat32).reshape({B, T, C});
+  auto grid = shape_tokens_to_grid(tokens);
+  ASSERT_EQ(grid.sizes(), (std::vector<int64_t>{B, C, k, k, k}));
+  auto acc = grid.accessor<float, 5>();
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t c = 0; c < C; ++c)
+      for (int64_t x = 0; x < k; ++x)
+        for (int64_t y = 0; y < k; ++y)
+          for (int64_t z = 0; z < k; ++z) {
+            const int64_t t = (x * k + y) * k + z;
+            ASSERT_EQ(acc[b][c][x][y][z], static_cast<float>((b * T + t) * C + c));
+          }
+  EXPECT_TRUE(torch::equal(flat_to_cube(tokens), grid));
+  EXPECT_THROW(shape_tokens_to_grid(torch::zeros({1, 10, 8})), simu::Error);
+}
+
+// Occupied coordinates equal an independent scan of the fixture logits for logit > 0.
+TEST(SSDecoder, OccupancyMatchesThreshold) {
+  auto file = simu::data::SafeTensorsFile::open(simu::testing::fixture("ss_decoder_small.safetensors"));
+  auto logits = file.get("io.out").clone();  // [2, 1, 8, 8, 8]
+  std::vector<std::array<int, 4>> expected;
+  auto acc = logits.accessor<float, 5>();
+  for (int b = 0; b < logits.size(0); ++b)
+    for (int x = 0; x < logits.size(2); ++x)
+      for (int y = 0; y < logits.size(3); ++y)
+        for (int z = 0; z < logits.size(4); ++z)
+          if (acc[b][0][x][y][z] > 0.f) expected.push_back({b, x, y, z});
+  ASSERT_GT(expected.size(), 0u);
+  ASSERT_LT(expected.size(), static_cast<size_t>(logits.numel()));
+  auto coords = occupied_coords(logits);
+  ASSERT_EQ(coords.scalar_type(), torch::kInt32);
+  ASSERT_EQ(coords.size(0), static_cast<int64_t>(expected.size()));
+  ASSERT_EQ(coords.size(1), 4);
+  auto c = coords.accessor<int32_t, 2>();
+  for (size_t i = 0; i < expected.size(); ++i)
+    for (int j = 0; j < 4; ++j) ASSERT_EQ(c[i][j], expected[i][j]) << "row " << i << " col " << j;
+}
+
+// Pixel shuffle: input channel (c*8 + i*4 + j*2 + l) at (h, w, d) goes to (2h+i, 2w+j, 2d+l) of channel c.
+TEST(SSDecoder, PixelShuffle3dLayout) {
+  const int64_t B = 1, Co = 2, H = 2, W = 3, D = 2;
+  auto x = torch::randn({B, Co * 8, H, W, D});
+  auto y = pixel_shuffle_3d(x, 2);
+  ASSERT_EQ(y.sizes(), (std::vector<int64_t>{B, Co, 2 * H, 2 * W, 2 * D}));
+  auto xa = x.accessor<float, 5>();
+  auto ya = y.accessor<float, 5>();
+  for (int c = 0; c < Co; ++c)
+    for (int i = 0; i < 2; ++i)
+      for (int j = 0; j < 2; ++j)
+        for (int l = 0; l < 2; ++l)
+          for (int h = 0; h < H; ++h)
+            for (int w = 0; w < W; ++w)
+              for (int d = 0; d < D; ++d)
+                ASSERT_EQ(ya[0][c][2 * h + i][2 * w + j][2 * d + l], xa[0][c * 8 + i * 4 + j * 2 + l][h][w][d]);
+}
