@@ -1,0 +1,148 @@
+// Synthetic scenes with known ground truth for the probe's benchmark and tests: tabletop or shelf
+// clutter of primitives (boxes, cylinders) and lathe meshes (bottles, bowls), some objects hanging on
+// the back wall, rendered modal masks (and optionally depth), and an injected monocular error per
+// object (hovering / sinking offset, bottom cut off as under occlusion, scale error, small rotation)
+// recorded with the correction branch it should trigger.
+//
+// World frame: y points down (gravity [0, 1, 0]), the floor is the plane y = floor_y, the back wall
+// z = wall_z faces the camera; the camera sits at the origin pitched down by camera_pitch_deg.
+// Each object's canonical mesh is AABB-centred with longest side 1, canonical y is its up/down axis.
+#pragma once
+
+#include "pipeline/geometry.h"
+#include "pipeline/metrics.h"
+#include "pipeline/raster.h"
+#include "pipeline/scene.h"
+
+#include <cstdint>
+#include <random>
+#include <string>
+#include <vector>
+
+namespace simu::pipeline {
+
+// What was done to an object's reconstruction.
+enum class InjectedError { None, Hover, Sink, BottomCut, Scale, Rotation };
+const char* to_string(InjectedError e);
+std::optional<InjectedError> parse_injected_error(const std::string& s);
+// The branch the paper's criterion should pick for a free object with this error: BottomCut ->
+// Resample (the cut leaves the object hovering by >= 25% of its remaining height), the others
+// (kept below rho = 0.15 by construction) -> Stretch.
+Branch expected_branch(InjectedError e);
+
+// Generator parameters.
+struct SyntheticConfig {
+  std::string layout = "tabletop";  // "tabletop" | "shelf" | "mixed" (alternates by seed)
+  int min_objects = 4, max_objects = 8;  // free objects
+  int max_hanging = 2;                   // wall-anchored objects (0..max)
+  int width = 320, height = 240;
+  double fx = 280;                       // fy = fx, principal point at the image centre
+  double camera_pitch_deg = 25;
+  bool write_depth = false;              // 16-bit PNG depth (millimetres) of the ground-truth render
+  // Error mix (relative weights) and magnitudes.
+  double w_none = 1, w_hover = 2, w_sink = 2, w_cut = 2, w_scale = 1.5, w_rotation = 1.5;
+  double hover_min = 0.03, hover_max = 0.12;  // offset as a fraction of the object height
+  double cut_min = 0.2, cut_max = 0.6;        // removed fraction of the height
+  double scale_min = 0.85, scale_max = 1.15;  // isotropic scale factor
+  double rotation_max_deg = 5;
+  static SyntheticConfig from(simu::config::Reader& r);
+};
+
+// One generated object: ground truth and the erroneous reconstruction the probe receives.
+struct SyntheticObject {
+  std::string id, label;
+  PoseDof dof = PoseDof::Free;
+  Mesh gt_mesh;                 // canonical ground-truth mesh
+  Vec3 gt_scale = Vec3::Ones();
+  Mat3 gt_R = Mat3::Identity();
+  Vec3 gt_t = Vec3::Zero();
+  Mesh pred_mesh;               // canonical reconstructed mesh (the cut one for BottomCut)
+  Vec3 pred_scale = Vec3::Ones();
+  Mat3 pred_R = Mat3::Identity();
+  Vec3 pred_t = Vec3::Zero();
+  InjectedError error = InjectedError::None;
+  double magnitude = 0;         // hover/sink: metres; cut: fraction; scale: factor; rotation: degrees
+  double support_y = 0;         // y of the surface the ground truth rests on (free objects)
+  BinaryMask modal_mask;        // visible ground-truth mask (bottom hidden for BottomCut)
+  Box3 gt_box;                  // world AABB of the ground truth
+  std::string wall_id;
+};
+
+// A fixed base (table, shelf board) as a world-placed canonical mesh.
+struct SyntheticBase {
+  std::string id;
+  Mesh mesh;
+  Vec3 scale = Vec3::Ones();
+  Mat3 R = Mat3::Identity();
+  Vec3 t = Vec3::Zero();
+};
+
+struct SyntheticScene {
+  std::string name;
+  std::string layout;
+  Camera camera;
+  Vec3 gravity = Vec3(0, 1, 0);
+  Plane floor;
+  std::vector<Plane> walls;
+  std::vector<SyntheticBase> bases;
+  std::vector<SyntheticObject> objects;
+  std::vector<float> depth;  // ground-truth depth (camera z, metres; +inf = background), width*height
+};
+
+// Generates one scene (deterministic for a given config and seed).
+SyntheticScene generate_scene(const SyntheticConfig& config, uint64_t seed, const std::string& name);
+
+// Builds the probe's input Scene (reconstructed poses; paths relative to dir as write_scene_dir
+// lays them out). Each object's `extra["synthetic"]` records the error, its magnitude, the expected
+// branch and the ground-truth pose/mesh.
+Scene to_probe_scene(const SyntheticScene& s, const std::string& dir);
+
+// Writes dir/scene.json, dir/meshes/*.obj (reconstructed and ground-truth), dir/masks/*.png,
+// dir/depth.png (when depth is present) and dir/rgb.png (the ground-truth label render, coloured).
+void write_scene_dir(const SyntheticScene& s, const std::string& dir);
+
+// Canonical primitive meshes (AABB-centred, longest side 1, up = canonical y):
+Mesh canonical_box_mesh(const Vec3& extents);  // normalised box of these proportions
+// A surface of revolution about canonical y from a radius profile (heights top to bottom, in y-down
+// order), closed with caps; normalised.
+Mesh lathe_mesh(const std::vector<std::pair<double, double>>& y_radius, int segments = 24);
+// Rescales a mesh to the canonical convention; returns the longest side it had (the scale factor
+// that restores its size).
+double normalise_canonical(Mesh& m);
+// Writes a Wavefront OBJ (vertices and triangles) atomically.
+void write_obj(const std::string& path, const Mesh& m);
+
+// ---- Benchmark support -------------------------------------------------------------------------
+
+// The ideal probe measurement for a free synthetic object (used until / besides the MuJoCo probe):
+// the reconstructed object moved along gravity until its lowest vertex meets its ground-truth support
+// (other objects ignored). A sinking object gets the push out as dt_pen (against gravity), a hovering
+// one the fall as dt_grv (along gravity).
+struct Displacement {
+  Vec3 dt_pen = Vec3::Zero();
+  Vec3 dt_grv = Vec3::Zero();
+};
+Displacement oracle_displacement(const SyntheticScene& s, const SyntheticObject& o);
+
+// Per free object: injected error, expected and chosen branch, rho / eta.
+struct ObjectOutcome {
+  std::string id;
+  InjectedError error = InjectedError::None;
+  Branch expected = Branch::Stretch, got = Branch::Stretch;
+  double rho = 0, eta = 0;
+  double support_gap_before = 0, support_gap_after = 0;  // |lowest point - support| (metres)
+};
+
+// Before/after scores of one scene: the reconstruction as given vs corrected (stretch branch: the
+// gravity-axis stretch; resample branch: no resampler here, so the object is only moved by the
+// measured displacement, i.e. a layout-only fix). Overlap metrics are over all objects (hanging
+// ones unchanged), with every object valid (no simulation).
+struct SceneEvaluation {
+  std::vector<ObjectOutcome> objects;
+  OverlapMetrics mask_before, mask_after, box_before, box_after;
+};
+// displacements[i] is object i's measurement (free objects; others ignored). Empty: the oracle.
+SceneEvaluation evaluate_scene(const SyntheticScene& s, const CorrectionConfig& config,
+                               const std::vector<Displacement>& displacements = {});
+
+}  // namespace simu::pipeline
