@@ -48,6 +48,13 @@ if ! [ -f "$VENV/.torch-$TORCH_VERSION" ]; then
   "$VENV/bin/python" -m pip install -q "torch==$TORCH_VERSION" "numpy<3" "safetensors==0.7.0" "h5py==3.15.1" "tensorboard==2.20.0"
   touch "$VENV/.torch-$TORCH_VERSION"
 fi
+# CoACD (convex decomposition for the physics probe): its wheel ships lib_coacd.so with a C API.
+COACD_VERSION="1.0.14"
+if ! [ -f "$VENV/.coacd-$COACD_VERSION" ]; then
+  log "installing coacd==$COACD_VERSION into $VENV"
+  "$VENV/bin/python" -m pip install -q "coacd==$COACD_VERSION"
+  touch "$VENV/.coacd-$COACD_VERSION"
+fi
 
 [ "${1:-}" = "--deps" ] && exit 0
 

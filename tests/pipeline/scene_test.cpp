@@ -6,7 +6,7 @@
 
 #include "common/error.h"
 #include "pipeline/scene.h"
-#include "test_util.h"
+#include "pipeline_util.h"
 
 using namespace simu::pipeline;
 
@@ -34,7 +34,7 @@ const char* kScene = R"({
 }
 
 TEST(Scene, ParsesAndFlagsBadObjects) {
-  const auto dir = simu::testing::temp_dir("scene_parse");
+  const auto dir = simu::testing::pipeline_temp_dir("scene_parse");
   const auto s = scene_from_json(nlohmann::json::parse(kScene), dir);
   EXPECT_EQ(s.camera.fy, 510);
   EXPECT_NEAR(s.gravity.z(), -1.0, 1e-12);
@@ -52,7 +52,7 @@ TEST(Scene, ParsesAndFlagsBadObjects) {
 }
 
 TEST(Scene, RoundTripKeepsValuesAndRelativePaths) {
-  const auto dir = simu::testing::temp_dir("scene_rt");
+  const auto dir = simu::testing::pipeline_temp_dir("scene_rt");
   auto s = scene_from_json(nlohmann::json::parse(kScene), dir);
   s.objects.resize(2);
   save_scene(s, dir + "/out.json");
@@ -70,7 +70,7 @@ TEST(Scene, RoundTripKeepsValuesAndRelativePaths) {
 }
 
 TEST(Scene, MalformedFileThrowsNamingIt) {
-  const auto dir = simu::testing::temp_dir("scene_bad");
+  const auto dir = simu::testing::pipeline_temp_dir("scene_bad");
   std::ofstream(dir + "/bad.json") << "{ not json";
   try {
     load_scene(dir + "/bad.json");

@@ -1,0 +1,923 @@
+// The physics probe: sequential penetration resolution, gravity diagnostics, stretch-or-resample
+// decision, resample hand-off, final composition and outputs (see probe.h).
+#include "pipeline/probe.h"
+
+#include <mujoco/mujoco.h>
+
+#ifdef SIMU_HAVE_OPENCV
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#endif
+
+#include <fmt/ranges.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <mutex>
+#include <numeric>
+
+#include "common/error.h"
+#include "common/fs.h"
+#include "common/log.h"
+#include "pipeline/mesh.h"
+#include "pipeline/raster.h"
+
+namespace simu::pipeline {
+
+namespace stdfs = std::filesystem;
+using nlohmann::json;
+
+const char* to_string(ProbeBranch b) {
+  switch (b) {
+    case ProbeBranch::None: return "none";
+    case ProbeBranch::Stretch: return "stretch";
+    case ProbeBranch::Resample: return "resample";
+    case ProbeBranch::Anchored: return "anchored";
+    case ProbeBranch::Disabled: return "disabled";
+  }
+  return "none";
+}
+
+double lowest_corner_along_gravity(const Mesh& world, const Vec3& g) {
+  const auto b = mesh_aabb(world);
+  double best = -std::numeric_limits<double>::infinity();
+  for (int c = 0; c < 8; ++c) {
+    const Vec3 p((c & 1) ? b.max.x() : b.min.x(), (c & 2) ? b.max.y() : b.min.y(), (c & 4) ? b.max.z() : b.min.z());
+    best = std::max(best, g.dot(p));
+  }
+  return best;
+}
+
+
+std::vector<Vec3> choose_pins(const Mesh& world, const Plane& wall, const Vec3& g, int count, double region) {
+  std::vector<Vec3> pins;
+  if (count <= 0 || world.V.rows() == 0) return pins;
+  // Frame: up = -g, back = towards the wall, lateral = wall-parallel horizontal.
+  const Vec3 up = -g.normalized();
+  Vec3 lateral = wall.normal.cross(g);
+  if (lateral.norm() < 1e-9) lateral = up.unitOrthogonal();
+  lateral.normalize();
+  const Eigen::Index n = world.V.rows();
+  Eigen::VectorXd h(n), d(n), l(n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const Vec3 p = world.V.row(i).transpose();
+    h[i] = up.dot(p);
+    d[i] = wall.distance(p);
+    l[i] = lateral.dot(p);
+  }
+  // Top-back region: within `region` of the extent from the top and from the wall-facing back.
+  const double hr = std::max(h.maxCoeff() - h.minCoeff(), 1e-9), dr = std::max(d.maxCoeff() - d.minCoeff(), 1e-9);
+  std::vector<Eigen::Index> cand;
+  for (double f = region; cand.empty() && f <= 1.0 + 1e-9; f *= 2) {
+    for (Eigen::Index i = 0; i < n; ++i)
+      if (h[i] >= h.maxCoeff() - f * hr && d[i] <= d.minCoeff() + f * dr) cand.push_back(i);
+  }
+  if (cand.empty()) cand.push_back(0);
+  if (count == 1) {
+    // Highest, then most laterally centred: among the top few percent, the one nearest the lateral mid.
+    double hmax = -1e300;
+    for (auto i : cand) hmax = std::max(hmax, h[i]);
+    const double lmid = 0.5 * (l.maxCoeff() + l.minCoeff());
+    Eigen::Index best = cand[0];
+    double best_score = 1e300;
+    for (auto i : cand) {
+      if (h[i] < hmax - 0.02 * hr) continue;
+      const double score = std::abs(l[i] - lmid);
+      if (score < best_score) best_score = score, best = i;
+    }
+    pins.push_back(world.V.row(best).transpose());
+  } else {
+    // Leftmost and rightmost along the lateral direction.
+    auto lo = *std::min_element(cand.begin(), cand.end(), [&](auto a, auto b) { return l[a] < l[b]; });
+    auto hi = *std::max_element(cand.begin(), cand.end(), [&](auto a, auto b) { return l[a] < l[b]; });
+    pins.push_back(world.V.row(lo).transpose());
+    pins.push_back(world.V.row(hi).transpose());
+  }
+  return pins;
+}
+
+namespace {
+
+// mj_loadXML keeps global compiler state: compile one model at a time.
+std::mutex& compile_mutex() {
+  static std::mutex m;
+  return m;
+}
+
+// Per-object working state.
+struct Obj {
+  bool usable = false;    // has a mesh and collision hulls
+  bool simulate = false;  // takes part in the physics (not disabled)
+  Mesh canonical;
+  CollisionShape shape;
+  Vec3 t, s;
+  Mat3 R;
+  std::vector<Vec3> pins_body;  // object-frame pins (anchored)
+  int wall = -1;                // index into scene.walls (anchored)
+};
+
+void add_flag(Diagnostics& d, const std::string& flag, const std::string& msg) {
+  if (std::find(d.flags.begin(), d.flags.end(), flag) == d.flags.end()) d.flags.push_back(flag);
+  if (!msg.empty()) d.message += (d.message.empty() ? "" : "; ") + msg;
+}
+
+// A compiled world for one simulation.
+struct World {
+  MjModelPtr model;
+  MjDataPtr data;
+  std::vector<int> obj_body;   // object index -> MuJoCo body id (-1 if absent or static)
+  std::vector<bool> env_body;  // MuJoCo body id -> environment (world, planes, bases)
+  std::vector<int> body_obj;   // MuJoCo body id -> object index (-1 for environment)
+};
+
+struct Ctx {
+  const Scene& scene;
+  const ProbeConfig& cfg;
+  std::vector<Obj>& objs;
+  std::vector<BaseBody> bases;
+  std::vector<std::vector<Mesh>> base_hulls;  // scaled, base frame
+};
+
+MjBody object_body(const Ctx& c, int i, bool dynamic, bool pins) {
+  const Obj& o = c.objs[i];
+  MjBody b;
+  b.name = fmt::format("obj{}", i);
+  b.pos = o.t;
+  b.R = o.R;
+  b.hulls = transform_hulls(o.shape.hulls, o.s.asDiagonal());
+  b.dynamic = dynamic;
+  if (dynamic) b.mass = mass_properties(b.hulls, c.scene.objects[i].density);
+  if (pins) b.pins = o.pins_body;
+  b.rgba = c.scene.objects[i].dof == PoseDof::Free ? "0.8 0.5 0.3 1" : "0.3 0.5 0.8 1";
+  return b;
+}
+
+// Builds and compiles a world: planes, bases, static objects, dynamic objects (pins optional).
+World build_world(const Ctx& c, const std::vector<int>& statics, const std::vector<int>& dynamics, bool pins,
+                  std::string* xml_out = nullptr, const std::vector<int>& visual_only = {}, int buffer_factor = 1) {
+  MjScene ms;
+  ms.gravity = c.scene.gravity * c.scene.gravity_magnitude;
+  if (c.scene.floor) {
+    Plane f = *c.scene.floor;
+    f.id = "floor";
+    ms.planes.push_back(f);
+  }
+  for (const auto& w : c.scene.walls) ms.planes.push_back(w);
+  for (size_t k = 0; k < c.bases.size(); ++k) {
+    MjBody b;
+    b.name = fmt::format("base{}", k);
+    b.pos = c.bases[k].t;
+    b.R = c.bases[k].R;
+    b.hulls = c.base_hulls[k];
+    b.rgba = "0.6 0.6 0.55 1";
+    ms.bodies.push_back(std::move(b));
+  }
+  for (int i : statics) ms.bodies.push_back(object_body(c, i, false, false));
+  for (int i : dynamics) ms.bodies.push_back(object_body(c, i, true, pins));
+  // Contact and constraint buffers sized to the dynamic bodies (mjData holds an njmax^2 matrix).
+  PhysicsConfig pc = c.cfg.physics;
+  const int ndyn = static_cast<int>(dynamics.size());
+  pc.nconmax = std::min(pc.nconmax, (100 + 25 * ndyn) * buffer_factor);
+  pc.njmax = std::min(pc.njmax, (300 + 60 * ndyn) * buffer_factor);
+  std::string xml = write_mjcf(ms, pc);
+  // Visual-only bodies (disabled objects in the final file): no collisions.
+  if (!visual_only.empty()) {
+    MjScene vs = ms;
+    for (int i : visual_only) {
+      MjBody b = object_body(c, i, false, false);
+      b.rgba = "0.9 0.2 0.2 0.5";
+      vs.bodies.push_back(std::move(b));
+    }
+    xml = write_mjcf(vs, pc);
+    // contype/conaffinity 0 for the visual-only geoms.
+    for (int i : visual_only) {
+      const std::string key = fmt::format("name=\"obj{}/", i);
+      size_t pos = 0;
+      while ((pos = xml.find(key, pos)) != std::string::npos) {
+        const size_t line_start = xml.rfind('\n', pos);
+        if (xml.compare(line_start + 1, 11, "      <geom") == 0) xml.insert(pos, "contype=\"0\" conaffinity=\"0\" ");
+        pos += key.size() + 30;
+      }
+    }
+  }
+  if (xml_out) *xml_out = xml;
+  World w;
+  {
+    std::lock_guard<std::mutex> lock(compile_mutex());
+    w.model = load_mjcf_string(xml);
+  }
+  w.data = make_data(w.model.get());
+  const mjModel* m = w.model.get();
+  w.env_body.assign(m->nbody, false);
+  w.body_obj.assign(m->nbody, -1);
+  w.env_body[0] = true;
+  for (size_t k = 0; k < c.bases.size(); ++k) {
+    const int id = mj_name2id(m, mjOBJ_BODY, fmt::format("base{}", k).c_str());
+    if (id >= 0) w.env_body[id] = true;
+  }
+  w.obj_body.assign(c.objs.size(), -1);
+  for (int i : statics) {
+    const int id = mj_name2id(m, mjOBJ_BODY, fmt::format("obj{}", i).c_str());
+    if (id >= 0) w.body_obj[id] = i;
+  }
+  for (int i : dynamics) {
+    const int id = mj_name2id(m, mjOBJ_BODY, fmt::format("obj{}", i).c_str());
+    w.obj_body[i] = id;
+    if (id >= 0) w.body_obj[id] = i;
+  }
+  mj_forward(m, w.data.get());
+  take_warnings(w.data.get());
+  return w;
+}
+
+// Free-joint pose access.
+void set_pose(World& w, int body, const Vec3& t, const Mat3& R) {
+  const mjModel* m = w.model.get();
+  const int adr = m->jnt_qposadr[m->body_jntadr[body]];
+  Eigen::Quaterniond q(R);
+  q.normalize();
+  mjtNum* qp = w.data->qpos + adr;
+  qp[0] = t.x(), qp[1] = t.y(), qp[2] = t.z();
+  qp[3] = q.w(), qp[4] = q.x(), qp[5] = q.y(), qp[6] = q.z();
+  const int dadr = m->body_dofadr[body];
+  for (int k = 0; k < 6; ++k) w.data->qvel[dadr + k] = 0;
+}
+void get_pose(const World& w, int body, Vec3* t, Mat3* R) {
+  const mjModel* m = w.model.get();
+  const mjtNum* qp = w.data->qpos + m->jnt_qposadr[m->body_jntadr[body]];
+  *t = Vec3(qp[0], qp[1], qp[2]);
+  *R = Eigen::Quaterniond(qp[3], qp[4], qp[5], qp[6]).normalized().toRotationMatrix();
+}
+double body_speed(const World& w, int body) {
+  const mjtNum* v = w.data->qvel + w.model->body_dofadr[body];
+  double s = 0;
+  for (int k = 0; k < 6; ++k) s = std::max(s, std::abs(v[k]));
+  return s;
+}
+
+// A contact of the active body: depth (positive = penetration), push direction (away from the other
+// geom), whether the other side is environment, and the other geom id.
+struct Touch {
+  double dist;
+  Vec3 push;
+  bool env;
+  int other_geom;
+};
+std::vector<Touch> touches(const World& w, int body) {
+  std::vector<Touch> out;
+  const mjModel* m = w.model.get();
+  const mjData* d = w.data.get();
+  for (int i = 0; i < d->ncon; ++i) {
+    const mjContact& c = d->contact[i];
+    const int b1 = m->geom_bodyid[c.geom1], b2 = m->geom_bodyid[c.geom2];
+    if ((b1 == body) == (b2 == body)) continue;
+    const Vec3 n(c.frame[0], c.frame[1], c.frame[2]);  // from geom1 to geom2
+    const bool active_first = b1 == body;
+    const int other_body = active_first ? b2 : b1;
+    out.push_back({c.dist, active_first ? Vec3(-n) : n, w.env_body[other_body], active_first ? c.geom2 : c.geom1});
+  }
+  return out;
+}
+
+// Penetration resolution of one dynamic object (paper: environment group first, push by max depth +
+// 7 mm along the depth-weighted mean normal, <= 200 iterations, > 0.3 m or surviving contact fails).
+// For anchored objects, pushes keep the object on its wall (the wall-normal component is removed
+// unless the wall itself is penetrated).
+bool resolve_penetration(const Ctx& c, World& w, int i, Vec3* dt, int* iters, double* max_depth, std::string* why) {
+  Obj& o = c.objs[i];
+  const int body = w.obj_body[i];
+  const mjModel* m = w.model.get();
+  const Plane* wall = (o.wall >= 0) ? &c.scene.walls[o.wall] : nullptr;
+  const int wall_geom = wall ? mj_name2id(m, mjOBJ_GEOM, ("plane:" + wall->id).c_str()) : -1;
+  Vec3 t = o.t;
+  double path = 0;
+  *dt = Vec3::Zero();
+  *iters = 0;
+  *max_depth = 0;
+  for (int it = 0; it <= c.cfg.max_pen_iterations; ++it) {
+    set_pose(w, body, t, o.R);
+    mj_fwdPosition(m, w.data.get());
+    take_warnings(w.data.get());
+    std::vector<Touch> env, placed;
+    for (const auto& tc : touches(w, body))
+      if (tc.dist < -c.cfg.pen_tolerance) (tc.env ? env : placed).push_back(tc);
+    if (env.empty() && placed.empty()) {
+      *dt = t - o.t;
+      o.t = t;
+      return true;
+    }
+    if (it == c.cfg.max_pen_iterations) break;
+    const auto& group = env.empty() ? placed : env;
+    Vec3 n = Vec3::Zero();
+    double dmax = 0;
+    bool hits_wall = false;
+    for (const auto& tc : group) {
+      n += -tc.dist * tc.push;
+      dmax = std::max(dmax, -tc.dist);
+      hits_wall = hits_wall || tc.other_geom == wall_geom;
+    }
+    if (it == 0) *max_depth = dmax;
+    if (n.norm() < 1e-12) n = -c.scene.gravity;
+    n.normalize();
+    if (wall && !hits_wall) {
+      n -= wall->normal.dot(n) * wall->normal;
+      if (n.norm() < 1e-6) n = -c.scene.gravity - (-c.scene.gravity).dot(wall->normal) * wall->normal;
+      n.normalize();
+    }
+    const double step = dmax + c.cfg.push_extra;
+    t += step * n;
+    path += step;
+    *iters = it + 1;
+    if (path > c.cfg.max_pen_total) {
+      *why = fmt::format("penetration resolution moved {:.3f} m > {:.2f} m", path, c.cfg.max_pen_total);
+      return false;
+    }
+  }
+  *why = fmt::format("contact survives {} penetration-resolution iterations", c.cfg.max_pen_iterations);
+  return false;
+}
+
+// Free-object gravity diagnostic: fall until the first frame with a contact (margin makes it
+// visible before touching), then close the remaining gap along gravity.
+bool fall_until_contact(const Ctx& c, World& w, int i, Vec3* dt, double* time, std::string* why) {
+  Obj& o = c.objs[i];
+  const int body = w.obj_body[i];
+  const mjModel* m = w.model.get();
+  mjData* d = w.data.get();
+  set_pose(w, body, o.t, o.R);
+  mj_forward(m, d);
+  take_warnings(d);
+  const Vec3 g = c.scene.gravity;
+  const int max_steps = static_cast<int>(std::ceil(c.cfg.max_fall_time / m->opt.timestep));
+  std::vector<mjtNum> prev(d->qpos, d->qpos + m->nq);
+  std::vector<Touch> hit = touches(w, body);
+  int steps = 0;
+  while (hit.empty() && steps < max_steps) {
+    std::copy(d->qpos, d->qpos + m->nq, prev.begin());
+    mj_step(m, d);
+    ++steps;
+    const int warn = take_warnings(d);
+    if (warn & (1 << mjWARN_BADQACC)) {
+      *why = "MuJoCo reset the data (bad qacc) during the fall";
+      return false;
+    }
+    // Contacts of this step were computed at the state before integration.
+    hit = touches(w, body);
+  }
+  if (!hit.empty() && steps > 0) std::copy(prev.begin(), prev.end(), d->qpos);
+  *time = steps * m->opt.timestep;
+  if (hit.empty()) {
+    *why = fmt::format("no contact after falling {:.2f} s (no support below)", c.cfg.max_fall_time);
+    return false;
+  }
+  Vec3 t;
+  Mat3 R;
+  get_pose(w, body, &t, &R);
+  // Close the remaining gap (or undo the overshoot) along gravity at the nearest contact.
+  const auto nearest = *std::min_element(hit.begin(), hit.end(), [](const Touch& a, const Touch& b) { return a.dist < b.dist; });
+  const double cosang = -g.dot(nearest.push);  // gravity points into the surface
+  if (cosang > 0.3) t += (nearest.dist / cosang) * g;
+  // Free fall does not rotate; keep only the translation along gravity.
+  *dt = g.dot(t - o.t) * g;
+  o.t += *dt;
+  return true;
+}
+
+// Anchored-object gravity diagnostic: simulate on the pins until settled.
+bool settle_on_pins(const Ctx& c, World& w, int i, Vec3* dt, Mat3* dR, double* time, std::string* why) {
+  Obj& o = c.objs[i];
+  const int body = w.obj_body[i];
+  const mjModel* m = w.model.get();
+  mjData* d = w.data.get();
+  set_pose(w, body, o.t, o.R);
+  mj_forward(m, d);
+  take_warnings(d);
+  const int max_steps = static_cast<int>(std::ceil(c.cfg.settle_max_time / m->opt.timestep));
+  const int hold = std::max(1, static_cast<int>(c.cfg.settle_hold_time / m->opt.timestep));
+  int calm = 0, steps = 0;
+  while (steps < max_steps && calm < hold) {
+    mj_step(m, d);
+    ++steps;
+    if (take_warnings(d) & (1 << mjWARN_BADQACC)) {
+      *why = "MuJoCo reset the data (bad qacc) while settling on the pins";
+      return false;
+    }
+    calm = body_speed(w, body) < c.cfg.settle_speed ? calm + 1 : 0;
+  }
+  *time = steps * m->opt.timestep;
+  Vec3 t;
+  Mat3 R;
+  get_pose(w, body, &t, &R);
+  if (!t.allFinite() || !R.allFinite()) {
+    *why = "non-finite pose after settling";
+    return false;
+  }
+  *dt = t - o.t;
+  *dR = R * o.R.transpose();
+  o.t = t;
+  o.R = R;
+  return true;
+}
+
+// Fills the resample hand-off: modal mask, auxiliary mask M' (raster.h: modal mask united with the
+// projection of the lowest part of B_str), target OBB B_str.
+ResampleRequest make_request(const Scene& scene, int i, const Diagnostics& d, const Diagnosis& dg,
+                             const CorrectionConfig& cc) {
+  ResampleRequest r;
+  r.object_index = i;
+  r.object_id = scene.objects[i].id;
+  r.image_path = scene.image_path;
+  r.mask_path = scene.objects[i].mask_path;
+  r.target_obb = d.obb_target;
+  const Camera& cam = scene.camera;
+  if (!cam.valid()) return r;
+  BinaryMask modal(cam.width, cam.height);
+#ifdef SIMU_HAVE_OPENCV
+  if (!r.mask_path.empty() && stdfs::exists(r.mask_path)) {
+    cv::Mat m = cv::imread(r.mask_path, cv::IMREAD_GRAYSCALE);
+    if (!m.empty() && (m.cols != cam.width || m.rows != cam.height))
+      cv::resize(m, m, cv::Size(cam.width, cam.height), 0, 0, cv::INTER_NEAREST);
+    if (!m.empty())
+      for (int y = 0; y < cam.height; ++y)
+        for (int x = 0; x < cam.width; ++x) modal.at(y, x) = m.at<uint8_t>(y, x) ? 255 : 0;
+  }
+#endif
+  BinaryMask aux = auxiliary_crop_mask(cam, modal, dg, cc);
+#ifdef SIMU_HAVE_OPENCV
+  r.modal_mask = cv::Mat(cam.height, cam.width, CV_8UC1, modal.data.data()).clone();
+  r.aux_mask = cv::Mat(cam.height, cam.width, CV_8UC1, aux.data.data()).clone();
+#else
+  r.modal_mask = MaskImage{modal.width, modal.height, modal.data};
+  r.aux_mask = MaskImage{aux.width, aux.height, aux.data};
+#endif
+  return r;
+}
+
+std::string safe_name(const std::string& id) {
+  std::string s;
+  for (char ch : id) s += (std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '_') ? ch : '_';
+  return s.empty() ? "object" : s;
+}
+
+json vec_j(const Vec3& v) { return json::array({v[0], v[1], v[2]}); }
+json mat_j(const Mat3& m) {
+  return json::array({json::array({m(0, 0), m(0, 1), m(0, 2)}), json::array({m(1, 0), m(1, 1), m(1, 2)}),
+                      json::array({m(2, 0), m(2, 1), m(2, 2)})});
+}
+json box_j(const Obb& b) { return {{"center", vec_j(b.center)}, {"axes", mat_j(b.axes)}, {"extents", vec_j(b.extents)}}; }
+double angle_of(const Mat3& R) { return std::acos(std::clamp((R.trace() - 1.0) / 2.0, -1.0, 1.0)); }
+
+// Sequential order: ascending lowest world-AABB corner along gravity.
+std::vector<int> sequential_order(const Ctx& c, const std::vector<int>& idx) {
+  std::vector<std::pair<double, int>> key;
+  for (int i : idx) {
+    const Obj& o = c.objs[i];
+    const Mesh w = transform_mesh(o.canonical, o.R * o.s.asDiagonal(), o.t);
+    key.emplace_back(-lowest_corner_along_gravity(w, c.scene.gravity), i);
+  }
+  std::stable_sort(key.begin(), key.end());
+  std::vector<int> out;
+  for (auto& k : key) out.push_back(k.second);
+  return out;
+}
+
+}  // namespace
+
+nlohmann::json report_json(const ProbeResult& r) {
+  json objs = json::array();
+  for (size_t i = 0; i < r.diagnostics.size(); ++i) {
+    const auto& d = r.diagnostics[i];
+    json e;
+    e["id"] = r.scene.objects[i].id;
+    e["dof"] = to_string(r.scene.objects[i].dof);
+    e["order"] = d.order;
+    e["branch"] = to_string(d.branch);
+    e["physics_disabled"] = d.physics_disabled;
+    e["flags"] = d.flags;
+    e["message"] = d.message;
+    e["dt_pen"] = vec_j(d.dt_pen);
+    e["pen_iterations"] = d.pen_iterations;
+    e["pen_max_depth"] = d.pen_max_depth;
+    e["dt_grv"] = vec_j(d.dt_grv);
+    e["dR_grv"] = mat_j(d.dR_grv);
+    e["dR_grv_deg"] = angle_of(d.dR_grv) * 180.0 / M_PI;
+    e["sim_time"] = d.sim_time;
+    e["rho"] = d.rho;
+    e["eta"] = d.eta;
+    e["ell"] = d.ell;
+    e["u_grv"] = vec_j(d.u_grv);
+    e["obb_pre"] = box_j(d.obb_pre);
+    if (d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample) e["obb_target"] = box_j(d.obb_target);
+    if (!d.pins_world.empty()) {
+      e["pins"] = json::array();
+      for (size_t k = 0; k < d.pins_world.size(); ++k)
+        e["pins"].push_back({{"object", vec_j(d.pins_world[k])}, {"wall", vec_j(d.wall_points[k])}});
+      e["wall"] = d.wall_id;
+    }
+    e["t_pre"] = vec_j(d.t_pre);
+    e["dt_final_pen"] = vec_j(d.dt_final_pen);
+    e["settle_displacement"] = d.settle_displacement;
+    e["reverted"] = d.reverted;
+    objs.push_back(e);
+  }
+  return {{"objects", objs},
+          {"order", r.order},
+          {"seconds", {{"probe", r.seconds_probe}, {"resample", r.seconds_resample}, {"final", r.seconds_final}}}};
+}
+
+ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::string& out_dir,
+                      const Resampler& resampler, const ProbeProgress& progress) {
+  using clock = std::chrono::steady_clock;
+  const auto t0 = clock::now();
+  ProbeResult res;
+  res.scene = scene_in;
+  Scene& scene = res.scene;
+  const size_t n = scene.objects.size();
+  res.diagnostics.resize(n);
+  std::vector<Obj> objs(n);
+  Ctx c{scene, cfg, objs, {}, {}};
+
+  // 1. Bases: read, decompose, scale (a bad base is skipped with a warning).
+  for (const auto& b : scene.bases) {
+    if (!b.error.empty()) {
+      log::warn("base skipped: {}", b.error);
+      continue;
+    }
+    try {
+      const Mesh mesh = read_mesh(b.mesh_path);
+      const std::string p = mesh_problem(mesh);
+      SIMU_CHECK(p.empty(), "base {}: {}", b.id, p);
+      const auto shape = decompose(mesh, cfg.collision);
+      c.bases.push_back(b);
+      c.base_hulls.push_back(transform_hulls(shape.hulls, b.scale.asDiagonal()));
+    } catch (const std::exception& e) {
+      log::warn("base {} skipped: {}", b.id, e.what());
+    }
+  }
+
+  // 1. Objects: mesh, hulls, sanity checks. Problems flag the object; the rest goes on.
+  for (size_t i = 0; i < n; ++i) {
+    const SceneObject& so = scene.objects[i];
+    Diagnostics& d = res.diagnostics[i];
+    Obj& o = objs[i];
+    d.t_pre = so.t, d.R_pre = so.R, d.s_pre = so.scale;
+    o.t = so.t, o.R = so.R, o.s = so.scale;
+    if (!so.error.empty()) {
+      add_flag(d, "bad_input", so.error);
+      continue;
+    }
+    try {
+      o.canonical = read_mesh(so.mesh_path);
+      const std::string p = mesh_problem(o.canonical);
+      SIMU_CHECK(p.empty(), "{}: {}", so.mesh_path, p);
+      const auto b = mesh_aabb(o.canonical);
+      if (std::abs(b.size().maxCoeff() - 1.0) > 0.02 || b.center().norm() > 0.02)
+        add_flag(d, "not_canonical", fmt::format("mesh AABB longest side {:.3f}, centre offset {:.3f} (expected 1, 0)",
+                                                 b.size().maxCoeff(), b.center().norm()));
+      o.shape = decompose(o.canonical, cfg.collision);
+      o.usable = true;
+    } catch (const std::exception& e) {
+      add_flag(d, "mesh_error", e.what());
+      continue;
+    }
+    // Outside the room: centre behind the floor or a wall.
+    const Vec3 centre = so.to_world(mesh_aabb(o.canonical).center());
+    std::string outside;
+    if (scene.floor && scene.floor->distance(centre) < 0) outside = "below the floor";
+    for (const auto& w : scene.walls)
+      if (w.distance(centre) < 0) outside = "behind wall " + w.id;
+    if (!outside.empty()) {
+      add_flag(d, "outside_room", "object centre is " + outside);
+      continue;
+    }
+    // Anchored objects need a wall.
+    if (so.dof != PoseDof::Free) {
+      int best = -1;
+      double best_d = 1e300;
+      for (size_t k = 0; k < scene.walls.size(); ++k) {
+        if (!so.wall_id.empty() && scene.walls[k].id != so.wall_id) continue;
+        const double dist = std::abs(scene.walls[k].distance(centre));
+        if (dist < best_d) best_d = dist, best = static_cast<int>(k);
+      }
+      if (best < 0) {
+        add_flag(d, "no_wall", so.wall_id.empty() ? "anchored object but the scene has no walls"
+                                                  : "anchored object: wall '" + so.wall_id + "' not found");
+        continue;
+      }
+      o.wall = best;
+      d.wall_id = scene.walls[best].id;
+    }
+    o.simulate = true;
+  }
+  for (size_t i = 0; i < n; ++i)
+    if (!objs[i].simulate) {
+      res.diagnostics[i].physics_disabled = true;
+      res.diagnostics[i].branch = ProbeBranch::Disabled;
+    }
+
+  // 2. Sequential order over the simulated objects.
+  std::vector<int> live;
+  for (size_t i = 0; i < n; ++i)
+    if (objs[i].simulate) live.push_back(static_cast<int>(i));
+  res.order = sequential_order(c, live);
+
+  // 3. Per object: penetration resolution, gravity diagnostics, decision.
+  std::vector<int> placed;
+  std::vector<int> needs_resample;
+  std::vector<Diagnosis> diagnoses(n);
+  int done = 0;
+  for (int i : res.order) {
+    Diagnostics& d = res.diagnostics[i];
+    Obj& o = objs[i];
+    const SceneObject& so = scene.objects[i];
+    d.order = done;
+    std::string why;
+    try {
+      World w = build_world(c, placed, {i}, false);
+      bool ok = resolve_penetration(c, w, i, &d.dt_pen, &d.pen_iterations, &d.pen_max_depth, &why);
+      if (ok && so.dof == PoseDof::Free) {
+        ok = fall_until_contact(c, w, i, &d.dt_grv, &d.sim_time, &why);
+        if (!ok && why.rfind("no contact", 0) == 0) add_flag(d, "no_support", "");
+      } else if (ok) {
+        // Pins at the current (post-penetration) pose, paired with the wall.
+        const Plane& wall = scene.walls[o.wall];
+        const Mesh world = transform_mesh(o.canonical, o.R * o.s.asDiagonal(), o.t);
+        d.pins_world = choose_pins(world, wall, scene.gravity, pin_count(so.dof), cfg.pin_region);
+        o.pins_body.clear();
+        d.wall_points.clear();
+        for (const auto& p : d.pins_world) {
+          o.pins_body.push_back(o.R.transpose() * (p - o.t));
+          d.wall_points.push_back(p - wall.distance(p) * wall.normal);
+        }
+        World wp = build_world(c, placed, {i}, true);
+        ok = settle_on_pins(c, wp, i, &d.dt_grv, &d.dR_grv, &d.sim_time, &why);
+      }
+      if (!ok) {
+        d.physics_disabled = true;
+        d.branch = ProbeBranch::Disabled;
+        add_flag(d, "physics_disabled", why);
+        // Leave it out of the physics: back to its pre-simulation pose.
+        o.t = d.t_pre, o.R = d.R_pre;
+        o.simulate = false;
+      }
+    } catch (const std::exception& e) {
+      d.physics_disabled = true;
+      d.branch = ProbeBranch::Disabled;
+      add_flag(d, "physics_disabled", e.what());
+      o.t = d.t_pre, o.R = d.R_pre;
+      o.simulate = false;
+    }
+    // Decision through the geometry half (geometry.h): OBB of the pre-simulation object,
+    // gravity-most-aligned axis, rho, eta, branch, the stretch and the desired OBB B_str.
+    if (o.simulate) {
+      try {
+        CorrectionConfig cc;
+        cc.resample_threshold = cfg.rho_threshold;
+        d.obb_pre = object_obb(o.canonical, d.s_pre, d.R_pre, d.t_pre, scene.gravity);
+        const Diagnosis dg = diagnose(d.obb_pre, scene.gravity, d.dt_pen, d.dt_grv, cc);
+        d.u_grv = dg.axis.u;
+        d.ell = dg.axis.length;
+        d.eta = dg.eta;
+        d.rho = dg.rho;
+        d.obb_target = stretched_obb(dg, cc);
+        if (so.dof != PoseDof::Free) {
+          d.branch = ProbeBranch::Anchored;  // wall-anchored objects keep their geometry and constrained pose
+        } else if (dg.branch == Branch::Resample) {
+          d.branch = ProbeBranch::Resample;
+          needs_resample.push_back(i);
+          diagnoses[i] = dg;
+          // Until resampled: the object stays where the diagnostic left it.
+        } else {
+          // Gravity-axis stretch (supplementary equations; anti-gravity face fixed).
+          d.branch = ProbeBranch::Stretch;
+          const StretchResult st = gravity_axis_stretch(o.canonical.V, d.s_pre, d.R_pre, d.t_pre, d.dR_grv * d.R_pre, dg, cc);
+          if (st.mesh_changed) {
+            Mesh m = o.canonical;
+            m.V = st.canonical;
+            o.shape = decompose(m, cfg.collision);
+            o.canonical = m;
+          }
+          o.s = st.scale;
+          o.R = st.R;
+          o.t = st.t;
+        }
+      } catch (const std::exception& e) {
+        // Degenerate OBB or non-finite numbers: keep the diagnostic pose, no correction.
+        add_flag(d, "decision_failed", e.what());
+      }
+      placed.push_back(i);
+    }
+    ++done;
+    if (progress) {
+      std::string status = fmt::format("{} rho={:.3f}", to_string(d.branch), d.rho);
+      if (!d.flags.empty()) status += " [" + fmt::format("{}", fmt::join(d.flags, ",")) + "]";
+      progress(done, static_cast<int>(res.order.size()), so.id, status);
+    }
+  }
+  const auto t1 = clock::now();
+  res.seconds_probe = std::chrono::duration<double>(t1 - t0).count();
+
+  // 4. Resample hand-off, one call for the whole scene.
+  {
+    CorrectionConfig cc;
+    cc.resample_threshold = cfg.rho_threshold;
+    for (int i : needs_resample) {
+      try {
+        res.resample_requests.push_back(make_request(scene, i, res.diagnostics[i], diagnoses[i], cc));
+      } catch (const std::exception& e) {
+        add_flag(res.diagnostics[i], "handoff_failed", e.what());
+        ResampleRequest r;
+        r.object_index = i, r.object_id = scene.objects[i].id, r.target_obb = res.diagnostics[i].obb_target;
+        res.resample_requests.push_back(r);
+      }
+    }
+  }
+  if (!needs_resample.empty()) {
+    std::vector<ResampleResult> results;
+    if (resampler) {
+      try {
+        results = resampler(res.resample_requests);
+      } catch (const std::exception& e) {
+        log::warn("resampler failed: {}", e.what());
+      }
+    }
+    for (size_t r = 0; r < needs_resample.size(); ++r) {
+      const int i = needs_resample[r];
+      Diagnostics& d = res.diagnostics[i];
+      Obj& o = objs[i];
+      if (!resampler) {
+        add_flag(d, "needs_resample", "no resampler: hand-off written, object kept at its diagnostic pose");
+        continue;
+      }
+      if (r >= results.size() || !results[r].ok) {
+        add_flag(d, "resample_failed", r < results.size() ? results[r].message : "resampler returned too few results");
+        continue;
+      }
+      const ResampleResult& rr = results[r];
+      try {
+        const std::string p = mesh_problem(rr.mesh);
+        SIMU_CHECK(p.empty(), "resampled mesh: {}", p);
+        SIMU_CHECK(rr.R.allFinite() && rr.scale.allFinite() && rr.scale.minCoeff() > 0, "resampled pose is not finite");
+        o.shape = decompose(rr.mesh, cfg.collision);
+        o.canonical = rr.mesh;
+        o.R = rr.R;
+        o.s = rr.scale;
+        o.t = d.obb_target.center;  // paper: translation := centre of the stretched OBB
+      } catch (const std::exception& e) {
+        add_flag(d, "resample_failed", e.what());
+      }
+    }
+  }
+  const auto t2 = clock::now();
+  res.seconds_resample = std::chrono::duration<double>(t2 - t1).count();
+
+  // 5. Final composition: sequential penetration resolution, then one joint settle.
+  std::vector<int> final_live;
+  for (size_t i = 0; i < n; ++i)
+    if (objs[i].simulate) final_live.push_back(static_cast<int>(i));
+  const std::vector<int> final_order = sequential_order(c, final_live);
+  std::vector<int> placed2;
+  for (int i : final_order) {
+    Diagnostics& d = res.diagnostics[i];
+    try {
+      World w = build_world(c, placed2, {i}, false);
+      int iters = 0;
+      double depth = 0;
+      std::string why;
+      const Vec3 before = objs[i].t;
+      if (!resolve_penetration(c, w, i, &d.dt_final_pen, &iters, &depth, &why)) {
+        objs[i].t = before;
+        add_flag(d, "final_penetration", why);
+      }
+    } catch (const std::exception& e) {
+      add_flag(d, "final_penetration", e.what());
+    }
+    placed2.push_back(i);
+  }
+  std::vector<int> visual;
+  for (size_t i = 0; i < n; ++i)
+    if (objs[i].usable && !objs[i].simulate) visual.push_back(static_cast<int>(i));
+  const auto t_pen_done = clock::now();
+  log::debug("final penetration pass: {:.3f} s", std::chrono::duration<double>(t_pen_done - t2).count());
+  int buffer_factor = 1;
+  if (!final_order.empty()) {
+    try {
+      // Joint settle for T_settle; stops early once every body has been at rest for settle_hold_time.
+      // Full contact/constraint buffers (a warning) restart it with larger ones.
+      World w;
+      bool reset = false, full = true;
+      for (; full && buffer_factor <= 8; buffer_factor *= 2) {
+        w = build_world(c, {}, final_order, true, nullptr, {}, buffer_factor);
+        const mjModel* m = w.model.get();
+        const int steps = static_cast<int>(std::ceil(cfg.final_settle_time / m->opt.timestep));
+        // Rest test every settle_window: no body moved more than settle_rest_distance since the last one.
+        const int window = std::max(1, static_cast<int>(cfg.settle_window / m->opt.timestep));
+        std::vector<Vec3> last(final_order.size());
+        for (size_t k = 0; k < final_order.size(); ++k) last[k] = Eigen::Map<const Vec3>(w.data->xpos + 3 * w.obj_body[final_order[k]]);
+        bool calm = false;
+        full = false;
+        for (int s = 0; s < steps && !calm; ++s) {
+          mj_step(m, w.data.get());
+          const int warn = take_warnings(w.data.get());
+          if (warn & ((1 << mjWARN_CONTACTFULL) | (1 << mjWARN_CNSTRFULL))) {
+            full = true;
+            break;
+          }
+          if (warn & (1 << mjWARN_BADQACC)) {
+            reset = true;
+            break;
+          }
+          if ((s + 1) % window == 0) {
+            double moved = 0;
+            for (size_t k = 0; k < final_order.size(); ++k) {
+              const Vec3 p = Eigen::Map<const Vec3>(w.data->xpos + 3 * w.obj_body[final_order[k]]);
+              moved = std::max(moved, (p - last[k]).norm());
+              last[k] = p;
+            }
+            calm = moved < cfg.settle_rest_distance;
+          }
+        }
+        if (!full) break;
+      }
+      if (full) log::warn("final settle: contact buffers still full at {}x", buffer_factor / 2);
+      log::debug("final settle: {:.3f} s ({:.2f} s simulated)", std::chrono::duration<double>(clock::now() - t_pen_done).count(),
+                 w.data->time);
+      for (int i : final_order) {
+        Diagnostics& d = res.diagnostics[i];
+        if (reset) {
+          add_flag(d, "solver_reset", "MuJoCo reset the data during the final settle; pre-settle poses kept");
+          d.reverted = true;
+          continue;
+        }
+        Vec3 t;
+        Mat3 R;
+        get_pose(w, w.obj_body[i], &t, &R);
+        d.settle_displacement = (t - objs[i].t).norm();
+        if (!t.allFinite() || d.settle_displacement > cfg.divergence_bound) {
+          d.reverted = true;
+          add_flag(d, "reverted", fmt::format("moved {:.3f} m in the final settle (> {:.2f} m): pre-settle pose kept",
+                                              d.settle_displacement, cfg.divergence_bound));
+          continue;
+        }
+        objs[i].t = t;
+        objs[i].R = R;
+      }
+    } catch (const std::exception& e) {
+      log::warn("final settle failed: {}", e.what());
+      for (int i : final_order) add_flag(res.diagnostics[i], "settle_failed", e.what());
+    }
+  }
+  // The final MJCF: free objects dynamic, anchored ones on their pins, disabled ones visual only.
+  try {
+    build_world(c, {}, final_order, true, &res.mjcf, visual, std::max(1, buffer_factor));
+  } catch (const std::exception& e) {
+    log::warn("final MJCF does not compile: {}", e.what());
+  }
+  res.seconds_final = std::chrono::duration<double>(clock::now() - t2).count();
+
+  // Corrected scene: final poses and scales.
+  for (size_t i = 0; i < n; ++i) {
+    if (!objs[i].usable) continue;
+    scene.objects[i].t = objs[i].t;
+    scene.objects[i].R = objs[i].R;
+    scene.objects[i].scale = objs[i].s;
+  }
+
+  // 6. Outputs.
+  if (!out_dir.empty() && cfg.write_outputs) {
+    stdfs::create_directories(out_dir + "/meshes");
+    for (size_t i = 0; i < n; ++i) {
+      if (!objs[i].usable) continue;
+      const std::string path = out_dir + "/meshes/" + safe_name(scene.objects[i].id) + ".obj";
+      try {
+        write_mesh(objs[i].canonical, path);
+        scene.objects[i].mesh_path = stdfs::absolute(path).lexically_normal().string();
+      } catch (const std::exception& e) {
+        add_flag(res.diagnostics[i], "write_failed", e.what());
+      }
+    }
+    save_scene(scene, out_dir + "/scene.json");
+    if (!res.mjcf.empty()) fs::atomic_write(out_dir + "/scene.xml", res.mjcf);
+    // Resample hand-off files (masks and target OBB).
+    for (const auto& r : res.resample_requests) {
+      const std::string dir = out_dir + "/resample/" + safe_name(r.object_id);
+      stdfs::create_directories(dir);
+      json j = {{"object_index", r.object_index}, {"object_id", r.object_id}, {"image", r.image_path},
+                {"mask", r.mask_path}, {"target_obb", box_j(r.target_obb)},
+                {"translation", vec_j(r.target_obb.center)}};
+#ifdef SIMU_HAVE_OPENCV
+      if (!r.aux_mask.empty()) {
+        cv::imwrite(dir + "/aux_mask.png", r.aux_mask);
+        j["aux_mask"] = "aux_mask.png";
+      }
+#endif
+      fs::atomic_write(dir + "/request.json", j.dump(2) + "\n");
+    }
+    fs::atomic_write(out_dir + "/report.json", report_json(res).dump(2) + "\n");
+  }
+  return res;
+}
+
+}  // namespace simu::pipeline

@@ -1,0 +1,158 @@
+// The physics-in-the-loop probe (paper Sec. 3.3-3.5, supplementary "Gravity-Based Diagnostics",
+// "Sequential Composition"), on MuJoCo 2.2.
+//
+// run_probe():
+//  1. loads meshes, builds cached convex collision hulls, flags bad objects (missing/degenerate
+//     mesh, bad pose, outside the room) without stopping;
+//  2. orders objects ascending by the lowest world-AABB corner along gravity;
+//  3. per object (earlier ones static colliders, the active one dynamic): penetration resolution
+//     (contacts grouped environment first; push by max depth + 7 mm along the depth-weighted mean
+//     normal; <= 200 iterations; > 0.3 m in total or a surviving contact -> physics-disabled);
+//     gravity diagnostics (free: fall until first contact -> dt_grv; point/line anchored: connect
+//     constraints at the top-back pins, simulated until settled -> dR_grv, dt_grv);
+//     decision (rho >= 0.15 -> resample, else gravity-axis stretch; anchored keep their geometry);
+//  4. hands every object needing resampling to the Resampler in one call (or writes the hand-off);
+//  5. final composition: sequential penetration resolution on the corrected objects, then one
+//     joint settle (free objects 6-DoF, anchored ones on their pins) for T_settle; objects moving
+//     more than the divergence bound are reverted to their pre-settle pose;
+//  6. writes DIR/scene.json (+ DIR/meshes/), DIR/scene.xml (standalone MJCF), DIR/report.json.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#ifdef SIMU_HAVE_OPENCV
+#include <opencv2/core.hpp>
+#endif
+
+#include "pipeline/collision.h"
+#include "pipeline/geometry.h"
+#include "pipeline/mjcf.h"
+#include "pipeline/scene.h"
+
+namespace simu::pipeline {
+
+#ifdef SIMU_HAVE_OPENCV
+using MaskImage = cv::Mat;  // CV_8UC1, non-zero = inside
+#else
+// An 8-bit single-channel image, row-major, non-zero = inside.
+struct MaskImage {
+  int width = 0, height = 0;
+  std::vector<uint8_t> data;
+  bool empty() const { return data.empty(); }
+};
+#endif
+
+
+// What the probe did with an object (the stretch/resample decision itself is geometry.h's Branch).
+enum class ProbeBranch { None, Stretch, Resample, Anchored, Disabled };
+const char* to_string(ProbeBranch b);
+
+// The numbers the diagnostic simulation produces for one object (and the decision made from them).
+struct Diagnostics {
+  int order = -1;                 // position in the sequential order (-1: not simulated)
+  ProbeBranch branch = ProbeBranch::None;
+  bool physics_disabled = false;
+  std::vector<std::string> flags; // e.g. "bad_input", "mesh_error", "outside_room", "physics_disabled",
+                                  // "no_support", "solver_reset", "needs_resample", "resample_failed",
+                                  // "reverted", "not_canonical"
+  std::string message;            // human-readable reasons
+  // Pre-simulation pose (as read).
+  Vec3 t_pre = Vec3::Zero();
+  Mat3 R_pre = Mat3::Identity();
+  Vec3 s_pre = Vec3::Ones();
+  // Penetration resolution.
+  Vec3 dt_pen = Vec3::Zero();
+  int pen_iterations = 0;
+  double pen_max_depth = 0;       // deepest contact at the start (m)
+  // Gravity diagnostics.
+  Vec3 dt_grv = Vec3::Zero();
+  Mat3 dR_grv = Mat3::Identity();
+  double sim_time = 0;            // simulated seconds until first contact / settled
+  std::vector<Vec3> pins_world;   // object-side pins (anchored)
+  std::vector<Vec3> wall_points;  // their wall mates (feet of the perpendiculars)
+  std::string wall_id;
+  // Decision.
+  Obb obb_pre;            // OBB of the pre-simulation object
+  Vec3 u_grv = Vec3::Zero();      // OBB axis most aligned with gravity, oriented so u.g >= 0
+  double ell = 0;                 // OBB side length along u_grv
+  double rho = 0, eta = 0;
+  Obb obb_target;         // desired stretched OBB (stretch and resample)
+  // Final composition.
+  Vec3 dt_final_pen = Vec3::Zero();
+  double settle_displacement = 0; // m, during the joint settle
+  bool reverted = false;
+};
+
+// One object handed to the resampler.
+struct ResampleRequest {
+  int object_index = -1;         // index into Scene::objects
+  std::string object_id;
+  std::string image_path;
+  std::string mask_path;
+  MaskImage modal_mask;          // M_i (empty if the scene has none)
+  MaskImage aux_mask;            // M'_i = M_i united with the projected lowest part of the stretched OBB
+  Obb target_obb;        // desired stretched OBB; its centre becomes the translation
+};
+
+struct ResampleResult {
+  bool ok = false;
+  std::string message;
+  Mesh mesh;                     // canonical (AABB-centred, longest side 1)
+  Mat3 R = Mat3::Identity();
+  Vec3 scale = Vec3::Ones();
+};
+
+// Called once per scene with every object that needs resampling; returns one result per request.
+using Resampler = std::function<std::vector<ResampleResult>(const std::vector<ResampleRequest>&)>;
+
+struct ProbeConfig {
+  PhysicsConfig physics;
+  CollisionConfig collision;
+  double rho_threshold = 0.15;     // rho >= this selects resampling
+  double push_extra = 0.007;       // m added to the deepest contact per push
+  int max_pen_iterations = 200;
+  double max_pen_total = 0.3;      // m
+  double pen_tolerance = 2e-4;     // m: a contact penetrates when dist < -pen_tolerance
+  double max_fall_time = 2.0;      // s without contact -> "no_support"
+  double settle_max_time = 3.0;    // s, anchored diagnostics
+  double settle_speed = 2e-3;      // m/s and rad/s below which a body counts as settled
+  double settle_hold_time = 0.1;   // s the speed must stay below settle_speed
+  double final_settle_time = 2.0;  // T_settle (s)
+  double settle_window = 0.25;     // s: the final settle stops early once, over one window, ...
+  double settle_rest_distance = 1e-3;  // ... no body moved more than this (m)
+  double divergence_bound = 0.25;  // m: larger final-settle motion is reverted
+  double pin_region = 0.1;         // top-back pin region, fraction of the object's extent
+  bool write_outputs = true;       // scene.json, meshes, scene.xml, report.json, hand-off
+};
+
+// Progress of one object (for a progress line per object).
+using ProbeProgress = std::function<void(int done, int total, const std::string& object_id, const std::string& status)>;
+
+struct ProbeResult {
+  Scene scene;                      // corrected scene (mesh paths point into out_dir when written)
+  std::vector<Diagnostics> diagnostics;  // per Scene::objects index
+  std::vector<int> order;           // object indices in sequential order
+  std::vector<ResampleRequest> resample_requests;
+  std::string mjcf;                 // final MJCF text
+  double seconds_probe = 0, seconds_resample = 0, seconds_final = 0;
+};
+
+// Runs the whole probe on a scene. out_dir may be "" (nothing written). Never throws for a bad
+// object (it is flagged); throws simu::Error only when the scene as a whole is unusable.
+ProbeResult run_probe(const Scene& scene, const ProbeConfig& cfg, const std::string& out_dir,
+                      const Resampler& resampler = nullptr, const ProbeProgress& progress = nullptr);
+
+// Per-object report as JSON (what report.json holds).
+nlohmann::json report_json(const ProbeResult& r);
+
+// Pieces exposed for tests and for the geometry half.
+// Ordering key: max over the 8 world-AABB corners of g.x (larger = lower); objects sort by its negation.
+double lowest_corner_along_gravity(const Mesh& world, const Vec3& gravity);
+// Object-side pins (top-back region; 1: highest, most centred; 2: leftmost and rightmost along the
+// wall-parallel horizontal) for a world mesh hanging on a wall.
+std::vector<Vec3> choose_pins(const Mesh& world, const Plane& wall, const Vec3& gravity, int count, double region);
+
+}  // namespace simu::pipeline

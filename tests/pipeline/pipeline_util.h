@@ -1,0 +1,29 @@
+// Helpers of the pipeline tests (no torch): temporary directories, box meshes, scene files.
+#pragma once
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <string>
+
+#include "pipeline/mesh.h"
+#include "pipeline/scene.h"
+
+namespace simu::testing {
+
+// A fresh temporary directory for one test.
+inline std::string pipeline_temp_dir(const std::string& name) {
+  auto p = std::filesystem::temp_directory_path() / ("simu_pipeline_" + name + "_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(p);
+  std::filesystem::create_directories(p);
+  return p.string();
+}
+
+// Writes a canonical box mesh (AABB-centred; half extents h, longest side 1 expected) and returns its path.
+inline std::string write_box(const std::string& dir, const std::string& name, const pipeline::Vec3& half) {
+  const std::string path = dir + "/" + name + ".obj";
+  pipeline::write_mesh(pipeline::box_mesh(half), path);
+  return path;
+}
+
+}  // namespace simu::testing
