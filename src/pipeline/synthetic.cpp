@@ -455,8 +455,10 @@ Scene to_probe_scene(const SyntheticScene& s, const std::string& dir) {
   return sc;
 }
 
-void write_scene_dir(const SyntheticScene& s, const std::string& dir) {
+void write_scene_dir(const SyntheticScene& s, const std::string& dir_in) {
   namespace sfs = std::filesystem;
+  // Absolute, so that the scene file's paths are written relative to it.
+  const std::string dir = sfs::absolute(dir_in).lexically_normal().string();
   sfs::create_directories(sfs::path(dir) / "meshes");
   sfs::create_directories(sfs::path(dir) / "masks");
   for (const auto& b : s.bases) write_obj((sfs::path(dir) / "meshes" / (b.id + ".obj")).string(), b.mesh);
@@ -504,6 +506,13 @@ void write_scene_dir(const SyntheticScene& s, const std::string& dir) {
   save_scene(to_probe_scene(s, dir), (sfs::path(dir) / "scene.json").string());
 }
 
+std::optional<ResampleProxy> parse_resample_proxy(const std::string& s) {
+  if (s == "stretch") return ResampleProxy::Stretch;
+  if (s == "drop") return ResampleProxy::Drop;
+  if (s == "keep") return ResampleProxy::Keep;
+  return std::nullopt;
+}
+
 Displacement oracle_displacement(const SyntheticScene& s, const SyntheticObject& o) {
   const Mesh w = place(o.pred_mesh, o.pred_scale, o.pred_R, o.pred_t);
   const Vec3 g = s.gravity.normalized();
@@ -518,7 +527,7 @@ Displacement oracle_displacement(const SyntheticScene& s, const SyntheticObject&
 }
 
 SceneEvaluation evaluate_scene(const SyntheticScene& s, const CorrectionConfig& config,
-                               const std::vector<Displacement>& displacements) {
+                               const std::vector<Displacement>& displacements, ResampleProxy proxy) {
   SceneEvaluation ev;
   const Vec3 g = s.gravity.normalized();
   std::vector<Mesh> before, after, truth;
@@ -544,13 +553,15 @@ SceneEvaluation evaluate_scene(const SyntheticScene& s, const CorrectionConfig& 
     oc.id = o.id, oc.error = o.error, oc.expected = expected_branch(o.error), oc.got = dg.branch;
     oc.rho = dg.rho, oc.eta = dg.eta;
     Mesh post;
-    if (dg.branch == Branch::Stretch) {
+    if (dg.branch == Branch::Stretch || proxy == ResampleProxy::Stretch) {
       const StretchResult r = gravity_axis_stretch(o.pred_mesh.V, o.pred_scale, o.pred_R, o.pred_t, o.pred_R, dg, config);
       Mesh m = o.pred_mesh;
       m.V = r.canonical;
       post = place(m, r.scale, r.R, r.t);
-    } else {
+    } else if (proxy == ResampleProxy::Drop) {
       post = place(o.pred_mesh, o.pred_scale, o.pred_R, Vec3(o.pred_t + d.dt_pen + d.dt_grv));
+    } else {
+      post = pre;
     }
     const double support = g.dot(Vec3(0, o.support_y, 0));
     oc.support_gap_before = std::abs((pre.V * g).maxCoeff() - support);

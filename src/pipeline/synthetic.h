@@ -37,7 +37,7 @@ struct SyntheticConfig {
   int max_hanging = 2;                   // wall-anchored objects (0..max)
   int width = 320, height = 240;
   double fx = 280;                       // fy = fx, principal point at the image centre
-  double camera_pitch_deg = 25;
+  double camera_pitch_deg = 15;
   bool write_depth = false;              // 16-bit PNG depth (millimetres) of the ground-truth render
   // Error mix (relative weights) and magnitudes.
   double w_none = 1, w_hover = 2, w_sink = 2, w_cut = 2, w_scale = 1.5, w_rotation = 1.5;
@@ -133,9 +133,15 @@ struct ObjectOutcome {
   double support_gap_before = 0, support_gap_after = 0;  // |lowest point - support| (metres)
 };
 
+// What stands in for the resampler in the benchmark (it lives in another component):
+//   Stretch: the gravity-axis stretch applied anyway (the object fills B_str; the paper's "Stretched"
+//            baseline), Drop: moved by the measured displacement only (layout-only fix),
+//   Keep: left as reconstructed.
+enum class ResampleProxy { Stretch, Drop, Keep };
+std::optional<ResampleProxy> parse_resample_proxy(const std::string& s);
+
 // Before/after scores of one scene: the reconstruction as given vs corrected (stretch branch: the
-// gravity-axis stretch; resample branch: no resampler here, so the object is only moved by the
-// measured displacement, i.e. a layout-only fix). Overlap metrics are over all objects (hanging
+// gravity-axis stretch; resample branch: the proxy). Overlap metrics are over all objects (hanging
 // ones unchanged), with every object valid (no simulation).
 struct SceneEvaluation {
   std::vector<ObjectOutcome> objects;
@@ -143,6 +149,7 @@ struct SceneEvaluation {
 };
 // displacements[i] is object i's measurement (free objects; others ignored). Empty: the oracle.
 SceneEvaluation evaluate_scene(const SyntheticScene& s, const CorrectionConfig& config,
-                               const std::vector<Displacement>& displacements = {});
+                               const std::vector<Displacement>& displacements = {},
+                               ResampleProxy proxy = ResampleProxy::Stretch);
 
 }  // namespace simu::pipeline

@@ -107,3 +107,26 @@ TEST(Synthetic, WriteAndReload) {
   EXPECT_TRUE(std::filesystem::exists(dir + "/depth.png"));
   EXPECT_TRUE(std::filesystem::exists(dir + "/rgb.png"));
 }
+
+#include "pipeline/overlay.h"
+
+// The committed default set (tests/data/scenes) loads, and every free object has a modal mask of the
+// camera's size with pixels in it.
+TEST(Synthetic, CommittedDefaultScenes) {
+  const std::string root = simu::testing::source_dir() + "/tests/data/scenes";
+  int scenes = 0;
+  for (const auto& e : std::filesystem::directory_iterator(root)) {
+    const Scene sc = load_scene((e.path() / "scene.json").string());
+    ++scenes;
+    EXPECT_FALSE(sc.objects.empty());
+    for (const SceneObject& o : sc.objects) {
+      EXPECT_TRUE(o.error.empty()) << o.id << ": " << o.error;
+      if (o.dof != PoseDof::Free) continue;
+      const BinaryMask m = read_mask(o.mask_path);
+      EXPECT_EQ(m.width, sc.camera.width);
+      EXPECT_GT(m.count(), 0) << o.id;
+      EXPECT_TRUE(o.extra.contains("synthetic"));
+    }
+  }
+  EXPECT_EQ(scenes, 3);
+}
