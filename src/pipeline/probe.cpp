@@ -423,9 +423,9 @@ bool settle_on_pins(const Ctx& c, World& w, int i, Vec3* dt, Mat3* dR, double* t
 
 // Fills the resample hand-off: modal mask, auxiliary mask M' (raster.h: modal mask united with the
 // projection of the lowest part of B_str), target OBB B_str.
-ResampleRequest make_request(const Scene& scene, int i, const Diagnostics& d, const Diagnosis& dg,
+ProbeResampleRequest make_request(const Scene& scene, int i, const Diagnostics& d, const Diagnosis& dg,
                              const CorrectionConfig& cc) {
-  ResampleRequest r;
+  ProbeResampleRequest r;
   r.object_index = i;
   r.object_id = scene.objects[i].id;
   r.image_path = scene.image_path;
@@ -528,7 +528,7 @@ nlohmann::json report_json(const ProbeResult& r) {
 }
 
 ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::string& out_dir,
-                      const Resampler& resampler, const ProbeProgress& progress) {
+                      const ResampleFn& resampler, const ProbeProgress& progress) {
   using clock = std::chrono::steady_clock;
   const auto t0 = clock::now();
   ProbeResult res;
@@ -728,14 +728,14 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
         res.resample_requests.push_back(make_request(scene, i, res.diagnostics[i], diagnoses[i], cc));
       } catch (const std::exception& e) {
         add_flag(res.diagnostics[i], "handoff_failed", e.what());
-        ResampleRequest r;
+        ProbeResampleRequest r;
         r.object_index = i, r.object_id = scene.objects[i].id, r.target_obb = res.diagnostics[i].obb_target;
         res.resample_requests.push_back(r);
       }
     }
   }
   if (!needs_resample.empty()) {
-    std::vector<ResampleResult> results;
+    std::vector<ProbeResampleResult> results;
     if (resampler) {
       try {
         results = resampler(res.resample_requests);
@@ -755,7 +755,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
         add_flag(d, "resample_failed", r < results.size() ? results[r].message : "resampler returned too few results");
         continue;
       }
-      const ResampleResult& rr = results[r];
+      const ProbeResampleResult& rr = results[r];
       try {
         const std::string p = mesh_problem(rr.mesh);
         SIMU_CHECK(p.empty(), "resampled mesh: {}", p);

@@ -11,7 +11,7 @@
 //     gravity diagnostics (free: fall until first contact -> dt_grv; point/line anchored: connect
 //     constraints at the top-back pins, simulated until settled -> dR_grv, dt_grv);
 //     decision (rho >= 0.15 -> resample, else gravity-axis stretch; anchored keep their geometry);
-//  4. hands every object needing resampling to the Resampler in one call (or writes the hand-off);
+//  4. hands every object needing resampling to the ResampleFn in one call (or writes the hand-off);
 //  5. final composition: sequential penetration resolution on the corrected objects, then one
 //     joint settle (free objects 6-DoF, anchored ones on their pins) for T_settle; objects moving
 //     more than the divergence bound are reverted to their pre-settle pose;
@@ -87,7 +87,7 @@ struct Diagnostics {
 };
 
 // One object handed to the resampler.
-struct ResampleRequest {
+struct ProbeResampleRequest {
   int object_index = -1;         // index into Scene::objects
   std::string object_id;
   std::string image_path;
@@ -97,7 +97,7 @@ struct ResampleRequest {
   Obb target_obb;        // desired stretched OBB; its centre becomes the translation
 };
 
-struct ResampleResult {
+struct ProbeResampleResult {
   bool ok = false;
   std::string message;
   Mesh mesh;                     // canonical (AABB-centred, longest side 1)
@@ -106,7 +106,7 @@ struct ResampleResult {
 };
 
 // Called once per scene with every object that needs resampling; returns one result per request.
-using Resampler = std::function<std::vector<ResampleResult>(const std::vector<ResampleRequest>&)>;
+using ResampleFn = std::function<std::vector<ProbeResampleResult>(const std::vector<ProbeResampleRequest>&)>;
 
 struct ProbeConfig {
   PhysicsConfig physics;
@@ -135,7 +135,7 @@ struct ProbeResult {
   Scene scene;                      // corrected scene (mesh paths point into out_dir when written)
   std::vector<Diagnostics> diagnostics;  // per Scene::objects index
   std::vector<int> order;           // object indices in sequential order
-  std::vector<ResampleRequest> resample_requests;
+  std::vector<ProbeResampleRequest> resample_requests;
   std::string mjcf;                 // final MJCF text
   double seconds_probe = 0, seconds_resample = 0, seconds_final = 0;
 };
@@ -143,7 +143,7 @@ struct ProbeResult {
 // Runs the whole probe on a scene. out_dir may be "" (nothing written). Never throws for a bad
 // object (it is flagged); throws simu::Error only when the scene as a whole is unusable.
 ProbeResult run_probe(const Scene& scene, const ProbeConfig& cfg, const std::string& out_dir,
-                      const Resampler& resampler = nullptr, const ProbeProgress& progress = nullptr);
+                      const ResampleFn& resampler = nullptr, const ProbeProgress& progress = nullptr);
 
 // Per-object report as JSON (what report.json holds).
 nlohmann::json report_json(const ProbeResult& r);

@@ -224,8 +224,8 @@ TEST(Probe, LargeDropSelectsResampleAndHandsOff) {
   EXPECT_GT(cv::countNonZero(q.aux_mask), 0);
 #endif
   // With a resampler: a flatter box returned; it is placed at the target centre, then settles.
-  Resampler rs = [&](const std::vector<ResampleRequest>& reqs) {
-    std::vector<ResampleResult> out(reqs.size());
+  ResampleFn rs = [&](const std::vector<ProbeResampleRequest>& reqs) {
+    std::vector<ProbeResampleResult> out(reqs.size());
     for (auto& o : out) {
       o.ok = true;
       o.mesh = box_mesh(Vec3(0.5, 0.5, 0.5));
