@@ -1,0 +1,31 @@
+// Joins the model-side Resampler to the physics probe: the probe's OBB-guided requests (image, modal
+// mask M_i, auxiliary crop mask M'_i) become Stage-1 condition inputs (crop box from M'_i, mask channel
+// the modal mask, point map from the scene's depth), every object goes through ONE batched
+// Resampler::resample call, and the decoded canonical mesh, rotation and scale go back to the probe
+// (which sets the translation to the stretched OBB's centre).
+#pragma once
+
+#include <string>
+
+#include "data/preprocess.h"
+#include "pipeline/probe.h"
+#include "pipeline/resampler.h"
+
+namespace simu::pipeline {
+
+struct ProbeResamplerOptions {
+  data::PreprocessConfig preprocess;  // the official Stage-1 preprocessing
+  uint64_t seed = 0;                  // sampling noise seed
+};
+
+// Back-projects a depth image (16-bit PNG in millimetres, or 32-bit float metres; 0/inf = invalid)
+// through the scene camera into a point map [3, H, W] in the PyTorch3D camera frame (NaN = invalid).
+torch::Tensor pointmap_from_depth_file(const std::string& path, const Camera& camera);
+
+// A ResampleFn for run_probe that uses `resampler` (which must outlive it) for the objects of `scene`.
+// Objects whose inputs cannot be prepared (missing image, empty mask...) come back not ok with the
+// reason; the others are resampled together. With num_samples > 1 the first successful sample is used
+// and the others are reported in the message.
+ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, ProbeResamplerOptions options = {});
+
+}  // namespace simu::pipeline
