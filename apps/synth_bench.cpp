@@ -5,7 +5,10 @@
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/log.h"
+#include "pipeline/probe.h"
 #include "pipeline/synthetic.h"
+
+#include <unistd.h>
 
 #include <fmt/format.h>
 
@@ -28,6 +31,7 @@ int main(int argc, char** argv) {
   std::string config_path;
   double threshold = -1;
   std::string proxy_name = "stretch";
+  std::string probe_name = "oracle";
   app.add_option("-n,--scenes", num_scenes, "number of scenes to generate")->check(CLI::PositiveNumber);
   app.add_option("--seed", seed, "first seed (scene k uses seed + k)");
   app.add_option("--layout", layout, "tabletop | shelf | mixed (default: config, else mixed)");
@@ -37,6 +41,8 @@ int main(int argc, char** argv) {
   app.add_option("--threshold", threshold, "rho threshold for resampling (default: config, else the paper's 0.15)");
   app.add_option("--resample-proxy", proxy_name,
                  "stand-in for the resampler on the resample branch: stretch (fill B_str), drop (layout-only), keep");
+  app.add_option("--probe", probe_name,
+                 "displacement source: oracle (drop to the known support) or mujoco (run_probe on the written scene)");
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -62,6 +68,8 @@ int main(int argc, char** argv) {
     if (threshold >= 0) corr.resample_threshold = threshold;
     const auto proxy = parse_resample_proxy(proxy_name);
     SIMU_CHECK(proxy, "--resample-proxy: got '{}', expected stretch, drop or keep", proxy_name);
+    SIMU_CHECK(probe_name == "oracle" || probe_name == "mujoco", "--probe: got '{}', expected oracle or mujoco", probe_name);
+    std::atomic<int> disabled{0};
 
     // Evaluate the scenes (in parallel), collecting per-scene results in order.
     std::vector<SceneEvaluation> results(num_scenes);
@@ -74,8 +82,25 @@ int main(int argc, char** argv) {
         try {
           const std::string name = fmt::format("synth_{:04d}", k);
           const SyntheticScene s = generate_scene(syn, seed + k, name);
-          if (!write_dir.empty()) write_scene_dir(s, (std::filesystem::path(write_dir) / name).string());
-          results[k] = evaluate_scene(s, corr, {}, *proxy);
+          std::string dir = write_dir.empty() ? "" : (std::filesystem::path(write_dir) / name).string();
+          std::vector<Displacement> disp;
+          if (probe_name == "mujoco") {
+            // The physics probe measures dt_pen / dt_grv on the written scene (no outputs, no resampler).
+            if (dir.empty())
+              dir = (std::filesystem::temp_directory_path() / fmt::format("synth_bench_{}", ::getpid()) / name).string();
+            write_scene_dir(s, dir);
+            ProbeConfig pc;
+            pc.write_outputs = false;
+            pc.rho_threshold = corr.resample_threshold;
+            const ProbeResult pr = run_probe(load_scene(dir + "/scene.json"), pc, "");
+            for (const Diagnostics& d : pr.diagnostics) {
+              disp.push_back({d.dt_pen, d.dt_grv});
+              disabled += d.physics_disabled;
+            }
+          } else if (!dir.empty()) {
+            write_scene_dir(s, dir);
+          }
+          results[k] = evaluate_scene(s, corr, disp, *proxy);
         } catch (const std::exception& e) {
           errors[k] = e.what();
         }
@@ -137,7 +162,10 @@ int main(int argc, char** argv) {
     fmt::print("support gap (mm, free objects)  {:8.2f} {:8.2f}\n", n ? 1000 * gap_before / n : 0.0,
                n ? 1000 * gap_after / n : 0.0);
     fmt::print("resample branch stand-in: {}\n", proxy_name);
-    fmt::print("probe: oracle drop to the known support (MuJoCo physics metrics: run `probe` on --write output)\n");
+    if (probe_name == "mujoco")
+      fmt::print("probe: MuJoCo run_probe (dt_pen, dt_grv); physics-disabled objects: {}\n", disabled.load());
+    else
+      fmt::print("probe: oracle drop to the known support (MuJoCo: --probe mujoco)\n");
     if (failed) fmt::print("{} scene(s) failed (see warnings)\n", failed);
     return failed == num_scenes ? 1 : 0;
   });
