@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 
 #include <atomic>
+#include <memory>
 #include <cstdlib>
 #include <filesystem>
 #include <mutex>
@@ -12,6 +13,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "pipeline/probe.h"
+#include "pipeline/probe_resampler.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"Physics probe: penetration resolution, gravity diagnostics, stretch-or-resample decision and final "
@@ -32,6 +34,22 @@ int main(int argc, char** argv) {
   app.add_option("--cache-dir", cache_dir, "collision hull cache (default: $SIMU_HULL_CACHE or ~/.cache/simuscene/hulls)");
   app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh instead of CoACD's decomposition");
   app.add_flag("--quiet", quiet, "no per-object progress lines");
+  // In-process resampling (SAM 3D Stage 1 + optional LoRA adapter), loaded once for every scene.
+  simu::pipeline::ResamplerConfig rcfg;
+  bool resample = false;
+  uint64_t seed = 0;
+  app.add_flag("--resample", resample, "resample objects with rho >= threshold in-process (else write the hand-off)");
+  app.add_option("--generator-config", rcfg.generator_config, "Stage-1 generator config")->capture_default_str();
+  app.add_option("--generator-weights", rcfg.generator_weights, "generator safetensors (empty: random init)");
+  app.add_option("--decoder-config", rcfg.decoder_config, "sparse-structure decoder config")->capture_default_str();
+  app.add_option("--decoder-weights", rcfg.decoder_weights, "decoder safetensors (empty: random init)");
+  app.add_option("--embedder-config", rcfg.embedder_config, "condition embedder config");
+  app.add_option("--embedder-weights", rcfg.embedder_weights, "condition embedder safetensors");
+  app.add_option("--adapter", rcfg.adapter_dir, "PEFT LoRA adapter directory");
+  app.add_option("--num-samples", rcfg.num_samples, "shapes drawn per object")->capture_default_str();
+  app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps")->capture_default_str();
+  app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
+  app.add_option("--seed", seed, "sampling seed")->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -48,6 +66,15 @@ int main(int argc, char** argv) {
       else if (const char* home = std::getenv("HOME")) cache_dir = std::string(home) + "/.cache/simuscene/hulls";
     }
     cfg.collision.cache_dir = cache_dir;
+    std::unique_ptr<simu::pipeline::Resampler> resampler;
+    if (resample) {
+      if (rcfg.embedder_config.empty())
+        simu::fail_hint("pass --embedder-config (and --embedder-weights)", "--resample needs the condition embedder");
+      resampler = std::make_unique<simu::pipeline::Resampler>(rcfg);
+      simu::log::info("resampler loaded on {}{}", resampler->device().str(),
+                      resampler->has_adapter() ? " with adapter " + rcfg.adapter_dir : "");
+    }
+    std::mutex model_mu;  // one model, scenes in threads: resampling calls take turns
     const bool many = scenes.size() > 1;
     std::mutex print_mu;
     std::atomic<size_t> next{0};
@@ -64,7 +91,17 @@ int main(int argc, char** argv) {
             std::lock_guard<std::mutex> lock(print_mu);
             fmt::print("{}[{}/{}] {}: {}\n", many ? path + " " : "", done, total, id, status);
           };
-          const auto r = simu::pipeline::run_probe(scene, cfg, out, nullptr, progress);
+          simu::pipeline::ResampleFn fn;
+          if (resampler) {
+            simu::pipeline::ProbeResamplerOptions ropt;
+            ropt.seed = seed;
+            auto inner = simu::pipeline::make_probe_resample_fn(*resampler, scene, ropt);
+            fn = [inner, &model_mu](const std::vector<simu::pipeline::ProbeResampleRequest>& rq) {
+              std::lock_guard<std::mutex> lock(model_mu);
+              return inner(rq);
+            };
+          }
+          const auto r = simu::pipeline::run_probe(scene, cfg, out, fn, progress);
           int flagged = 0;
           for (const auto& d : r.diagnostics) flagged += d.flags.empty() ? 0 : 1;
           std::lock_guard<std::mutex> lock(print_mu);
