@@ -16,7 +16,7 @@ TORCH_PREFIX="$($PY -c 'import torch.utils; print(torch.utils.cmake_prefix_path)
 BUILD="${BUILD_DIR:-$ROOT/build-gpu}"
 t0=$(date +%s)
 cmake -S "$ROOT" -B "$BUILD" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TORCH_PREFIX;$PREFIX" \
-  -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DTORCH_CUDA_ARCH_LIST=9.0 >"$ROOT/gpu-configure.log" 2>&1 \
+  -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 >"$ROOT/gpu-configure.log" 2>&1 \
   || { tail -40 "$ROOT/gpu-configure.log"; exit 1; }
 cmake --build "$BUILD" -j"$(nproc)" >"$ROOT/gpu-build.log" 2>&1 || { grep -B2 -A8 -E "error|FAILED" "$ROOT/gpu-build.log" | head -80; exit 1; }
 t1=$(date +%s)
