@@ -22,7 +22,10 @@ done
 for d in "$CARRY"/debs/*.deb; do dpkg -x "$d" "$CARRY/prefix"; done
 # CoACD's C library from the venv's PyPI package, when installed.
 coacd_lib="$(ls "$ROOT"/.deps/venv/lib/python3*/site-packages/coacd/lib_coacd.so 2>/dev/null | head -1 || true)"
-if [ -n "$coacd_lib" ]; then mkdir -p "$CARRY/prefix/usr/lib/coacd" && cp -f "$coacd_lib" "$CARRY/prefix/usr/lib/coacd/"; fi
+if [ -n "$coacd_lib" ]; then
+  mkdir -p "$CARRY/prefix/usr/lib/coacd" && cp -f "$coacd_lib" "$CARRY/prefix/usr/lib/coacd/"
+  cp -f "$(dirname "$coacd_lib")"/../coacd.libs/*.so* "$CARRY/prefix/usr/lib/coacd/" 2>/dev/null || true  # its vendored libgomp
+fi
 # Fixtures.
 rm -rf "$CARRY/shared" && mkdir -p "$CARRY/shared" && cp -r "$SHARED/fixtures" "$CARRY/shared/"
 rm -rf "$CARRY/prefix/usr/share/doc" "$CARRY/prefix/usr/share/man"
