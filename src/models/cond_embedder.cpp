@@ -453,6 +453,15 @@ CondEmbedder load_cond_embedder(const std::string& config_path, const std::strin
   CondEmbedder model(cfg);
   LoadOptions opts;
   opts.strip_prefix = prefix;
+  // No weights: keep the random initialisation (benchmarks and the small demo), and say so.
+  if (weights_path.empty()) {
+    log::warn("condition embedder: no weights given, random initialisation ({} tokens x {} channels)",
+              model->num_tokens(), model->embed_dims());
+    model->to(device);
+    model->eval();
+    for (auto& p : model->parameters()) p.set_requires_grad(false);
+    return model;
+  }
   if (prefix == "auto") {
     opts.strip_prefix.clear();
     const auto file = data::SafeTensorsFile::open(weights_path);

@@ -91,9 +91,7 @@ TEST(Config, MissingRequiredNamesKey) {
 }
 
 TEST(Config, SyntaxErrorAndMissingFile) {
-  // (An unterminated flow sequence aborts inside yaml-cpp 0.8 on the GPU image, so a block-mapping
-  // error stands in for the syntax error.)
-  const auto path = write_yaml("f.yaml", "a: b: c\n");
+  const auto path = write_yaml("f.yaml", "a: [1, 2\n");
   auto msg = error_of([&] { simu::config::load_file(path); });
   EXPECT_NE(msg.find("f.yaml: line"), std::string::npos) << msg;
   msg = error_of([&] { simu::config::load_file("/nonexistent/x.yaml"); });
