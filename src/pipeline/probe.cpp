@@ -443,6 +443,7 @@ Diagnostics::Candidate settle_candidate(const Ctx& c, const std::vector<int>& st
     double depth = 0;
     std::string why;
     rec.ok = resolve_penetration(c, w, i, &dt, &iters, &depth, &why);
+    rec.penetration = depth;
     if (!rec.ok) {
       rec.message = why;
       rec.displacement = dt.norm();
@@ -603,7 +604,7 @@ nlohmann::json report_json(const ProbeResult& r) {
         for (size_t k = 0; k < d.candidates.size(); ++k) {
           const auto& cd = d.candidates[k];
           rs["candidates"].push_back({{"label", cd.label}, {"ok", cd.ok}, {"displacement", cd.displacement},
-                                      {"rotation_deg", cd.rotation_deg}, {"message", cd.message},
+                                      {"rotation_deg", cd.rotation_deg}, {"penetration", cd.penetration}, {"message", cd.message},
                                       {"chosen", static_cast<int>(k) == d.chosen_candidate}});
         }
       }
@@ -857,6 +858,8 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
           const auto at = std::find(placed.begin(), placed.end(), i);
           const std::vector<int> statics(placed.begin(), at);
           double best = std::numeric_limits<double>::infinity();
+          std::vector<CollisionShape> shapes(rr.candidates.size());
+          std::vector<bool> usable(rr.candidates.size(), false);
           for (size_t k = 0; k < rr.candidates.size(); ++k) {
             const auto& cand = rr.candidates[k];
             Diagnostics::Candidate rec;
@@ -868,6 +871,8 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
             } else {
               shape = decompose(cand.mesh, cfg.collision);
               rec = settle_candidate(c, statics, i, cand, shape, d.obb_target.center);
+              shapes[k] = shape;
+              usable[k] = true;
             }
             if (rec.ok && rec.displacement < best) {
               best = rec.displacement;
@@ -877,7 +882,19 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
             }
             d.candidates.push_back(rec);
           }
-          SIMU_CHECK(d.chosen_candidate >= 0, "none of the {} candidates settled (see candidates)", rr.candidates.size());
+          // None settled: keep the usable one that penetrated least where it was placed (as a single
+          // sample would be kept); the final composition then handles it.
+          if (d.chosen_candidate < 0) {
+            double least = std::numeric_limits<double>::infinity();
+            for (size_t k = 0; k < rr.candidates.size(); ++k)
+              if (usable[k] && d.candidates[k].penetration < least) least = d.candidates[k].penetration, d.chosen_candidate = static_cast<int>(k);
+            SIMU_CHECK(d.chosen_candidate >= 0, "none of the {} candidates has a usable mesh (see candidates)", rr.candidates.size());
+            chosen = rr.candidates[d.chosen_candidate];
+            chosen_shape = shapes[d.chosen_candidate];
+            add_flag(d, "no_stable_candidate",
+                     fmt::format("none of the {} candidates settled; kept #{} (shallowest penetration {:.3f} m)",
+                                 rr.candidates.size(), d.chosen_candidate, least));
+          }
         } else {
           if (rr.candidates.size() == 1) chosen = rr.candidates[0];
           const std::string p = mesh_problem(chosen.mesh);

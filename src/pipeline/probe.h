@@ -91,6 +91,7 @@ struct Diagnostics {
     bool ok = false;              // placed, penetration resolved and settled without failure
     double displacement = 0;      // m: penetration push + settle motion of the candidate (stability figure)
     double rotation_deg = 0;      // rotation during the candidate's settle
+    double penetration = 0;       // m: deepest contact where it was placed
     std::string message;          // why not ok
   };
   bool resampled = false;         // the object's geometry was replaced by the resampler's
@@ -131,8 +132,8 @@ struct ProbeResampleResult {
   Mat3 R = Mat3::Identity();
   Vec3 scale = Vec3::Ones();
   // Best-of-N: with two or more candidates, the probe settles each one at the target OBB centre with the
-  // objects before it static, keeps the one that moves least (no failed penetration resolution), and
-  // ignores mesh/R/scale above. Empty or one candidate: mesh/R/scale are used as they are.
+  // objects before it static, keeps the one that moves least (no failed penetration resolution; when
+  // none settles, the one that penetrated least, flagged "no_stable_candidate"), and ignores mesh/R/scale above. Empty or one candidate: mesh/R/scale are used as they are.
   std::vector<ProbeShapeCandidate> candidates;
   // The condition crop box [x1, y1, x2, y2) in image pixels (reported; optional).
   std::array<int, 4> crop_box{{0, 0, 0, 0}};

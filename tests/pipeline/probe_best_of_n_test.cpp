@@ -108,8 +108,10 @@ TEST(ProbeBestOfN, KeepsTheCandidateThatMovesLeast) {
   EXPECT_NEAR(rep["objects"][1]["change"]["obb_extents_after"][2].get<double>(), 0.26, 2e-3);
 }
 
-// No candidate settles -> the object is flagged resample_failed and keeps its diagnostic geometry.
-TEST(ProbeBestOfN, NoStableCandidateIsFlagged) {
+// No candidate settles -> the one that penetrated least where it was placed is kept (as a single sample
+// would be), flagged no_stable_candidate: a 3 m and a 2 m cube centred 0.13 m above the floor
+// penetrate it by 1.37 m and 0.87 m.
+TEST(ProbeBestOfN, NoStableCandidateKeepsTheShallowest) {
   const auto dir = pipeline_temp_dir("best_of_n_fail");
   Scene s;
   s.gravity = Vec3(0, 0, -1);
@@ -123,16 +125,20 @@ TEST(ProbeBestOfN, NoStableCandidateIsFlagged) {
     std::vector<ProbeResampleResult> out(reqs.size());
     for (auto& o : out) {
       o.ok = true;
-      o.candidates = {candidate("huge", Vec3::Constant(2.0)), candidate("huger", Vec3::Constant(3.0))};
+      o.candidates = {candidate("huger", Vec3::Constant(3.0)), candidate("huge", Vec3::Constant(2.0))};
     }
     return out;
   };
   const auto r = run_probe(s, cfg, "", fn);
   const auto& d = r.diagnostics[0];
   ASSERT_EQ(d.branch, ProbeBranch::Resample);
-  EXPECT_EQ(d.candidates.size(), 2u);
-  EXPECT_EQ(d.chosen_candidate, -1);
-  EXPECT_FALSE(d.resampled);
-  EXPECT_NE(std::find(d.flags.begin(), d.flags.end(), "resample_failed"), d.flags.end());
-  EXPECT_NEAR(r.scene.objects[0].scale.z(), 0.2, 1e-12);
+  ASSERT_EQ(d.candidates.size(), 2u);
+  EXPECT_FALSE(d.candidates[0].ok);
+  EXPECT_FALSE(d.candidates[1].ok);
+  EXPECT_NEAR(d.candidates[0].penetration, 1.37, 0.01);
+  EXPECT_NEAR(d.candidates[1].penetration, 0.87, 0.01);
+  EXPECT_EQ(d.chosen_candidate, 1);
+  EXPECT_TRUE(d.resampled);
+  EXPECT_NE(std::find(d.flags.begin(), d.flags.end(), "no_stable_candidate"), d.flags.end());
+  EXPECT_NEAR(d.s_resampled.z(), 2.0, 1e-12);
 }

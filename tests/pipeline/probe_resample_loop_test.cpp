@@ -87,6 +87,9 @@ TEST(ProbeResampleLoop, CutObjectIsResampledPlacedAndSettled) {
   cv::Mat image(cam.height, cam.width, CV_8UC3, cv::Scalar(120, 120, 120));
   image.setTo(cv::Scalar(40, 90, 200), mask);
   cv::Mat depth(cam.height, cam.width, CV_16UC1, cv::Scalar(900));  // 0.9 m (the front face), millimetres
+  // An occluder 10 cm before the camera along the bottom rows (outside the crop): its normalised depth
+  // is far below -1, where the embedder's log1p remap is undefined; it must not poison the condition.
+  depth.rowRange(cam.height - 15, cam.height).setTo(100);
   ASSERT_TRUE(cv::imwrite(dir + "/mask.png", mask));
   ASSERT_TRUE(cv::imwrite(dir + "/image.png", image));
   ASSERT_TRUE(cv::imwrite(dir + "/depth.png", depth));
@@ -203,6 +206,16 @@ TEST(ProbeResampleLoop, CutObjectIsResampledPlacedAndSettled) {
     const auto prep = simu::data::prepare_condition_inputs(rgb, modal_t, pm, {}, aux_t);
     ResampleRequest q;
     q.inputs = prep.tensors;
+    // The occluder's points (normalised z <= -1) are invalid points (NaN) for the embedder.
+    int64_t near_points = 0;
+    for (const char* key : {"pointmap", "rgb_pointmap"}) {
+      auto pm = q.inputs.at(key).clone();
+      const auto near = pm.select(-3, 2) <= -1.0;
+      near_points += near.sum().item<int64_t>();
+      pm.masked_fill_(near.unsqueeze(-3).expand_as(pm), NAN);
+      q.inputs[key] = pm;
+    }
+    EXPECT_GT(near_points, 0);  // the case is exercised
     q.scene_scale = prep.pointmap_scale.reshape({-1})[0].item<double>();
     for (int k = 0; k < 3; ++k) q.scene_shift[k] = prep.pointmap_shift.reshape({-1})[k].item<double>();
     const auto direct = rs.resample({q}, ro.seed);
