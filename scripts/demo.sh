@@ -7,9 +7,11 @@
 #   5. the physics probe with in-process resampling by the adapted Stage 1, best of 4 samples,
 #      final settle -> MJCF + overlay PNG + report + corrected scene   (probe --resample --overlay)
 # The small models have RANDOM weights (fixtures, embedder random init), so the decoded shapes and
-# poses are arbitrary: with seed 1, three of the four candidates penetrate the table by more than
-# 0.3 m and are rejected by the probe; the fourth settles and replaces the cut object. Collision
-# shapes are one convex hull per mesh (--no-coacd): CoACD on these random blobs takes minutes.
+# poses are arbitrary and often too large for the table: candidates whose penetration resolution
+# fails are rejected, the one that moves least is kept; when none settles the probe keeps the one that
+# penetrated least (flag no_stable_candidate) and the final settle may revert it. report.json has the
+# figures of every candidate. Collision shapes are one convex hull per mesh (--no-coacd): CoACD on
+# these random blobs takes minutes.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${BUILD_DIR:-$ROOT/build}"
