@@ -12,7 +12,9 @@ extern "C" {
 #include <cstdio>
 #include <filesystem>
 #include <map>
+#include <unordered_map>
 #include <mutex>
+#include <optional>
 
 #include "common/error.h"
 #include "common/fs.h"
@@ -141,6 +143,24 @@ std::vector<Mesh> transform_hulls(const std::vector<Mesh>& hulls, const Mat3& li
   return out;
 }
 
+bool is_closed_oriented(const Mesh& m) {
+  if (m.F.rows() < 4) return false;
+  // Directed edge (a, b) -> count; closed and oriented iff each appears once with its reverse once.
+  std::unordered_map<uint64_t, int> edges;
+  edges.reserve(static_cast<size_t>(3 * m.F.rows()));
+  auto key = [](int a, int b) { return (static_cast<uint64_t>(static_cast<uint32_t>(a)) << 32) | static_cast<uint32_t>(b); };
+  for (Eigen::Index f = 0; f < m.F.rows(); ++f)
+    for (int k = 0; k < 3; ++k) {
+      const int a = m.F(f, k), b = m.F(f, (k + 1) % 3);
+      if (a == b || ++edges[key(a, b)] > 1) return false;
+    }
+  for (const auto& [k, n] : edges) {
+    const int a = static_cast<int>(k >> 32), b = static_cast<int>(k & 0xffffffffu);
+    if (!edges.count(key(b, a))) return false;
+  }
+  return true;
+}
+
 namespace {
 
 // Thickness of a convex solid along its thinnest principal direction (slab estimate sqrt(12 var)).
@@ -205,9 +225,9 @@ std::vector<RowPoints> run_coacd(const Mesh& mesh, const CollisionConfig& cfg) {
 #endif
 
 uint64_t config_hash(const CollisionConfig& c, bool coacd) {
-  const std::string s = fmt::format("v1|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}", coacd, c.threshold, c.max_hulls, c.resolution,
+  const std::string s = fmt::format("v2|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}", coacd, c.threshold, c.max_hulls, c.resolution,
                                     c.mcts_iterations, c.mcts_nodes, c.mcts_depth, c.max_hull_vertices, c.seed,
-                                    c.min_thickness, c.min_volume_fraction);
+                                    c.min_thickness, c.min_volume_fraction, c.convex_tolerance);
   return fnv1a64(s.data(), s.size());
 }
 
@@ -241,9 +261,30 @@ CollisionShape shape_from_json(const nlohmann::json& j) {
   return s;
 }
 
+// The mesh's own convex hull when the mesh is convex (closed, oriented, volume within
+// cfg.convex_tolerance of its hull's and not flat); nullopt otherwise.
+std::optional<Mesh> convex_self_hull(const Mesh& mesh, const CollisionConfig& cfg) {
+  if (cfg.convex_tolerance < 0 || !is_closed_oriented(mesh)) return std::nullopt;
+  try {
+    Mesh hull = convex_hull(mesh.V);
+    double hull_volume = 0;
+    if (hull_thickness(hull, &hull_volume) < cfg.min_thickness || !(hull_volume > 0)) return std::nullopt;
+    const double volume = signed_volume(mesh);
+    if (std::abs(hull_volume - volume) <= cfg.convex_tolerance * hull_volume) return hull;
+  } catch (const Error&) {
+  }
+  return std::nullopt;
+}
+
 // Computes the decomposition (no cache).
 CollisionShape compute_shape(const Mesh& mesh, const CollisionConfig& cfg, bool coacd) {
   CollisionShape shape;
+  // A convex mesh is its own hull: no decomposition.
+  if (auto hull = convex_self_hull(mesh, cfg)) {
+    shape.hulls.push_back(std::move(*hull));
+    shape.method = "convex";
+    return shape;
+  }
   std::vector<RowPoints> parts;
 #ifdef SIMU_HAVE_COACD
   if (coacd) {
@@ -289,6 +330,38 @@ CollisionShape compute_shape(const Mesh& mesh, const CollisionConfig& cfg, bool 
 }
 
 }  // namespace
+
+std::optional<CollisionShape> map_shape(const Mesh& before, const Mesh& after, const CollisionShape& shape,
+                                        const CollisionConfig& cfg) {
+  const Eigen::Index n = before.V.rows();
+  if (n < 4 || after.V.rows() != n || shape.hulls.empty()) return std::nullopt;
+  // Least-squares affine fit [V 1] X = V' (X: 4 x 3), then its worst residual.
+  Eigen::MatrixXd A(n, 4);
+  A.leftCols(3) = before.V;
+  A.col(3).setOnes();
+  const Eigen::MatrixXd B = after.V;
+  const Eigen::MatrixXd X = A.colPivHouseholderQr().solve(B);
+  const double size = std::max(1e-12, (after.V.colwise().maxCoeff() - after.V.colwise().minCoeff()).maxCoeff());
+  if (!X.allFinite() || (A * X - B).cwiseAbs().maxCoeff() > 1e-9 * size) return std::nullopt;
+  CollisionShape out;
+  out.method = shape.method + "+mapped";
+  out.dropped = shape.dropped;
+  for (const Mesh& h : shape.hulls) {
+    Eigen::MatrixXd H(h.V.rows(), 4);
+    H.leftCols(3) = h.V;
+    H.col(3).setOnes();
+    const RowPoints mapped = H * X;
+    try {
+      Mesh m = convex_hull(mapped);
+      double vol = 0;
+      if (hull_thickness(m, &vol) < cfg.min_thickness) return std::nullopt;
+      out.hulls.push_back(std::move(m));
+    } catch (const Error&) {
+      return std::nullopt;
+    }
+  }
+  return out;
+}
 
 CollisionShape decompose(const Mesh& canonical, const CollisionConfig& cfg) {
   const std::string problem = mesh_problem(canonical);
