@@ -10,6 +10,7 @@ extern "C" {
 
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <map>
 #include <unordered_map>
@@ -22,6 +23,8 @@ extern "C" {
 #include "pipeline/mesh.h"
 
 #ifdef SIMU_HAVE_COACD
+#include <dlfcn.h>
+
 // CoACD's C API (lib_coacd.so of the PyPI wheel coacd==1.0.14; layout as in its ctypes binding).
 extern "C" {
 struct CoACD_Mesh {
@@ -34,12 +37,6 @@ struct CoACD_MeshArray {
   CoACD_Mesh* meshes_ptr;
   uint64_t meshes_count;
 };
-CoACD_MeshArray CoACD_run(const CoACD_Mesh& input, double threshold, int max_convex_hull, int preprocess_mode,
-                          int prep_resolution, int sample_resolution, int mcts_nodes, int mcts_iteration,
-                          int mcts_max_depth, bool pca, bool merge, bool decimate, int max_ch_vertex, bool extrude,
-                          double extrude_margin, int apx_mode, unsigned int seed, bool real_metric);
-void CoACD_freeMeshArray(CoACD_MeshArray arr);
-void CoACD_setLogLevel(const char* level);
 }
 #endif
 
@@ -202,11 +199,48 @@ std::mutex& coacd_mutex() {
   return m;
 }
 
+// CoACD's entry points, from lib_coacd.so opened privately. The library carries its own copy of the
+// C++ runtime and exports it (__cxa_throw, std:: symbols); linked normally, that copy serves every
+// exception thrown in the process, and a yaml-cpp parse error aborted the program on the GPU image.
+// RTLD_LOCAL keeps its symbols out of the process, RTLD_DEEPBIND makes it use its own.
+struct CoacdApi {
+  CoACD_MeshArray (*run)(const CoACD_Mesh&, double, int, int, int, int, int, int, int, bool, bool, bool, int, bool,
+                         double, int, unsigned int, bool) = nullptr;
+  void (*free_array)(CoACD_MeshArray) = nullptr;
+  void (*set_log_level)(const char*) = nullptr;
+  std::string error;  // why it is unavailable ("" when loaded)
+};
+
+const CoacdApi& coacd_api() {
+  static const CoacdApi api = [] {
+    CoacdApi a;
+    const char* env = std::getenv("SIMU_COACD_LIBRARY");
+    const std::string path = env && *env ? env : SIMU_COACD_LIBRARY;
+    void* h = dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL | RTLD_DEEPBIND);
+    if (!h) {
+      a.error = fmt::format("cannot load CoACD from '{}' ({}); set SIMU_COACD_LIBRARY to lib_coacd.so of "
+                            "pip's coacd==1.0.14", path, dlerror());
+      return a;
+    }
+    a.run = reinterpret_cast<decltype(a.run)>(dlsym(h, "CoACD_run"));
+    a.free_array = reinterpret_cast<decltype(a.free_array)>(dlsym(h, "CoACD_freeMeshArray"));
+    a.set_log_level = reinterpret_cast<decltype(a.set_log_level)>(dlsym(h, "CoACD_setLogLevel"));
+    if (!a.run || !a.free_array || !a.set_log_level)
+      a.error = fmt::format("'{}' lacks CoACD_run / CoACD_freeMeshArray / CoACD_setLogLevel", path);
+    else
+      a.set_log_level("error");
+    return a;
+  }();
+  return api;
+}
+
 // Runs CoACD and returns the raw parts' vertex sets.
 std::vector<RowPoints> run_coacd(const Mesh& mesh, const CollisionConfig& cfg) {
   std::lock_guard<std::mutex> lock(coacd_mutex());
-  static bool quiet = (CoACD_setLogLevel("error"), true);
-  (void)quiet;
+  const auto& api = coacd_api();
+  SIMU_CHECK(api.error.empty(), "{}", api.error);
+  const auto CoACD_run = api.run;
+  const auto CoACD_freeMeshArray = api.free_array;
   RowPoints V = mesh.V;
   Eigen::Matrix<int, -1, 3, Eigen::RowMajor> F = mesh.F;
   CoACD_Mesh in{V.data(), static_cast<uint64_t>(V.rows()), F.data(), static_cast<uint64_t>(F.rows())};
@@ -367,7 +401,11 @@ CollisionShape decompose(const Mesh& canonical, const CollisionConfig& cfg) {
   const std::string problem = mesh_problem(canonical);
   SIMU_CHECK(problem.empty(), "decompose: {}", problem);
 #ifdef SIMU_HAVE_COACD
-  const bool coacd = cfg.use_coacd;
+  const bool coacd = cfg.use_coacd && coacd_api().error.empty();
+  if (cfg.use_coacd && !coacd) {
+    static std::once_flag once;
+    std::call_once(once, [] { log::warn("collision: {}; each mesh becomes one convex hull", coacd_api().error); });
+  }
 #else
   const bool coacd = false;
 #endif
