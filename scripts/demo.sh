@@ -4,8 +4,12 @@
 #   2. FM-DPO training of LoRA adapters, a few steps  (train_fmdpo, small fixture model, CPU)
 #   3. the adapter exported in PEFT format            (export_adapter)
 #   4. a synthetic scene whose one object has its bottom cut away (synth_bench --write)
-#   5. the physics probe with in-process resampling by the adapted Stage 1, final settle
-#      -> MJCF + report + corrected scene             (probe --resample)
+#   5. the physics probe with in-process resampling by the adapted Stage 1, best of 4 samples,
+#      final settle -> MJCF + overlay PNG + report + corrected scene   (probe --resample --overlay)
+# The small models have RANDOM weights (fixtures, embedder random init), so the decoded shapes and
+# poses are arbitrary: with seed 1, three of the four candidates penetrate the table by more than
+# 0.3 m and are rejected by the probe; the fourth settles and replaces the cut object. Collision
+# shapes are one convex hull per mesh (--no-coacd): CoACD on these random blobs takes minutes.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${BUILD_DIR:-$ROOT/build}"
@@ -33,11 +37,25 @@ echo "== 4/5 synthetic scene: one object with its bottom cut away"
 "$BUILD/synth_bench" --scenes 1 --seed 3 --config configs/demo_scene.yaml --write "$OUT/scenes" >/dev/null
 scene="$(ls "$OUT"/scenes/*/scene.json | head -1)"
 
-echo "== 5/5 physics probe with in-process resampling, final settle"
-"$BUILD/probe" --scene "$scene" --out "$OUT/probe" --resample --device cpu --steps 4 --seed 0 \
+echo "== 5/5 physics probe with in-process resampling (best of 4), final settle, MJCF, overlay, report"
+PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
+"$BUILD/probe" --scene "$scene" --out "$OUT/probe" --resample --device cpu --steps 4 --seed 1 --num-samples 4 \
   --generator-config "$FIX/ss_generator_small.json" --generator-weights "$FIX/ss_generator_small.safetensors" \
   --decoder-config configs/ss_decoder_small.yaml --decoder-weights "$FIX/ss_decoder_small.safetensors" \
-  --embedder-config configs/demo_embedder_small.json --adapter "$OUT/adapter"
+  --embedder-config configs/demo_embedder_small.json --adapter "$OUT/adapter" --overlay --no-coacd
+# The demo's point: the cut object must have been replaced by the resampled mesh.
+"$PY" - "$OUT/probe/report.json" <<'PYEOF'
+import json, sys
+rep = json.load(open(sys.argv[1]))
+res = [o for o in rep["objects"] if o["branch"] == "resample"]
+if not res or not all(o.get("resample", {}).get("resampled") for o in res):
+    sys.exit("demo: the resampled object was not replaced (see report.json)")
+for o in res:
+    r = o["resample"]
+    print(f"  {o['id']}: replaced; candidates " + ", ".join(
+        f"#{k} {'moved %.3f m' % c['displacement'] if c['ok'] else 'failed'}{' (kept)' if c['chosen'] else ''}"
+        for k, c in enumerate(r.get("candidates", []))))
+PYEOF
 
 echo
 echo "demo outputs in $OUT:"
@@ -45,4 +63,8 @@ echo "  pair cache      $OUT/pairs.h5"
 echo "  training run    $OUT/train (metrics.jsonl, TensorBoard events, checkpoints)"
 echo "  PEFT adapter    $OUT/adapter"
 echo "  input scene     $scene"
-echo "  probe outputs   $OUT/probe (scene.json, scene.xml, report.json, meshes)"
+echo "  probe outputs   $OUT/probe"
+echo "    final MJCF      $OUT/probe/scene.xml"
+echo "    overlay PNG     $OUT/probe/overlay.png"
+echo "    report          $OUT/probe/report.json"
+echo "    corrected scene $OUT/probe/scene.json (+ meshes/)"

@@ -607,6 +607,75 @@ PhysicsEvaluation evaluate_settle(const Ctx& c, const std::vector<int>& live, do
   return ev;
 }
 
+// Best-of-N: the stability figure of one candidate shape for object i. The candidate is placed at
+// `centre` with `statics` as static colliders, its penetration resolved, then it settles alone for
+// candidate_settle_time (stopping once at rest over settle_window). displacement = |final - centre|
+// (the push out of penetration included). The object's working state is restored afterwards.
+Diagnostics::Candidate settle_candidate(const Ctx& c, const std::vector<int>& statics, int i,
+                                        const ProbeShapeCandidate& cand, const CollisionShape& shape, const Vec3& centre) {
+  Diagnostics::Candidate rec;
+  rec.label = cand.label;
+  Obj& o = c.objs[i];
+  const Obj saved = o;
+  try {
+    o.canonical = cand.mesh;
+    o.shape = shape;
+    o.R = cand.R;
+    o.s = cand.scale;
+    o.t = centre;
+    World w = build_world(c, statics, {i}, false);
+    Vec3 dt;
+    int iters = 0;
+    double depth = 0;
+    std::string why;
+    rec.ok = resolve_penetration(c, w, i, &dt, &iters, &depth, &why);
+    rec.penetration = depth;
+    if (!rec.ok) {
+      rec.message = why;
+      rec.displacement = dt.norm();
+    } else {
+      // Settle alone until at rest over one window, or candidate_settle_time.
+      const mjModel* m = w.model.get();
+      const int body = w.obj_body[i];
+      set_pose(w, body, o.t, o.R);
+      mj_forward(m, w.data.get());
+      take_warnings(w.data.get());
+      const int steps = static_cast<int>(std::ceil(c.cfg.candidate_settle_time / m->opt.timestep));
+      const int window = std::max(1, static_cast<int>(c.cfg.settle_window / m->opt.timestep));
+      Vec3 last = o.t;
+      for (int s = 0; s < steps; ++s) {
+        mj_step(m, w.data.get());
+        if (take_warnings(w.data.get()) & (1 << mjWARN_BADQACC)) {
+          rec.ok = false;
+          rec.message = "MuJoCo reset the data (bad qacc) while settling the candidate";
+          break;
+        }
+        if ((s + 1) % window == 0) {
+          const Vec3 p = Eigen::Map<const Vec3>(w.data->xpos + 3 * body);
+          const bool calm = (p - last).norm() < c.cfg.settle_rest_distance;
+          last = p;
+          if (calm) break;
+        }
+      }
+      Vec3 t;
+      Mat3 R;
+      get_pose(w, body, &t, &R);
+      if (!t.allFinite() || !R.allFinite()) {
+        rec.ok = false;
+        rec.message = "non-finite pose after the candidate's settle";
+      } else {
+        rec.displacement = (t - centre).norm();
+        rec.rotation_deg = std::acos(std::clamp(((R * cand.R.transpose()).trace() - 1.0) / 2.0, -1.0, 1.0)) * 180.0 / M_PI;
+      }
+    }
+  } catch (const std::exception& e) {
+    rec.ok = false;
+    rec.message = e.what();
+  }
+  o = saved;
+  return rec;
+}
+
 // Fills the resample hand-off: modal mask, auxiliary mask M' (raster.h: modal mask united with the
 // projection of the lowest part of B_str), target OBB B_str.
 ProbeResampleRequest make_request(const Scene& scene, int i, const Diagnostics& d, const Diagnosis& dg,
@@ -878,6 +947,27 @@ nlohmann::json report_json(const ProbeResult& r) {
     e["reverted"] = d.reverted;
     e["final_settle"] = settle_json(d.final_settle);
     e["evaluation"] = settle_json(d.evaluation);
+    // What changed: OBB extents before / after, displacement of the OBB centre.
+    e["change"] = {{"obb_extents_before", vec_j(d.obb_pre.extents)},
+                   {"obb_extents_after", vec_j(d.obb_final.extents)},
+                   {"displacement", (d.obb_final.center - d.obb_pre.center).norm()}};
+    if (d.branch == ProbeBranch::Resample) {
+      json rs = {{"resampled", d.resampled}, {"message", d.resample_message}};
+      if (d.resampled)
+        rs["placed"] = {{"t", vec_j(d.t_resampled)}, {"R", mat_j(d.R_resampled)}, {"scale", vec_j(d.s_resampled)}};
+      if (d.has_crop_box) rs["crop_box"] = d.crop_box;
+      if (!d.candidates.empty()) {
+        rs["chosen_candidate"] = d.chosen_candidate;
+        rs["candidates"] = json::array();
+        for (size_t k = 0; k < d.candidates.size(); ++k) {
+          const auto& cd = d.candidates[k];
+          rs["candidates"].push_back({{"label", cd.label}, {"ok", cd.ok}, {"displacement", cd.displacement},
+                                      {"rotation_deg", cd.rotation_deg}, {"penetration", cd.penetration}, {"message", cd.message},
+                                      {"chosen", static_cast<int>(k) == d.chosen_candidate}});
+        }
+      }
+      e["resample"] = rs;
+    }
     objs.push_back(e);
   }
   json metrics = metrics_json(r.evaluation.metrics);
@@ -1077,15 +1167,70 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
         continue;
       }
       const ProbeResampleResult& rr = results[r];
+      d.resample_message = rr.message;
+      d.crop_box = rr.crop_box;
+      d.has_crop_box = rr.has_crop_box;
       try {
-        const std::string p = mesh_problem(rr.mesh);
-        SIMU_CHECK(p.empty(), "resampled mesh: {}", p);
-        SIMU_CHECK(rr.R.allFinite() && rr.scale.allFinite() && rr.scale.minCoeff() > 0, "resampled pose is not finite");
-        o.shape = decompose(rr.mesh, cfg.collision);
-        o.canonical = rr.mesh;
-        o.R = rr.R;
-        o.s = rr.scale;
+        ProbeShapeCandidate chosen{rr.message, rr.mesh, rr.R, rr.scale};
+        CollisionShape chosen_shape;
+        if (rr.candidates.size() >= 2) {
+          // Best-of-N: settle every valid candidate with the objects before this one static; keep the
+          // one that moves least.
+          const auto at = std::find(placed.begin(), placed.end(), i);
+          const std::vector<int> statics(placed.begin(), at);
+          double best = std::numeric_limits<double>::infinity();
+          std::vector<CollisionShape> shapes(rr.candidates.size());
+          std::vector<bool> usable(rr.candidates.size(), false);
+          for (size_t k = 0; k < rr.candidates.size(); ++k) {
+            const auto& cand = rr.candidates[k];
+            Diagnostics::Candidate rec;
+            CollisionShape shape;
+            const std::string p = mesh_problem(cand.mesh);
+            if (!p.empty() || !cand.R.allFinite() || !cand.scale.allFinite() || cand.scale.minCoeff() <= 0) {
+              rec.label = cand.label;
+              rec.message = p.empty() ? "pose is not finite" : p;
+            } else {
+              shape = decompose(cand.mesh, cfg.collision);
+              rec = settle_candidate(c, statics, i, cand, shape, d.obb_target.center);
+              shapes[k] = shape;
+              usable[k] = true;
+            }
+            if (rec.ok && rec.displacement < best) {
+              best = rec.displacement;
+              d.chosen_candidate = static_cast<int>(k);
+              chosen = cand;
+              chosen_shape = shape;
+            }
+            d.candidates.push_back(rec);
+          }
+          // None settled: keep the usable one that penetrated least where it was placed (as a single
+          // sample would be kept); the final composition then handles it.
+          if (d.chosen_candidate < 0) {
+            double least = std::numeric_limits<double>::infinity();
+            for (size_t k = 0; k < rr.candidates.size(); ++k)
+              if (usable[k] && d.candidates[k].penetration < least) least = d.candidates[k].penetration, d.chosen_candidate = static_cast<int>(k);
+            SIMU_CHECK(d.chosen_candidate >= 0, "none of the {} candidates has a usable mesh (see candidates)", rr.candidates.size());
+            chosen = rr.candidates[d.chosen_candidate];
+            chosen_shape = shapes[d.chosen_candidate];
+            add_flag(d, "no_stable_candidate",
+                     fmt::format("none of the {} candidates settled; kept #{} (shallowest penetration {:.3f} m)",
+                                 rr.candidates.size(), d.chosen_candidate, least));
+          }
+        } else {
+          if (rr.candidates.size() == 1) chosen = rr.candidates[0];
+          const std::string p = mesh_problem(chosen.mesh);
+          SIMU_CHECK(p.empty(), "resampled mesh: {}", p);
+          SIMU_CHECK(chosen.R.allFinite() && chosen.scale.allFinite() && chosen.scale.minCoeff() > 0,
+                     "resampled pose is not finite");
+          chosen_shape = decompose(chosen.mesh, cfg.collision);
+        }
+        o.shape = chosen_shape;
+        o.canonical = chosen.mesh;
+        o.R = chosen.R;
+        o.s = chosen.scale;
         o.t = d.obb_target.center;  // paper: translation := centre of the stretched OBB
+        d.resampled = true;
+        d.t_resampled = o.t, d.R_resampled = o.R, d.s_resampled = o.s;
       } catch (const std::exception& e) {
         add_flag(d, "resample_failed", e.what());
       }
@@ -1188,9 +1333,13 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   }(), cfg.metrics, res.evaluation.ran ? res.evaluation.scene_peak_energy : -1);
   res.seconds_metrics = res.evaluation.seconds;
 
-  // Corrected scene: final poses and scales.
+  // Corrected scene: final poses and scales (and each object's final OBB for the report).
   for (size_t i = 0; i < n; ++i) {
     if (!objs[i].usable) continue;
+    try {
+      res.diagnostics[i].obb_final = object_obb(objs[i].canonical, objs[i].s, objs[i].R, objs[i].t, scene.gravity);
+    } catch (const std::exception&) {
+    }
     scene.objects[i].t = objs[i].t;
     scene.objects[i].R = objs[i].R;
     scene.objects[i].scale = objs[i].s;

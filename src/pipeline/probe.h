@@ -22,6 +22,7 @@
 //     it has none; pre-simulation OBB solid, target OBB dashed; auxiliary crop mask M' outlined).
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -91,6 +92,25 @@ struct Diagnostics {
   bool reverted = false;
   SettleRecord final_settle;      // the final joint settle (T_settle) of this object
   SettleRecord evaluation;        // the metrics settle (metrics_settle_time) of the final scene
+  // Resampling (branch Resample with a resampler): what the resampler returned and where it went.
+  struct Candidate {
+    std::string label;            // the resampler's name for it (e.g. "sample 1 (seed 0)")
+    bool ok = false;              // placed, penetration resolved and settled without failure
+    double displacement = 0;      // m: penetration push + settle motion of the candidate (stability figure)
+    double rotation_deg = 0;      // rotation during the candidate's settle
+    double penetration = 0;       // m: deepest contact where it was placed
+    std::string message;          // why not ok
+  };
+  bool resampled = false;         // the object's geometry was replaced by the resampler's
+  std::string resample_message;   // the resampler's note for this object
+  std::vector<Candidate> candidates;  // best-of-N: every candidate's stability (empty for one)
+  int chosen_candidate = -1;      // index into candidates (best-of-N)
+  std::array<int, 4> crop_box{{0, 0, 0, 0}};  // condition crop box [x1, y1, x2, y2) (pixels), when reported
+  bool has_crop_box = false;
+  Vec3 t_resampled = Vec3::Zero();  // pose the resampled shape was placed at (before the final composition)
+  Mat3 R_resampled = Mat3::Identity();
+  Vec3 s_resampled = Vec3::Ones();
+  Obb obb_final;                  // OBB of the object in its final pose (every usable object)
 };
 
 // One object handed to the resampler.
@@ -104,12 +124,27 @@ struct ProbeResampleRequest {
   Obb target_obb;        // desired stretched OBB; its centre becomes the translation
 };
 
+// One candidate shape for an object (best-of-N).
+struct ProbeShapeCandidate {
+  std::string label;
+  Mesh mesh;                     // canonical (AABB-centred, longest side 1)
+  Mat3 R = Mat3::Identity();     // world rotation
+  Vec3 scale = Vec3::Ones();
+};
+
 struct ProbeResampleResult {
   bool ok = false;
   std::string message;
   Mesh mesh;                     // canonical (AABB-centred, longest side 1)
   Mat3 R = Mat3::Identity();
   Vec3 scale = Vec3::Ones();
+  // Best-of-N: with two or more candidates, the probe settles each one at the target OBB centre with the
+  // objects before it static, keeps the one that moves least (no failed penetration resolution; when
+  // none settles, the one that penetrated least, flagged "no_stable_candidate"), and ignores mesh/R/scale above. Empty or one candidate: mesh/R/scale are used as they are.
+  std::vector<ProbeShapeCandidate> candidates;
+  // The condition crop box [x1, y1, x2, y2) in image pixels (reported; optional).
+  std::array<int, 4> crop_box{{0, 0, 0, 0}};
+  bool has_crop_box = false;
 };
 
 // Called once per scene with every object that needs resampling; returns one result per request.
@@ -131,6 +166,7 @@ struct ProbeConfig {
   double settle_window = 0.25;     // s: the final settle stops early once, over one window, ...
   double settle_rest_distance = 1e-3;  // ... no body moved more than this (m)
   double divergence_bound = 0.25;  // m: larger final-settle motion is reverted
+  double candidate_settle_time = 1.0;  // s: settle of each best-of-N candidate (stops early at rest)
   double pin_region = 0.1;         // top-back pin region, fraction of the object's extent
   // Evaluation (supplementary "Metrics"): a gravity settle of the final scene for this long (paper:
   // 5 s; 0 = none, the metrics then come from the final settle). It stops early once, over one

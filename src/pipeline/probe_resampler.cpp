@@ -1,6 +1,7 @@
 #include "pipeline/probe_resampler.h"
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include "common/error.h"
 #include "common/log.h"
@@ -71,8 +72,26 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
         SIMU_CHECK(pointmap.defined(), "object '{}': the scene has no depth (depth_path), needed for the point map",
                    rq.object_id);
         auto prepared = data::prepare_condition_inputs(rgb, modal, pointmap, options.preprocess, aux);
+        // Report the crop box taken from M' (the amodal crop).
+        results[i].crop_box = {static_cast<int>(prepared.crop_box.x1), static_cast<int>(prepared.crop_box.y1),
+                               static_cast<int>(prepared.crop_box.x2), static_cast<int>(prepared.crop_box.y2)};
+        results[i].has_crop_box = true;
         ResampleRequest r;
         r.inputs = prepared.tensors;
+        // Points far nearer than the object (normalised z <= -1) have no image under the embedder's
+        // "exp" remap (log1p(z)) and would put NaN into the whole condition: mark them invalid (NaN
+        // = the invalid-point token), as points without depth are.
+        for (const char* key : {"pointmap", "rgb_pointmap"}) {
+          auto it = r.inputs.find(key);
+          if (it == r.inputs.end()) continue;
+          auto pm = it->second.clone();  // [1, 3, P, P] or [3, P, P]
+          const auto near = pm.select(-3, 2) <= -1.0;  // [.., P, P]
+          const int64_t count = near.sum().item<int64_t>();
+          if (count == 0) continue;
+          pm.masked_fill_(near.unsqueeze(-3).expand_as(pm), NAN);
+          it->second = pm;
+          log::debug("object '{}': {} {} points with normalised z <= -1 marked invalid", rq.object_id, count, key);
+        }
         if (prepared.pointmap_scale.defined()) {
           r.scene_scale = prepared.pointmap_scale.reshape({-1})[0].item<double>();
           for (int k = 0; k < 3; ++k) r.scene_shift[k] = prepared.pointmap_shift.reshape({-1})[k].item<double>();
@@ -90,23 +109,38 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
     for (size_t b = 0; b < batch.size(); ++b) {
       auto& res = results[batch_index[b]];
       const auto& samples = out.objects[b];
-      int chosen = -1;
-      for (size_t s = 0; s < samples.size() && chosen < 0; ++s)
-        if (samples[s].ok) chosen = static_cast<int>(s);
-      if (chosen < 0) {
-        res.ok = false;
-        res.message = samples.empty() ? "no sample" : samples[0].message;
-        continue;
-      }
-      const auto& shape = samples[chosen];
-      res.ok = true;
-      res.mesh.V = shape.mesh.V;
-      res.mesh.F = shape.mesh.F;
       // Decoded rotation is in the PyTorch3D camera frame; the scene's world frame is the camera's
       // (OpenCV axes) moved by the camera pose.
-      res.R = scene.camera.R_world_cam * kP3dToOpenCv * shape.rotation;
-      res.scale = shape.scale_canonical;
-      res.message = fmt::format("sample {} of {} (seed {})", chosen, samples.size(), options.seed);
+      std::vector<ProbeShapeCandidate> good;
+      std::vector<std::string> failed;
+      for (size_t s = 0; s < samples.size(); ++s) {
+        const std::string label = fmt::format("sample {} of {} (seed {})", s, samples.size(), options.seed);
+        if (!samples[s].ok) {
+          failed.push_back(fmt::format("{}: {}", label, samples[s].message));
+          continue;
+        }
+        ProbeShapeCandidate c;
+        c.label = label;
+        c.mesh.V = samples[s].mesh.V;
+        c.mesh.F = samples[s].mesh.F;
+        c.R = scene.camera.R_world_cam * kP3dToOpenCv * samples[s].rotation;
+        c.scale = samples[s].scale_canonical;
+        good.push_back(std::move(c));
+      }
+      const std::string failed_note = failed.empty() ? "" : fmt::format("; failed: {}", fmt::join(failed, "; "));
+      if (good.empty()) {
+        res.ok = false;
+        res.message = samples.empty() ? "no sample" : fmt::format("no usable sample{}", failed_note);
+        continue;
+      }
+      res.ok = true;
+      res.mesh = good[0].mesh;
+      res.R = good[0].R;
+      res.scale = good[0].scale;
+      // Several usable samples: the probe picks the most stable one (best-of-N).
+      res.message = good.size() == 1 ? good[0].label + failed_note
+                                     : fmt::format("{} candidates{}", good.size(), failed_note);
+      if (good.size() >= 2) res.candidates = std::move(good);
     }
     log::info("resampled {} object(s) in one batched call: embed {:.2f} s, sample {:.2f} s, decode {:.2f} s, mesh {:.2f} s",
               batch.size(), out.seconds_embed, out.seconds_sample, out.seconds_decode, out.seconds_mesh);

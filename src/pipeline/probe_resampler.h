@@ -24,8 +24,9 @@ torch::Tensor pointmap_from_depth_file(const std::string& path, const Camera& ca
 
 // A ResampleFn for run_probe that uses `resampler` (which must outlive it) for the objects of `scene`.
 // Objects whose inputs cannot be prepared (missing image, empty mask...) come back not ok with the
-// reason; the others are resampled together. With num_samples > 1 the first successful sample is used
-// and the others are reported in the message.
+// reason; the others are resampled together. The result reports the crop box taken from M'. With
+// num_samples > 1 every usable sample becomes a candidate (ProbeResampleResult::candidates) and the
+// probe keeps the most stable one (best-of-N); failed samples are named in the message.
 ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, ProbeResamplerOptions options = {});
 
 }  // namespace simu::pipeline
