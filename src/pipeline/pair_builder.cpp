@@ -2,6 +2,7 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include <algorithm>
 #include <chrono>
@@ -166,7 +167,7 @@ torch::Tensor load_pointmap_file(const std::string& path) {
   auto pm = file.get(key).to(torch::kFloat32).clone();
   if (pm.dim() == 3 && pm.size(0) != 3 && pm.size(2) == 3) pm = pm.permute({2, 0, 1}).contiguous();
   SIMU_CHECK(pm.dim() == 3 && pm.size(0) == 3, "{}: '{}' has shape {}, expected [3, H, W] or [H, W, 3]", path, key,
-             fmt::format("{}", pm.sizes()));
+             fmt::format("[{}]", fmt::join(pm.sizes(), ", ")));
   return pm;
 }
 
