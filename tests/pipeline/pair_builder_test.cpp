@@ -7,6 +7,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 
 #include "common/error.h"
 #include "common/fs.h"
@@ -29,8 +30,18 @@ namespace {
 
 constexpr int H = 40, W = 48;
 
-// Records the test writes: two occlusion-completion and two clean-preservation pairs.
-std::string embedder_config() { return simu::testing::source_dir() + "/configs/demo_embedder_small.json"; }
+// The demo's small embedder (configs/demo_embedder_small.json) with the image ViT at 70 px instead of
+// 518 (5x5 patches, like the mask ViT) so the test takes seconds; written once per process.
+std::string embedder_config() {
+  static const std::string path = [] {
+    auto j = nlohmann::json::parse(simu::fs::read_file(simu::testing::source_dir() + "/configs/demo_embedder_small.json"));
+    j["dino_image_input_size"] = 70;
+    const std::string p = simu::testing::temp_dir("pair_builder_cfg") + "/embedder.json";
+    simu::fs::atomic_write(p, j.dump(1));
+    return p;
+  }();
+  return path;
+}
 
 ResamplerConfig small_models(const std::string& embedder_weights) {
   ResamplerConfig c;
