@@ -22,7 +22,11 @@ namespace {
 class GeneratorPolicy : public PolicyModel {
  public:
   GeneratorPolicy(simu::models::Generator gen, simu::lora::LoraConfig lora)
-      : gen_(std::move(gen)), lora_(std::move(lora)) {}
+      : gen_(std::move(gen)), lora_(std::move(lora)) {
+    // Policy (with gradients) and reference (without) forwards must share one arithmetic: no fused
+    // inference kernels in training.
+    gen_->backbone()->set_fused_kernels(false);
+  }
 
   torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled, const torch::Tensor& cond,
                               const torch::Tensor& d) override {
