@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "common/cli.h"
+#include "common/fs.h"
 #include "pipeline/mesh.h"
 #include "pipeline/probe.h"
 
@@ -150,7 +151,7 @@ int main(int argc, char** argv) {
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
-    std::filesystem::remove_all(dir);
+    simu::fs::remove_tree(dir);
     std::filesystem::create_directories(dir);
     const Scene scene = make_scene(dir, 7);
     ProbeConfig cfg;

@@ -630,7 +630,22 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   auto cond32 = cond.to(torch::kFloat32);
 
   // Transformer blocks.
-  for (size_t b = 0; b < block_list_.size(); ++b) h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
+  for (size_t b = 0; b < block_list_.size(); ++b) {
+    if (!block_wrapper_) {
+      h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
+      continue;
+    }
+    // Wrapped: inputs = streams + [modulation, condition]; fn owns the block and the cached keys/values.
+    std::vector<torch::Tensor> inputs = h;
+    inputs.push_back(t_emb);
+    inputs.push_back(cond32);
+    const size_t S = h.size();
+    auto kv = cache ? std::make_shared<const std::vector<std::pair<torch::Tensor, torch::Tensor>>>(cache->kv[b]) : nullptr;
+    BlockFn fn = [block = block_list_[b].ptr(), S, kv](const std::vector<torch::Tensor>& v) {
+      return block->forward(std::vector<torch::Tensor>(v.begin(), v.begin() + S), v[S], v[S + 1], kv.get());
+    };
+    h = block_wrapper_(static_cast<int64_t>(b), *block_list_[b], inputs, fn);
+  }
   for (auto& hi : h) hi = hi.to(input_dtype);
 
   // Split streams back into latents and project out.

@@ -26,6 +26,7 @@
 #include <torch/torch.h>
 #include <yaml-cpp/yaml.h>
 
+#include <functional>
 #include <map>
 #include <string>
 #include <utility>
@@ -227,6 +228,16 @@ TORCH_MODULE(LatentMapping);
 // coordinates, zero padded to `channels`): [res^3, channels].
 torch::Tensor shape_position_embedding(int64_t channels, int64_t resolution, int64_t patch_size);
 
+// A transformer block as a function of its tensor inputs (the streams, then the modulation, then
+// the condition) returning the streams. It keeps alive what it refers to, so it may be called again
+// later (e.g. during backward).
+using BlockFn = std::function<std::vector<torch::Tensor>(const std::vector<torch::Tensor>&)>;
+// Runs block `index` (module `block`) on `inputs` through `fn`; must return what fn(inputs) returns.
+// Lets callers wrap every block (e.g. activation checkpointing) without the model knowing why.
+using BlockWrapper = std::function<std::vector<torch::Tensor>(int64_t index, torch::nn::Module& block,
+                                                              const std::vector<torch::Tensor>& inputs,
+                                                              const BlockFn& fn)>;
+
 class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
  public:
   explicit SparseStructureFlowTdfyWrapperImpl(FlowModelConfig config);
@@ -242,6 +253,8 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   ConditionCache condition_cache(const torch::Tensor& cond);
 
   const FlowModelConfig& config() const { return config_; }
+  // Every transformer block of forward runs through wrapper (empty: blocks run directly).
+  void set_block_wrapper(BlockWrapper wrapper) { block_wrapper_ = std::move(wrapper); }
 
   // Fused CUDA kernels (fused_ops.h) replace the plain ATen ops for the norms, modulation and q/k RMS
   // norm when fused_path() holds: CUDA, no gradient recording, bf16 autocast. On by default; the same
@@ -259,6 +272,7 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   FlowModelConfig config_;
   std::vector<std::string> streams_;
   std::vector<MOTBlock> block_list_;
+  BlockWrapper block_wrapper_;
   bool fused_kernels_ = true;
 };
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
