@@ -1,45 +1,14 @@
 // pairs: make a synthetic FM-DPO pair cache, inspect one (counts, kinds, shapes, dtypes, attributes),
 // or validate one (full scan; exit 1 with an error naming the file and record).
 #include <fmt/ranges.h>
-#include <unistd.h>
-
-#include <chrono>
-#include <cstdio>
 #include <filesystem>
 
 #include "common/cli.h"
 #include "common/error.h"
+#include "common/progress.h"
 #include "data/pair_cache.h"
 
 namespace {
-
-// A progress reporter: one rewritten line on a terminal, a plain line every 10% otherwise.
-struct Progress {
-  std::string what;
-  bool tty = ::isatty(STDERR_FILENO) != 0;
-  std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now(), last{};
-  int64_t last_decile = -1;
-
-  void operator()(int64_t done, int64_t total) {
-    const auto now = std::chrono::steady_clock::now();
-    const double secs = std::chrono::duration<double>(now - t0).count();
-    const double rate = secs > 0 ? done / secs : 0.0;
-    const double pct = total > 0 ? 100.0 * done / total : 100.0;
-    const auto line = fmt::format("{} {}/{} ({:.0f}%) {:.1f} pairs/s", what, done, total, pct, rate);
-    if (tty) {
-      if (done == total || now - last > std::chrono::milliseconds(100)) {
-        std::fprintf(stderr, "\r%s\033[K%s", line.c_str(), done == total ? "\n" : "");
-        last = now;
-      }
-    } else {
-      const int64_t decile = total > 0 ? done * 10 / total : 10;
-      if (decile != last_decile) {
-        std::fprintf(stderr, "%s\n", line.c_str());
-        last_decile = decile;
-      }
-    }
-  }
-};
 
 torch::ScalarType parse_dtype(const std::string& s) {
   if (s == "f16" || s == "float16") return torch::kFloat16;
@@ -89,7 +58,7 @@ int main(int argc, char** argv) {
     simu::cli::apply_common_options(common);
     using namespace simu::data;
     if (*make) {
-      Progress progress{"make"};
+      simu::Progress progress{"make"};
       make_synthetic_cache(out, n, {tokens, channels}, {cond_len, cond_channels}, seed, parse_dtype(dtype),
                            std::ref(progress));
       fmt::print("wrote {} ({} pairs, {:.1f} MiB)\n", out, n,
@@ -120,7 +89,7 @@ int main(int argc, char** argv) {
                    fmt::join(d.chunk, ", "), d.filters.empty() ? "uncompressed" : fmt::format("{}", fmt::join(d.filters, "+")));
       return 0;
     }
-    Progress progress{"validate"};
+    simu::Progress progress{"validate"};
     const auto info = validate_cache(validate_path, std::ref(progress));
     fmt::print("ok: {} pairs ({} occlusion_completion, {} clean_preservation), latents [{}] {}, cond [{}] {}\n",
                info.size, info.counts[0], info.counts[1], fmt::join(info.latent_shape, ", "), info.latent_dtype,

@@ -1,7 +1,9 @@
-// synth_bench: generates synthetic scenes with known ground truth and injected monocular errors,
-// measures each free object's gravity displacement (the ideal "oracle" probe: drop to the known
-// support), runs the paper's stretch-or-resample decision and correction, and prints the decision
-// accuracy per injected error type and the overlap metrics before / after correction.
+// synth_bench: generates synthetic scenes with known ground truth and injected monocular errors (or
+// reads written ones with --from), measures each free object's displacement with the MuJoCo probe
+// (or the ideal "oracle": drop to the known support), runs the paper's stretch-or-resample decision
+// and correction, and prints the decision accuracy per injected error type, the overlap metrics
+// before / after correction and, with the MuJoCo probe, the physics metrics before (the scene as
+// read, settled 5 s without correction) and after (the probe's corrected scene, settled 5 s).
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/log.h"
@@ -12,6 +14,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <filesystem>
@@ -31,7 +34,9 @@ int main(int argc, char** argv) {
   std::string config_path;
   double threshold = -1;
   std::string proxy_name = "stretch";
-  std::string probe_name = "oracle";
+  std::string probe_name = "mujoco";
+  std::string from_dir;
+  double metrics_time = 5.0;
   app.add_option("-n,--scenes", num_scenes, "number of scenes to generate")->check(CLI::PositiveNumber);
   app.add_option("--seed", seed, "first seed (scene k uses seed + k)");
   app.add_option("--layout", layout, "tabletop | shelf | mixed (default: config, else mixed)");
@@ -42,7 +47,13 @@ int main(int argc, char** argv) {
   app.add_option("--resample-proxy", proxy_name,
                  "stand-in for the resampler on the resample branch: stretch (fill B_str), drop (layout-only), keep");
   app.add_option("--probe", probe_name,
-                 "displacement source: oracle (drop to the known support) or mujoco (run_probe on the written scene)");
+                 "displacement source: mujoco (run_probe on the written scene; physics metrics) or oracle (drop to the "
+                 "known support; overlap metrics only)")->capture_default_str();
+  app.add_option("--from", from_dir,
+                 "evaluate the written scenes in this folder (each DIR/*/scene.json, e.g. tests/data/scenes) instead of "
+                 "generating");
+  app.add_option("--metrics-time", metrics_time, "evaluation settle for the physics metrics (s; paper: 5)")
+      ->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -70,6 +81,18 @@ int main(int argc, char** argv) {
     SIMU_CHECK(proxy, "--resample-proxy: got '{}', expected stretch, drop or keep", proxy_name);
     SIMU_CHECK(probe_name == "oracle" || probe_name == "mujoco", "--probe: got '{}', expected oracle or mujoco", probe_name);
     std::atomic<int> disabled{0};
+    // Written scenes to evaluate (--from), in name order.
+    std::vector<std::string> from_scenes;
+    if (!from_dir.empty()) {
+      SIMU_CHECK(std::filesystem::is_directory(from_dir), "--from: {} is not a folder", from_dir);
+      for (const auto& e : std::filesystem::directory_iterator(from_dir))
+        if (std::filesystem::exists(e.path() / "scene.json")) from_scenes.push_back((e.path() / "scene.json").string());
+      std::sort(from_scenes.begin(), from_scenes.end());
+      SIMU_CHECK(!from_scenes.empty(), "--from: no */scene.json under {}", from_dir);
+      num_scenes = static_cast<int>(from_scenes.size());
+    }
+    // Physics records (before / after) and scene peak energies per scene (MuJoCo probe).
+    std::vector<PhysicsEvaluation> phys_before(num_scenes), phys_after(num_scenes);
 
     // Evaluate the scenes (in parallel), collecting per-scene results in order.
     std::vector<SceneEvaluation> results(num_scenes);
@@ -81,18 +104,29 @@ int main(int argc, char** argv) {
       for (int k; (k = next++) < num_scenes;) {
         try {
           const std::string name = fmt::format("synth_{:04d}", k);
-          const SyntheticScene s = generate_scene(syn, seed + k, name);
+          const bool from = !from_scenes.empty();
+          const SyntheticScene s = from ? load_synthetic_scene(from_scenes[k]) : generate_scene(syn, seed + k, name);
           std::string dir = write_dir.empty() ? "" : (std::filesystem::path(write_dir) / name).string();
           std::vector<Displacement> disp;
           if (probe_name == "mujoco") {
             // The physics probe measures dt_pen / dt_grv on the written scene (no outputs, no resampler).
-            if (dir.empty())
-              dir = (std::filesystem::temp_directory_path() / fmt::format("synth_bench_{}", ::getpid()) / name).string();
-            write_scene_dir(s, dir);
+            std::string scene_file = from ? from_scenes[k] : "";
+            if (!from) {
+              if (dir.empty())
+                dir = (std::filesystem::temp_directory_path() / fmt::format("synth_bench_{}", ::getpid()) / name).string();
+              write_scene_dir(s, dir);
+              scene_file = dir + "/scene.json";
+            }
             ProbeConfig pc;
             pc.write_outputs = false;
             pc.rho_threshold = corr.resample_threshold;
-            const ProbeResult pr = run_probe(load_scene(dir + "/scene.json"), pc, "");
+            pc.metrics_settle_time = metrics_time;
+            const Scene input = load_scene(scene_file);
+            // Before: the reconstruction as read, settled without any correction.
+            phys_before[k] = evaluate_physics(input, pc);
+            // After: the probe's corrected scene (its own evaluation settle).
+            const ProbeResult pr = run_probe(input, pc, "");
+            phys_after[k] = pr.evaluation;
             for (const Diagnostics& d : pr.diagnostics) {
               disp.push_back({d.dt_pen, d.dt_grv});
               disabled += d.physics_disabled;
@@ -161,11 +195,36 @@ int main(int argc, char** argv) {
                mean([](auto& r) { return r.box_after.abo; }));
     fmt::print("support gap (mm, free objects)  {:8.2f} {:8.2f}\n", n ? 1000 * gap_before / n : 0.0,
                n ? 1000 * gap_after / n : 0.0);
+    // Physics metrics (MuJoCo): records pooled over the scenes; peak energy: mean of the scene peaks.
+    if (probe_name == "mujoco") {
+      std::vector<SettleRecord> before, after;
+      double peak_before = 0, peak_after = 0;
+      int scenes_ok = 0;
+      for (int k = 0; k < num_scenes; ++k) {
+        if (!errors[k].empty()) continue;
+        ++scenes_ok;
+        before.insert(before.end(), phys_before[k].objects.begin(), phys_before[k].objects.end());
+        after.insert(after.end(), phys_after[k].objects.begin(), phys_after[k].objects.end());
+        peak_before += phys_before[k].scene_peak_energy, peak_after += phys_after[k].scene_peak_energy;
+      }
+      const PhysicsMetrics mb = physics_metrics(before), ma = physics_metrics(after);
+      fmt::print("Physics after a {:.0f} s settle (pooled objects; before: as read, after: probe output)\n", metrics_time);
+      fmt::print("stability (%, free, <5 cm)      {:8.1f} {:8.1f}   (n = {} / {})\n", mb.stability, ma.stability,
+                 mb.stability_count, ma.stability_count);
+      fmt::print("penetration ratio (%, >2 mm)    {:8.1f} {:8.1f}\n", mb.penetration_ratio, ma.penetration_ratio);
+      fmt::print("initially penetrating (%)       {:8.1f} {:8.1f}\n", mb.initial_penetration_ratio,
+                 ma.initial_penetration_ratio);
+      fmt::print("mean displacement (mm)          {:8.2f} {:8.2f}   (n = {} / {})\n", 1000 * mb.mean_displacement,
+                 1000 * ma.mean_displacement, mb.evaluated_count, ma.evaluated_count);
+      fmt::print("peak energy (J, mean of scenes) {:8.4f} {:8.4f}\n", scenes_ok ? peak_before / scenes_ok : 0.0,
+                 scenes_ok ? peak_after / scenes_ok : 0.0);
+      fmt::print("physics-disabled objects        {:8d} {:8d}\n", mb.disabled_count, ma.disabled_count);
+    }
     fmt::print("resample branch stand-in: {}\n", proxy_name);
     if (probe_name == "mujoco")
       fmt::print("probe: MuJoCo run_probe (dt_pen, dt_grv); physics-disabled objects: {}\n", disabled.load());
     else
-      fmt::print("probe: oracle drop to the known support (MuJoCo: --probe mujoco)\n");
+      fmt::print("probe: oracle drop to the known support (physics metrics: --probe mujoco)\n");
     if (failed) fmt::print("{} scene(s) failed (see warnings)\n", failed);
     return failed == num_scenes ? 1 : 0;
   });

@@ -12,6 +12,7 @@
 #include <chrono>
 
 #include "common/cli.h"
+#include "gpu_profile.h"
 #include "common/error.h"
 #include "common/log.h"
 #include "models/generator.h"
@@ -55,7 +56,8 @@ int main(int argc, char** argv) {
   std::vector<int64_t> cond_lens = {2800, 7500};
   int steps = 25, iters = 5, sample_iters = 3, warmup = 2;
   double cfg = 7.0;
-  bool small = false, fp32 = false;
+  bool small = false, fp32 = false, profile = false;
+  std::string sdp = "default";
   app.add_option("--config", config, "generator config (official or project layout)")->capture_default_str();
   app.add_option("--cond-lens", cond_lens, "condition lengths")->capture_default_str();
   app.add_option("--steps", steps, "sampling steps")->capture_default_str();
@@ -66,6 +68,9 @@ int main(int argc, char** argv) {
   app.add_option("--device", device, "cuda | cuda:N | cpu (cpu needs --small)")->capture_default_str();
   app.add_flag("--small", small, "use configs/stage1_small.yaml and short conditions (CPU smoke run)");
   app.add_flag("--fp32", fp32, "no bf16 autocast");
+  app.add_flag("--profile", profile, "print the GPU kernels of one forward by time (Kineto/CUPTI)");
+  app.add_option("--sdp-backend", sdp, "attention backend tried first: default | flash | cudnn | efficient")
+      ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -85,6 +90,17 @@ int main(int argc, char** argv) {
       steps = std::min(steps, 4);
     }
     torch::NoGradGuard no_grad;
+    // Attention backend order (PyTorch's default tries flash, then memory-efficient, math, cuDNN).
+    if (sdp != "default") {
+      using B = at::SDPBackend;
+      const B first = sdp == "flash" ? B::flash_attention : sdp == "cudnn" ? B::cudnn_attention : B::efficient_attention;
+      std::vector<int64_t> order{static_cast<int64_t>(first)};
+      for (B b : {B::flash_attention, B::cudnn_attention, B::efficient_attention, B::math, B::overrideable})
+        if (b != first) order.push_back(static_cast<int64_t>(b));
+      at::globalContext().setSDPUseCuDNN(true);
+      at::globalContext().setSDPPriorityOrder(order);
+      fmt::print("attention backend order: {} first\n", sdp);
+    }
     auto gen = simu::models::load_generator(config, "", dev, common.sets);
     const auto& mc = gen->config().backbone;
     const bool bf16 = dev.is_cuda() && !fp32;
@@ -132,6 +148,7 @@ int main(int argc, char** argv) {
         const double flops = simu::models::flow_forward_flops(mc, 2, L);
         rows.push_back({L, "forward B=2", ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
         simu::log::info("cond {}: forward {:.2f} ms", L, ms);
+        if (profile && dev.is_cuda()) simu::bench::print_gpu_kernel_profile(fmt::format("forward B=2, cond {}", L), fwd);
       }
       // Full sampling with CFG (batch 1 -> batch-2 forwards while guided).
       {

@@ -18,6 +18,7 @@ t0=$(date +%s)
 cmake -S "$ROOT" -B "$BUILD" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TORCH_PREFIX;$PREFIX" \
   -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 >"$ROOT/gpu-configure.log" 2>&1 \
   || { tail -40 "$ROOT/gpu-configure.log"; exit 1; }
+grep -E "gloo headers" "$ROOT/gpu-configure.log" || true  # c10d ProcessGroupGloo for CPU ranks (headers from .carry)
 cmake --build "$BUILD" -j"$(nproc)" >"$ROOT/gpu-build.log" 2>&1 || { grep -B2 -A8 -E "error|FAILED" "$ROOT/gpu-build.log" | head -80; exit 1; }
 t1=$(date +%s)
 echo "[gpu] configure+build: $((t1 - t0)) s on $(nproc) cores"

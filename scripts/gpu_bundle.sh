@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Prepares, on our Debian 12 machine, what the GPU machine's image lacks, as files under .carry/:
-#   .carry/prefix/usr/...  Debian packages unpacked (MuJoCo 2.2.2 + qhull, assimp, GoogleTest) and
+#   .carry/prefix/usr/...  Debian packages unpacked (MuJoCo 2.2.2 + qhull, assimp, GoogleTest, the gloo
+#                          headers of libgloo-dev for c10d ProcessGroupGloo; never linked) and
 #                          the runtime libraries they need; CoACD's C library from its PyPI wheel
 #   .carry/shared/         a copy of ../shared/fixtures (the device gets only the repository)
 # The GPU machine has LibTorch (its PyTorch 2.11.0+cu130), CUDA, Eigen, HDF5 1.10, yaml-cpp, CLI11,
@@ -13,7 +14,7 @@ CARRY="$ROOT/.carry"
 SHARED="${SIMU_SHARED_DIR:-$ROOT/../shared}"
 PKGS=(libmujoco-dev libmujoco2.2.2 libqhull-dev libqhull-r8.0 libqhull8.0 libqhullcpp8.0 libccd2 libtinyxml2-9
       liblodepng0 libassimp-dev libassimp5 libdraco7 libminizip1 libgtest-dev libgmock-dev libpoly2tri1 libpugixml1v5
-      libkubazip0)
+      libkubazip0 libgloo-dev)
 mkdir -p "$CARRY/debs" "$CARRY/prefix"
 cd "$CARRY/debs"
 for p in "${PKGS[@]}"; do

@@ -24,6 +24,7 @@ APT_PKGS=(
   libopencv-core-dev libopencv-imgproc-dev libopencv-imgcodecs-dev
   libeigen3-dev libyaml-cpp-dev libgtest-dev libgmock-dev
   libcli11-dev nlohmann-json3-dev libassimp-dev
+  libgloo-dev
   python3-venv
 )
 missing=()

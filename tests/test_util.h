@@ -22,8 +22,8 @@ inline std::string source_dir() { return SIMU_SOURCE_DIR; }
 inline std::string build_dir() { return SIMU_BUILD_DIR; }
 // A fresh temporary directory for one test.
 inline std::string temp_dir(const std::string& name) {
-  // A counter keeps directories unique within a process; std::filesystem::remove_all is avoided
-  // because libtorch.so exports its own copy of it, which crashes on non-empty directories.
+  // A counter keeps directories unique within a process (remove with simu::fs::remove_tree, never
+  // std::filesystem::remove_all: libtorch.so exports a copy of it that crashes on non-empty directories).
   static int counter = 0;
   auto p = std::filesystem::temp_directory_path() /
            ("simu_test_" + name + "_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));

@@ -1,6 +1,8 @@
 #include "common/fs.h"
 
 #include <fcntl.h>
+#include <ftw.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -18,6 +20,25 @@ void fsync_dir(const std::string& dir) {
   if (fd < 0) return;
   ::fsync(fd);
   ::close(fd);
+}
+
+void remove_tree(const std::string& path) {
+  struct stat st {};
+  if (::lstat(path.c_str(), &st) != 0 && errno == ENOENT) return;
+  // Depth-first, not following links: files and links unlinked, directories removed after their contents.
+  static thread_local std::string failed;
+  static thread_local int failed_errno;
+  failed.clear();
+  failed_errno = 0;
+  ::nftw(path.c_str(), [](const char* p, const struct stat*, int type, struct FTW*) -> int {
+    const int rc = type == FTW_DP ? ::rmdir(p) : ::unlink(p);
+    if (rc != 0 && errno != ENOENT && failed.empty()) {
+      failed = p;
+      failed_errno = errno;
+    }
+    return 0;
+  }, 16, FTW_DEPTH | FTW_PHYS);
+  if (!failed.empty()) fail("cannot remove '{}' (removing '{}'): {}", failed, path, std::strerror(failed_errno));
 }
 
 void atomic_rename(const std::string& src, const std::string& dst) {

@@ -15,5 +15,10 @@ std::string read_file(const std::string& path);
 void fsync_dir(const std::string& dir);
 // Renames src to dst atomically and fsyncs dst's directory.
 void atomic_rename(const std::string& src, const std::string& dst);
+// Removes a file or a directory tree, not following symbolic links; a missing path is no error.
+// Throws simu::Error naming the first entry that cannot be removed. Use this instead of
+// std::filesystem::remove_all: libtorch.so exports its own copy of that function, which crashes on
+// non-empty directories when the dynamic linker binds to it.
+void remove_tree(const std::string& path);
 
 }  // namespace simu::fs

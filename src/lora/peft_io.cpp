@@ -91,7 +91,7 @@ void save_peft_tensors(const std::string& dir, const std::map<std::string, torch
   const stdfs::path target(dir);
   if (!stdfs::exists(target)) {
     const stdfs::path tmp = target.string() + ".tmp-" + std::to_string(::getpid());
-    stdfs::remove_all(tmp);
+    fs::remove_tree(tmp.string());
     stdfs::create_directories(tmp);
     data::save_safetensors((tmp / kPeftWeightsFile).string(), out, {{"format", "pt"}});
     fs::atomic_write((tmp / kPeftConfigFile).string(), config_text);

@@ -8,6 +8,7 @@
 
 #include "common/config.h"
 #include "common/error.h"
+#include "models/fused_ops.h"
 
 namespace simu::models {
 
@@ -279,6 +280,9 @@ FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
 }
 
 torch::Tensor FeedForwardNetImpl::forward(const torch::Tensor& x) {
+  // Fast path: GELU in fc1's epilogue (not with an adapter on fc1: its delta must be added first).
+  if (fused_kernels && !(fc1->adapter() && fc1->adapter_enabled()) && fused_path(x) && fused::supports_linear_gelu(x))
+    return fc2->forward(fused::linear_gelu_tanh_bf16(x, fc1->weight, fc1->bias));
   return fc2->forward(torch::gelu(fc1->forward(x), "tanh"));
 }
 
@@ -331,8 +335,68 @@ MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, cons
   register_dict(*this, "to_out", names, to_out);
 }
 
+bool fused_path(const torch::Tensor& x) {
+  return fused::compiled() && x.is_cuda() && !at::GradMode::is_enabled() && at::autocast::is_autocast_enabled(at::kCUDA) &&
+         at::autocast::get_autocast_dtype(at::kCUDA) == at::kBFloat16;
+}
+
+std::vector<torch::Tensor> MOTSelfAttentionImpl::forward_fused(const std::vector<torch::Tensor>& x) {
+  const size_t S = x.size();
+  const int64_t B = x[0].size(0);
+  // Key/value buffer [B, L_others + L_protected, H, D]: the other streams' keys first, then the
+  // protected ones (the order of the reference's concatenation); each stream writes its slice.
+  int64_t L_others = 0, L_total = 0;
+  for (size_t i = 0; i < S; ++i) {
+    L_total += x[i].size(1);
+    if (!is_protected[i]) L_others += x[i].size(1);
+  }
+  std::vector<torch::Tensor> q(S), k(S), v(S), h(S);
+  torch::Tensor k_all, v_all;
+  int64_t off_other = 0, off_prot = L_others;
+  for (size_t i = 0; i < S; ++i) {
+    const int64_t L = x[i].size(1);
+    auto qkv = to_qkv[i]->forward(x[i]);  // [B, L, 3C] bf16 under autocast
+    qkv = qkv.reshape({B, L, 3, num_heads, -1}).contiguous();
+    const int64_t D = qkv.size(4);
+    if (!k_all.defined()) {
+      k_all = torch::empty({B, L_total, num_heads, D}, qkv.options());
+      v_all = torch::empty_like(k_all);
+    }
+    int64_t& off = is_protected[i] ? off_prot : off_other;
+    q[i] = torch::empty({B, L, num_heads, D}, qkv.options());
+    k[i] = k_all.narrow(1, off, L);
+    v[i] = v_all.narrow(1, off, L);
+    off += L;
+    fused::split_qkv_rms_norm(qkv, q_rms_norm[i]->gamma, k_rms_norm[i]->gamma, q_rms_norm[i]->scale, q[i], k[i], v[i]);
+  }
+  // Protected streams attend to themselves; the others to every key (no gradient here to detach).
+  std::vector<torch::Tensor> oq;
+  std::vector<size_t> others;
+  for (size_t i = 0; i < S; ++i) {
+    if (is_protected[i]) {
+      h[i] = attention(q[i], k[i], v[i]);
+    } else {
+      others.push_back(i);
+      oq.push_back(q[i]);
+    }
+  }
+  if (!others.empty()) {
+    auto ho = attention(oq.size() == 1 ? oq[0] : torch::cat(oq, 1), k_all, v_all);  // [B, L_others, H, D]
+    int64_t start = 0;
+    for (size_t i : others) {
+      h[i] = ho.narrow(1, start, x[i].size(1));
+      start += x[i].size(1);
+    }
+  }
+  for (size_t i = 0; i < S; ++i) h[i] = to_out[i]->forward(h[i].reshape({B, x[i].size(1), -1}));
+  return h;
+}
+
 std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch::Tensor>& x) {
   const size_t S = x.size();
+  // Fast path: fused q/k RMS norm written straight into the attention's key/value layout.
+  const int64_t head_dim = x[0].size(-1) / num_heads;  // every stream has the model's channels
+  if (fused_kernels && fused_path(x[0]) && (head_dim == 64 || head_dim == 128 || head_dim == 256)) return forward_fused(x);
   // Per-stream q, k, v: [B, L_i, H, D], with RMS norm on q and k.
   std::vector<torch::Tensor> q(S), k(S), v(S), h(S);
   for (size_t i = 0; i < S; ++i) {
@@ -410,7 +474,20 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   // norm(x) * (1 + scale) + shift. When the modulation is one row (the same t for the whole batch,
   // as in sampling) it is a LayerNorm with weight 1 + scale and bias shift: one fused fp32 kernel.
   const bool one_row = m.size(0) == 1;
-  auto modulate = [&](LayerNorm32& norm, const torch::Tensor& xi, const torch::Tensor& scale, const torch::Tensor& shift) {
+  // Fast path: LayerNorm + modulation (or norm2's affine) in one kernel that stores bf16 for the next
+  // projection (fused_ops.h); same fp32 arithmetic, one rounding.
+  bool fast = fused_kernels && fused_path(x_in[0]) && (one_row || m.size(0) == x_in[0].size(0));
+  for (const auto& xi : x_in) fast = fast && fused::supports_layer_norm_affine(xi);
+  // The streams share the modulation: in the fast path its fp32 affine rows [1 or B, C] (weight
+  // 1 + scale, bias shift) are made once per block and passed in as `affine`.
+  using Affine = std::pair<torch::Tensor, torch::Tensor>;
+  auto affine_of = [&](const torch::Tensor& scale, const torch::Tensor& shift) {
+    return fast ? Affine{(1 + scale).squeeze(1).to(torch::kFloat32), shift.squeeze(1).to(torch::kFloat32)} : Affine{};
+  };
+  const Affine affine_msa = affine_of(scale_msa, shift_msa), affine_mlp = affine_of(scale_mlp, shift_mlp);
+  auto modulate = [&](LayerNorm32& norm, const torch::Tensor& xi, const torch::Tensor& scale, const torch::Tensor& shift,
+                      const Affine& affine) {
+    if (fast) return fused::layer_norm_affine_bf16(xi, affine.first, affine.second, norm->eps);
     if (one_row) {
       auto w = (1 + scale).reshape({-1}).to(torch::kFloat32), b = shift.reshape({-1}).to(torch::kFloat32);
       return at::layer_norm(xi.to(torch::kFloat32), {xi.size(-1)}, w, b, norm->eps).to(xi.scalar_type());
@@ -418,16 +495,17 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     return norm->forward(xi) * (1 + scale) + shift;
   };
   // Self attention on the modulated norm1; gated residual x + h * gate.
-  for (size_t i = 0; i < S; ++i) h[i] = modulate(norm1[i], x[i], scale_msa, shift_msa);
+  for (size_t i = 0; i < S; ++i) h[i] = modulate(norm1[i], x[i], scale_msa, shift_msa, affine_msa);
   h = self_attn->forward(h);
   for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], h[i], gate_msa);
   // Cross attention over the condition on the affine norm2 (no modulation).
   for (size_t i = 0; i < S; ++i) {
-    auto hi = norm2[i]->forward(x[i]);
+    auto hi = fast ? fused::layer_norm_affine_bf16(x[i], norm2[i]->weight.unsqueeze(0), norm2[i]->bias.unsqueeze(0), norm2[i]->eps)
+                   : norm2[i]->forward(x[i]);
     x[i] = x[i] + (kv ? cross_attn[i]->attend(hi, (*kv)[i].first, (*kv)[i].second) : cross_attn[i]->forward(hi, cond));
   }
   // MLP on the modulated norm3; gated residual.
-  for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], mlp[i]->forward(modulate(norm3[i], x[i], scale_mlp, shift_mlp)), gate_mlp);
+  for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], mlp[i]->forward(modulate(norm3[i], x[i], scale_mlp, shift_mlp, affine_mlp)), gate_mlp);
   return x;
 }
 
@@ -487,6 +565,15 @@ SparseStructureFlowTdfyWrapperImpl::SparseStructureFlowTdfyWrapperImpl(FlowModel
   register_dict(*this, "latent_mapping", names, maps);
 }
 
+void SparseStructureFlowTdfyWrapperImpl::set_fused_kernels(bool on) {
+  fused_kernels_ = on;
+  for (auto& block : block_list_) {
+    block->fused_kernels = on;
+    block->self_attn->fused_kernels = on;
+    for (auto& m : block->mlp) m->fused_kernels = on;
+  }
+}
+
 ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond) {
   ConditionCache cache;
   cache.cond = cond;
@@ -543,7 +630,22 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   auto cond32 = cond.to(torch::kFloat32);
 
   // Transformer blocks.
-  for (size_t b = 0; b < block_list_.size(); ++b) h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
+  for (size_t b = 0; b < block_list_.size(); ++b) {
+    if (!block_wrapper_) {
+      h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
+      continue;
+    }
+    // Wrapped: inputs = streams + [modulation, condition]; fn owns the block and the cached keys/values.
+    std::vector<torch::Tensor> inputs = h;
+    inputs.push_back(t_emb);
+    inputs.push_back(cond32);
+    const size_t S = h.size();
+    auto kv = cache ? std::make_shared<const std::vector<std::pair<torch::Tensor, torch::Tensor>>>(cache->kv[b]) : nullptr;
+    BlockFn fn = [block = block_list_[b].ptr(), S, kv](const std::vector<torch::Tensor>& v) {
+      return block->forward(std::vector<torch::Tensor>(v.begin(), v.begin() + S), v[S], v[S + 1], kv.get());
+    };
+    h = block_wrapper_(static_cast<int64_t>(b), *block_list_[b], inputs, fn);
+  }
   for (auto& hi : h) hi = hi.to(input_dtype);
 
   // Split streams back into latents and project out.

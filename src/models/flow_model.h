@@ -26,6 +26,7 @@
 #include <torch/torch.h>
 #include <yaml-cpp/yaml.h>
 
+#include <functional>
 #include <map>
 #include <string>
 #include <utility>
@@ -141,7 +142,8 @@ class FeedForwardNetImpl : public torch::nn::Module {
  public:
   FeedForwardNetImpl(int64_t channels, double mlp_ratio);
   torch::Tensor forward(const torch::Tensor& x);
-  Linear fc1{nullptr}, fc2{nullptr};  // registered as mlp.0 and mlp.2
+  Linear fc1{nullptr}, fc2{nullptr};
+  bool fused_kernels = true;  // fc1 + GELU in one matrix product (fused_ops.h) on the inference path  // registered as mlp.0 and mlp.2
 };
 TORCH_MODULE(FeedForwardNet);
 
@@ -173,6 +175,12 @@ class MOTSelfAttentionImpl : public torch::nn::Module {
   std::vector<std::string> names;
   std::vector<bool> is_protected;
   int64_t num_heads;
+  // Fused CUDA kernels for q/k RMS norm and the key/value layout (fused_ops.h) when the inference
+  // conditions hold (see fused_path); the wrapper's set_fused_kernels switches them.
+  bool fused_kernels = true;
+
+ private:
+  std::vector<torch::Tensor> forward_fused(const std::vector<torch::Tensor>& x);
 };
 TORCH_MODULE(MOTSelfAttention);
 
@@ -199,6 +207,7 @@ class MOTBlockImpl : public torch::nn::Module {
   torch::nn::Sequential adaLN_modulation{nullptr};  // SiLU, Linear(C, 6C); absent when share_mod
   Linear ada_linear{nullptr};
   bool share_mod;
+  bool fused_kernels = true;  // fused LayerNorm + modulation -> bf16 (fused_ops.h) on the inference path
 };
 TORCH_MODULE(MOTBlock);
 
@@ -219,6 +228,16 @@ TORCH_MODULE(LatentMapping);
 // coordinates, zero padded to `channels`): [res^3, channels].
 torch::Tensor shape_position_embedding(int64_t channels, int64_t resolution, int64_t patch_size);
 
+// A transformer block as a function of its tensor inputs (the streams, then the modulation, then
+// the condition) returning the streams. It keeps alive what it refers to, so it may be called again
+// later (e.g. during backward).
+using BlockFn = std::function<std::vector<torch::Tensor>(const std::vector<torch::Tensor>&)>;
+// Runs block `index` (module `block`) on `inputs` through `fn`; must return what fn(inputs) returns.
+// Lets callers wrap every block (e.g. activation checkpointing) without the model knowing why.
+using BlockWrapper = std::function<std::vector<torch::Tensor>(int64_t index, torch::nn::Module& block,
+                                                              const std::vector<torch::Tensor>& inputs,
+                                                              const BlockFn& fn)>;
+
 class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
  public:
   explicit SparseStructureFlowTdfyWrapperImpl(FlowModelConfig config);
@@ -234,6 +253,15 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   ConditionCache condition_cache(const torch::Tensor& cond);
 
   const FlowModelConfig& config() const { return config_; }
+  // Every transformer block of forward runs through wrapper (empty: blocks run directly).
+  void set_block_wrapper(BlockWrapper wrapper) { block_wrapper_ = std::move(wrapper); }
+
+  // Fused CUDA kernels (fused_ops.h) replace the plain ATen ops for the norms, modulation and q/k RMS
+  // norm when fused_path() holds: CUDA, no gradient recording, bf16 autocast. On by default; the same
+  // results up to bf16 rounding order. Training turns them off so that policy and reference forwards
+  // share one arithmetic.
+  void set_fused_kernels(bool on);
+  bool fused_kernels() const { return fused_kernels_; }
 
   TimestepEmbedder t_embedder{nullptr}, d_embedder{nullptr};
   torch::nn::Sequential adaLN_modulation{nullptr};  // share_mod only
@@ -244,8 +272,14 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   FlowModelConfig config_;
   std::vector<std::string> streams_;
   std::vector<MOTBlock> block_list_;
+  BlockWrapper block_wrapper_;
+  bool fused_kernels_ = true;
 };
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
+
+// True when the fused inference kernels may replace the reference ops for activations like x: they
+// were compiled in, x is on CUDA, gradients are not recorded and CUDA autocast runs in bf16.
+bool fused_path(const torch::Tensor& x);
 
 // Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:
 // per block and per stream of T tokens: self qkv 2*T*C*3C + out 2*T*C*C; self attention QK^T and PV

@@ -10,9 +10,12 @@ extern "C" {
 
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <map>
+#include <unordered_map>
 #include <mutex>
+#include <optional>
 
 #include "common/error.h"
 #include "common/fs.h"
@@ -20,6 +23,8 @@ extern "C" {
 #include "pipeline/mesh.h"
 
 #ifdef SIMU_HAVE_COACD
+#include <dlfcn.h>
+
 // CoACD's C API (lib_coacd.so of the PyPI wheel coacd==1.0.14; layout as in its ctypes binding).
 extern "C" {
 struct CoACD_Mesh {
@@ -32,12 +37,6 @@ struct CoACD_MeshArray {
   CoACD_Mesh* meshes_ptr;
   uint64_t meshes_count;
 };
-CoACD_MeshArray CoACD_run(const CoACD_Mesh& input, double threshold, int max_convex_hull, int preprocess_mode,
-                          int prep_resolution, int sample_resolution, int mcts_nodes, int mcts_iteration,
-                          int mcts_max_depth, bool pca, bool merge, bool decimate, int max_ch_vertex, bool extrude,
-                          double extrude_margin, int apx_mode, unsigned int seed, bool real_metric);
-void CoACD_freeMeshArray(CoACD_MeshArray arr);
-void CoACD_setLogLevel(const char* level);
 }
 #endif
 
@@ -141,6 +140,24 @@ std::vector<Mesh> transform_hulls(const std::vector<Mesh>& hulls, const Mat3& li
   return out;
 }
 
+bool is_closed_oriented(const Mesh& m) {
+  if (m.F.rows() < 4) return false;
+  // Directed edge (a, b) -> count; closed and oriented iff each appears once with its reverse once.
+  std::unordered_map<uint64_t, int> edges;
+  edges.reserve(static_cast<size_t>(3 * m.F.rows()));
+  auto key = [](int a, int b) { return (static_cast<uint64_t>(static_cast<uint32_t>(a)) << 32) | static_cast<uint32_t>(b); };
+  for (Eigen::Index f = 0; f < m.F.rows(); ++f)
+    for (int k = 0; k < 3; ++k) {
+      const int a = m.F(f, k), b = m.F(f, (k + 1) % 3);
+      if (a == b || ++edges[key(a, b)] > 1) return false;
+    }
+  for (const auto& [k, n] : edges) {
+    const int a = static_cast<int>(k >> 32), b = static_cast<int>(k & 0xffffffffu);
+    if (!edges.count(key(b, a))) return false;
+  }
+  return true;
+}
+
 namespace {
 
 // Thickness of a convex solid along its thinnest principal direction (slab estimate sqrt(12 var)).
@@ -182,11 +199,48 @@ std::mutex& coacd_mutex() {
   return m;
 }
 
+// CoACD's entry points, from lib_coacd.so opened privately. The library carries its own copy of the
+// C++ runtime and exports it (__cxa_throw, std:: symbols); linked normally, that copy serves every
+// exception thrown in the process, and a yaml-cpp parse error aborted the program on the GPU image.
+// RTLD_LOCAL keeps its symbols out of the process, RTLD_DEEPBIND makes it use its own.
+struct CoacdApi {
+  CoACD_MeshArray (*run)(const CoACD_Mesh&, double, int, int, int, int, int, int, int, bool, bool, bool, int, bool,
+                         double, int, unsigned int, bool) = nullptr;
+  void (*free_array)(CoACD_MeshArray) = nullptr;
+  void (*set_log_level)(const char*) = nullptr;
+  std::string error;  // why it is unavailable ("" when loaded)
+};
+
+const CoacdApi& coacd_api() {
+  static const CoacdApi api = [] {
+    CoacdApi a;
+    const char* env = std::getenv("SIMU_COACD_LIBRARY");
+    const std::string path = env && *env ? env : SIMU_COACD_LIBRARY;
+    void* h = dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL | RTLD_DEEPBIND);
+    if (!h) {
+      a.error = fmt::format("cannot load CoACD from '{}' ({}); set SIMU_COACD_LIBRARY to lib_coacd.so of "
+                            "pip's coacd==1.0.14", path, dlerror());
+      return a;
+    }
+    a.run = reinterpret_cast<decltype(a.run)>(dlsym(h, "CoACD_run"));
+    a.free_array = reinterpret_cast<decltype(a.free_array)>(dlsym(h, "CoACD_freeMeshArray"));
+    a.set_log_level = reinterpret_cast<decltype(a.set_log_level)>(dlsym(h, "CoACD_setLogLevel"));
+    if (!a.run || !a.free_array || !a.set_log_level)
+      a.error = fmt::format("'{}' lacks CoACD_run / CoACD_freeMeshArray / CoACD_setLogLevel", path);
+    else
+      a.set_log_level("error");
+    return a;
+  }();
+  return api;
+}
+
 // Runs CoACD and returns the raw parts' vertex sets.
 std::vector<RowPoints> run_coacd(const Mesh& mesh, const CollisionConfig& cfg) {
   std::lock_guard<std::mutex> lock(coacd_mutex());
-  static bool quiet = (CoACD_setLogLevel("error"), true);
-  (void)quiet;
+  const auto& api = coacd_api();
+  SIMU_CHECK(api.error.empty(), "{}", api.error);
+  const auto CoACD_run = api.run;
+  const auto CoACD_freeMeshArray = api.free_array;
   RowPoints V = mesh.V;
   Eigen::Matrix<int, -1, 3, Eigen::RowMajor> F = mesh.F;
   CoACD_Mesh in{V.data(), static_cast<uint64_t>(V.rows()), F.data(), static_cast<uint64_t>(F.rows())};
@@ -205,9 +259,9 @@ std::vector<RowPoints> run_coacd(const Mesh& mesh, const CollisionConfig& cfg) {
 #endif
 
 uint64_t config_hash(const CollisionConfig& c, bool coacd) {
-  const std::string s = fmt::format("v1|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}", coacd, c.threshold, c.max_hulls, c.resolution,
+  const std::string s = fmt::format("v2|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}|{}", coacd, c.threshold, c.max_hulls, c.resolution,
                                     c.mcts_iterations, c.mcts_nodes, c.mcts_depth, c.max_hull_vertices, c.seed,
-                                    c.min_thickness, c.min_volume_fraction);
+                                    c.min_thickness, c.min_volume_fraction, c.convex_tolerance);
   return fnv1a64(s.data(), s.size());
 }
 
@@ -241,9 +295,30 @@ CollisionShape shape_from_json(const nlohmann::json& j) {
   return s;
 }
 
+// The mesh's own convex hull when the mesh is convex (closed, oriented, volume within
+// cfg.convex_tolerance of its hull's and not flat); nullopt otherwise.
+std::optional<Mesh> convex_self_hull(const Mesh& mesh, const CollisionConfig& cfg) {
+  if (cfg.convex_tolerance < 0 || !is_closed_oriented(mesh)) return std::nullopt;
+  try {
+    Mesh hull = convex_hull(mesh.V);
+    double hull_volume = 0;
+    if (hull_thickness(hull, &hull_volume) < cfg.min_thickness || !(hull_volume > 0)) return std::nullopt;
+    const double volume = signed_volume(mesh);
+    if (std::abs(hull_volume - volume) <= cfg.convex_tolerance * hull_volume) return hull;
+  } catch (const Error&) {
+  }
+  return std::nullopt;
+}
+
 // Computes the decomposition (no cache).
 CollisionShape compute_shape(const Mesh& mesh, const CollisionConfig& cfg, bool coacd) {
   CollisionShape shape;
+  // A convex mesh is its own hull: no decomposition.
+  if (auto hull = convex_self_hull(mesh, cfg)) {
+    shape.hulls.push_back(std::move(*hull));
+    shape.method = "convex";
+    return shape;
+  }
   std::vector<RowPoints> parts;
 #ifdef SIMU_HAVE_COACD
   if (coacd) {
@@ -290,11 +365,47 @@ CollisionShape compute_shape(const Mesh& mesh, const CollisionConfig& cfg, bool 
 
 }  // namespace
 
+std::optional<CollisionShape> map_shape(const Mesh& before, const Mesh& after, const CollisionShape& shape,
+                                        const CollisionConfig& cfg) {
+  const Eigen::Index n = before.V.rows();
+  if (n < 4 || after.V.rows() != n || shape.hulls.empty()) return std::nullopt;
+  // Least-squares affine fit [V 1] X = V' (X: 4 x 3), then its worst residual.
+  Eigen::MatrixXd A(n, 4);
+  A.leftCols(3) = before.V;
+  A.col(3).setOnes();
+  const Eigen::MatrixXd B = after.V;
+  const Eigen::MatrixXd X = A.colPivHouseholderQr().solve(B);
+  const double size = std::max(1e-12, (after.V.colwise().maxCoeff() - after.V.colwise().minCoeff()).maxCoeff());
+  if (!X.allFinite() || (A * X - B).cwiseAbs().maxCoeff() > 1e-9 * size) return std::nullopt;
+  CollisionShape out;
+  out.method = shape.method + "+mapped";
+  out.dropped = shape.dropped;
+  for (const Mesh& h : shape.hulls) {
+    Eigen::MatrixXd H(h.V.rows(), 4);
+    H.leftCols(3) = h.V;
+    H.col(3).setOnes();
+    const RowPoints mapped = H * X;
+    try {
+      Mesh m = convex_hull(mapped);
+      double vol = 0;
+      if (hull_thickness(m, &vol) < cfg.min_thickness) return std::nullopt;
+      out.hulls.push_back(std::move(m));
+    } catch (const Error&) {
+      return std::nullopt;
+    }
+  }
+  return out;
+}
+
 CollisionShape decompose(const Mesh& canonical, const CollisionConfig& cfg) {
   const std::string problem = mesh_problem(canonical);
   SIMU_CHECK(problem.empty(), "decompose: {}", problem);
 #ifdef SIMU_HAVE_COACD
-  const bool coacd = cfg.use_coacd;
+  const bool coacd = cfg.use_coacd && coacd_api().error.empty();
+  if (cfg.use_coacd && !coacd) {
+    static std::once_flag once;
+    std::call_once(once, [] { log::warn("collision: {}; each mesh becomes one convex hull", coacd_api().error); });
+  }
 #else
   const bool coacd = false;
 #endif

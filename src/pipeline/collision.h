@@ -4,6 +4,7 @@
 // content; mass and inertia from the hulls by the divergence theorem.
 #pragma once
 
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -23,13 +24,19 @@ struct CollisionConfig {
   int seed = 0;
   double min_thickness = 2e-3;   // canonical units: thinner hulls are dropped (flat) ...
   double min_volume_fraction = 1e-4;  // ... as are hulls below this fraction of the total volume
+  // Shortcut: a closed, consistently wound mesh whose volume is within this fraction of its convex
+  // hull's is convex and becomes its own single hull (no decomposition). < 0 disables it.
+  double convex_tolerance = 1e-3;
+  // Meshes decomposed in parallel by the probe (0 = one thread per hardware core; CoACD itself
+  // runs one mesh at a time and uses OpenMP inside: OMP_NUM_THREADS limits it).
+  int threads = 0;
   std::string cache_dir;         // "" = in-memory cache only
 };
 
 // A convex part: a closed triangle mesh wound outward.
 struct CollisionShape {
   std::vector<Mesh> hulls;  // canonical frame
-  std::string method;       // "coacd", "hull", "hull+thickened"
+  std::string method;       // "convex" (the mesh is its own hull), "coacd", "hull", "hull+thickened"
   int dropped = 0;          // hulls filtered as flat or tiny
 };
 
@@ -41,6 +48,17 @@ Mesh convex_hull(const Eigen::Matrix<double, -1, 3, Eigen::RowMajor>& points);
 // cfg.cache_dir is set, always in memory). Never returns zero hulls: a flat mesh is thickened to
 // cfg.min_thickness. Throws simu::Error for an unusable mesh (mesh_problem()).
 CollisionShape decompose(const Mesh& canonical, const CollisionConfig& cfg = {});
+
+// True when every edge of the mesh is shared by exactly two faces traversing it in opposite
+// directions (closed and consistently wound).
+bool is_closed_oriented(const Mesh& mesh);
+
+// The collision shape of `after` when it is an affine image (x -> A x + b, fitted to the vertices;
+// same vertex order) of `before`, whose shape is given: every hull mapped and re-hulled, no new
+// decomposition (a convex part stays convex under an affine map). nullopt when `after` is not such
+// an image or a mapped hull comes out flatter than cfg.min_thickness.
+std::optional<CollisionShape> map_shape(const Mesh& before, const Mesh& after, const CollisionShape& shape,
+                                        const CollisionConfig& cfg = {});
 
 // Mass properties of a solid of uniform density bounded by closed outward-wound meshes.
 struct MassProps {

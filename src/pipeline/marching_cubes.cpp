@@ -117,21 +117,27 @@ TriangleMesh marching_cubes(const torch::Tensor& grid_in, const MarchingCubesOpt
   auto padded = torch::full({X, Y, Z}, static_cast<float>(iso - 1.0), torch::kFloat32);
   padded.slice(0, 1, X - 1).slice(1, 1, Y - 1).slice(2, 1, Z - 1).copy_(grid.detach().to(torch::kCPU, torch::kFloat32));
   const float* v = padded.data_ptr<float>();
-  auto at = [&](int64_t x, int64_t y, int64_t z) { return static_cast<double>(v[(x * Y + y) * Z + z]); };
+  const int64_t YZ = Y * Z;
+  // Inside flags per grid point, and the index offsets of the 8 cube corners.
+  std::vector<uint8_t> inside(static_cast<size_t>(X * YZ));
+  for (size_t i = 0; i < inside.size(); ++i) inside[i] = static_cast<double>(v[i]) > iso;
+  int64_t corner_off[8];
+  for (int c = 0; c < 8; ++c) corner_off[c] = corner_bit(c, 0) * YZ + corner_bit(c, 1) * Z + corner_bit(c, 2);
 
   const auto& table = case_table();
   std::vector<std::array<double, 3>> verts;
   std::vector<std::array<int, 3>> faces;
   // One vertex per crossed grid edge, shared by the cubes around it: index (point * 3 + axis).
-  std::vector<int> edge_vertex(static_cast<size_t>(X * Y * Z * 3), -1);
+  std::vector<int> edge_vertex(static_cast<size_t>(X * YZ * 3), -1);
   auto vertex_on = [&](int64_t x, int64_t y, int64_t z, int edge) {
     const int c = edge_start_corner(edge), axis = edge_axis(edge);
     const int64_t px = x + corner_bit(c, 0), py = y + corner_bit(c, 1), pz = z + corner_bit(c, 2);
-    int& id = edge_vertex[static_cast<size_t>(((px * Y + py) * Z + pz) * 3 + axis)];
+    const int64_t p0 = px * YZ + py * Z + pz;
+    int& id = edge_vertex[static_cast<size_t>(p0 * 3 + axis)];
     if (id >= 0) return id;
     // Linear interpolation of the iso crossing along the edge; -1 undoes the padding.
-    const double v0 = at(px, py, pz);
-    const double v1 = at(px + (axis == 0), py + (axis == 1), pz + (axis == 2));
+    const double v0 = v[p0];
+    const double v1 = v[p0 + (axis == 0 ? YZ : axis == 1 ? Z : 1)];
     const double t = (iso - v0) / (v1 - v0);
     std::array<double, 3> p{static_cast<double>(px - 1), static_cast<double>(py - 1), static_cast<double>(pz - 1)};
     p[axis] += t;
@@ -145,9 +151,9 @@ TriangleMesh marching_cubes(const torch::Tensor& grid_in, const MarchingCubesOpt
     for (int64_t y = 0; y + 1 < Y; ++y)
       for (int64_t z = 0; z + 1 < Z; ++z) {
         // Configuration: bit c set when corner c is inside.
+        const uint8_t* in = inside.data() + x * YZ + y * Z + z;
         int mask = 0;
-        for (int c = 0; c < 8; ++c)
-          if (at(x + corner_bit(c, 0), y + corner_bit(c, 1), z + corner_bit(c, 2)) > iso) mask |= 1 << c;
+        for (int c = 0; c < 8; ++c) mask |= in[corner_off[c]] << c;
         if (mask == 0 || mask == 255) continue;
         const auto& entry = table[mask];
         for (const auto& loop : entry.loops) {

@@ -23,13 +23,18 @@ bool is_valid(const SettleRecord& r, const MetricsConfig& c) {
 PhysicsMetrics physics_metrics(const std::vector<SettleRecord>& objects, const MetricsConfig& c,
                                double scene_peak_energy) {
   PhysicsMetrics m;
-  int stable = 0, penetrating = 0;
+  int stable = 0, penetrating = 0, initially = 0;
   double disp = 0, peak = 0;
   for (const SettleRecord& r : objects) {
-    if (r.physics_disabled || r.category == MetricCategory::Fixed) continue;
+    if (r.category == MetricCategory::Fixed) continue;
+    if (r.physics_disabled) {
+      ++m.disabled_count;
+      continue;
+    }
     // Penetration ratio, mean displacement and peak energy over every evaluated object.
     ++m.evaluated_count;
     penetrating += r.max_penetration > c.penetration_depth;
+    initially += r.initially_penetrating;
     disp += r.displacement;
     peak = std::max(peak, r.peak_kinetic_energy);
     // Stability over free objects that did not start out penetrating.
@@ -40,6 +45,7 @@ PhysicsMetrics physics_metrics(const std::vector<SettleRecord>& objects, const M
   }
   m.stability = m.stability_count ? 100.0 * stable / m.stability_count : 0.0;
   m.penetration_ratio = m.evaluated_count ? 100.0 * penetrating / m.evaluated_count : 0.0;
+  m.initial_penetration_ratio = m.evaluated_count ? 100.0 * initially / m.evaluated_count : 0.0;
   m.mean_displacement = m.evaluated_count ? disp / m.evaluated_count : 0.0;
   m.peak_energy = scene_peak_energy >= 0 ? scene_peak_energy : peak;
   return m;

@@ -19,12 +19,13 @@ namespace simu::pipeline {
 enum class MetricCategory { Free, Hanging, Fixed };
 MetricCategory metric_category(PoseDof dof);
 
-// Per-object outcome of the evaluation settle, filled by the probe.
+// Per-object outcome of a settle (the probe's final joint settle or the 5 s evaluation settle).
 struct SettleRecord {
   MetricCategory category = MetricCategory::Free;
   bool physics_disabled = false;       // flagged by penetration resolution / bad input: invalid
   bool initially_penetrating = false;  // penetrating (> eps) at the start of the settle
   double displacement = 0;             // |final - initial| position of the object (metres)
+  double initial_penetration = 0;      // deepest contact depth of the object before the settle (metres)
   double max_penetration = 0;          // deepest contact depth of the object after the settle (metres)
   double peak_kinetic_energy = 0;      // max over time of this object's kinetic energy (J)
 };
@@ -45,6 +46,8 @@ struct PhysicsMetrics {
   int evaluated_count = 0;       // its denominator
   double mean_displacement = 0;  // metres, mean over evaluated objects
   double peak_energy = 0;        // J: scene_peak_energy when given (>= 0), else max of the per-object peaks
+  double initial_penetration_ratio = 0;  // percent of evaluated objects penetrating (> 2 mm) at the start
+  int disabled_count = 0;        // objects left out as physics-disabled
 };
 // scene_peak_energy: max over time of the total kinetic energy, if the probe measured it (< 0: not given).
 PhysicsMetrics physics_metrics(const std::vector<SettleRecord>& objects, const MetricsConfig& config = {},

@@ -12,16 +12,19 @@
 #include <fmt/ranges.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <mutex>
 #include <numeric>
+#include <thread>
 
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
 #include "pipeline/mesh.h"
+#include "pipeline/overlay.h"
 #include "pipeline/raster.h"
 
 namespace simu::pipeline {
@@ -421,6 +424,189 @@ bool settle_on_pins(const Ctx& c, World& w, int i, Vec3* dt, Mat3* dR, double* t
   return true;
 }
 
+// Deepest contact (m, >= 0) of each object in the current contact set (margin contacts with
+// dist >= 0 count as 0). A contact between two objects counts for both.
+std::vector<double> deepest_contacts(const World& w, size_t n_objects) {
+  std::vector<double> deepest(n_objects, 0.0);
+  const mjModel* m = w.model.get();
+  const mjData* d = w.data.get();
+  for (int k = 0; k < d->ncon; ++k) {
+    const mjContact& con = d->contact[k];
+    const double depth = std::max(0.0, -static_cast<double>(con.dist));
+    for (int g : {con.geom1, con.geom2}) {
+      const int obj = w.body_obj[m->geom_bodyid[g]];
+      if (obj >= 0) deepest[obj] = std::max(deepest[obj], depth);
+    }
+  }
+  return deepest;
+}
+
+// Kinetic energy of one body (J): translation of the centre of mass + rotation about it.
+double body_kinetic_energy(const mjModel* m, const mjData* d, int body) {
+  mjtNum vel[6];  // [angular, linear] at the centre of mass, world frame
+  mj_objectVelocity(m, d, mjOBJ_BODY, body, vel, 0);
+  const Eigen::Map<const Eigen::Matrix<mjtNum, 3, 3, Eigen::RowMajor>> ximat(d->ximat + 9 * body);
+  const Vec3 w_world(vel[0], vel[1], vel[2]), v(vel[3], vel[4], vel[5]);
+  const Vec3 w_local = ximat.transpose() * w_world;  // principal inertia frame
+  const Vec3 inertia(m->body_inertia[3 * body], m->body_inertia[3 * body + 1], m->body_inertia[3 * body + 2]);
+  return 0.5 * m->body_mass[body] * v.squaredNorm() + 0.5 * w_local.dot(inertia.cwiseProduct(w_local));
+}
+
+// Outcome of one joint settle over `objects` (Scene::objects indices).
+struct SettleRun {
+  std::vector<SettleRecord> rec;  // per entry of `objects`
+  std::vector<Vec3> t;            // poses after the settle
+  std::vector<Mat3> R;
+  bool reset = false;             // MuJoCo reset the data (bad qacc): poses are the initial ones
+  bool full = false;              // contact buffers still full at the largest size
+  double simulated = 0;           // s
+  double scene_peak = 0;          // J: max over time of the summed kinetic energy
+  int buffer_factor = 1;          // contact/constraint buffer multiplier that sufficed
+};
+
+// Joint settle: free objects 6-DoF, anchored ones on their pins, everything under gravity for
+// `duration` s; stops early once, over one settle_window, no body moved more than rest_distance.
+// Full contact/constraint buffers restart it with larger ones. Records per object: displacement,
+// deepest contact at the start and at the end, peak kinetic energy, category.
+SettleRun joint_settle(const Ctx& c, const std::vector<int>& objects, double duration, double rest_distance) {
+  SettleRun run;
+  const size_t n = objects.size();
+  bool full = true;
+  World w;
+  for (run.buffer_factor = 1; full; run.buffer_factor *= 2) {
+    w = build_world(c, {}, objects, true, nullptr, {}, run.buffer_factor);
+    const mjModel* m = w.model.get();
+    mjData* d = w.data.get();
+    // Start: poses and contacts (build_world ran mj_forward).
+    const std::vector<double> depth0 = deepest_contacts(w, c.objs.size());
+    run.rec.assign(n, SettleRecord{});
+    run.t.assign(n, Vec3::Zero());
+    run.R.assign(n, Mat3::Identity());
+    std::vector<Vec3> t0(n), last(n);
+    for (size_t k = 0; k < n; ++k) {
+      const int i = objects[k];
+      SettleRecord& r = run.rec[k];
+      r.category = metric_category(c.scene.objects[i].dof);
+      r.initial_penetration = depth0[i];
+      r.initially_penetrating = depth0[i] > c.cfg.metrics.penetration_depth;
+      get_pose(w, w.obj_body[i], &t0[k], &run.R[k]);
+      last[k] = Eigen::Map<const Vec3>(d->xpos + 3 * w.obj_body[i]);
+    }
+    const int steps = static_cast<int>(std::ceil(duration / m->opt.timestep));
+    const int window = std::max(1, static_cast<int>(c.cfg.settle_window / m->opt.timestep));
+    run.scene_peak = 0;
+    run.reset = false;
+    full = false;
+    bool calm = false;
+    int s = 0;
+    for (; s < steps && !calm; ++s) {
+      mj_step(m, d);
+      const int warn = take_warnings(d);
+      if (warn & ((1 << mjWARN_CONTACTFULL) | (1 << mjWARN_CNSTRFULL))) {
+        // Restart with larger buffers; at the largest size go on (contacts beyond it are dropped).
+        if (run.buffer_factor < 8) {
+          full = true;
+          break;
+        }
+        run.full = true;
+      }
+      if (warn & (1 << mjWARN_BADQACC)) {
+        run.reset = true;
+        break;
+      }
+      // Kinetic energy of each object and of the scene (velocities of the state this step started from).
+      double total = 0;
+      for (size_t k = 0; k < n; ++k) {
+        const double e = body_kinetic_energy(m, d, w.obj_body[objects[k]]);
+        run.rec[k].peak_kinetic_energy = std::max(run.rec[k].peak_kinetic_energy, e);
+        total += e;
+      }
+      run.scene_peak = std::max(run.scene_peak, total);
+      // Rest test every window: no body moved more than rest_distance since the last one.
+      if ((s + 1) % window == 0) {
+        double moved = 0;
+        for (size_t k = 0; k < n; ++k) {
+          const Vec3 p = Eigen::Map<const Vec3>(d->xpos + 3 * w.obj_body[objects[k]]);
+          moved = std::max(moved, (p - last[k]).norm());
+          last[k] = p;
+        }
+        calm = moved < rest_distance;
+      }
+    }
+    if (full) continue;
+    run.simulated = s * m->opt.timestep;
+    if (run.reset) {
+      // The data was reset to qpos0: report the initial poses, no motion measured.
+      for (size_t k = 0; k < n; ++k) run.t[k] = t0[k];
+      break;
+    }
+    // End: poses, displacement, contacts of the final state.
+    mj_forward(m, d);
+    take_warnings(d);
+    const std::vector<double> depth1 = deepest_contacts(w, c.objs.size());
+    for (size_t k = 0; k < n; ++k) {
+      get_pose(w, w.obj_body[objects[k]], &run.t[k], &run.R[k]);
+      run.rec[k].displacement = (run.t[k] - t0[k]).norm();
+      run.rec[k].max_penetration = depth1[objects[k]];
+    }
+    break;
+  }
+  return run;
+}
+
+// Object-side pins at the object's current pose, paired with its wall (anchored objects).
+void place_pins(Ctx& c, int i, Diagnostics& d) {
+  Obj& o = c.objs[i];
+  const Plane& wall = c.scene.walls[o.wall];
+  const Mesh world = transform_mesh(o.canonical, o.R * o.s.asDiagonal(), o.t);
+  d.pins_world = choose_pins(world, wall, c.scene.gravity, pin_count(c.scene.objects[i].dof), c.cfg.pin_region);
+  o.pins_body.clear();
+  d.wall_points.clear();
+  for (const auto& p : d.pins_world) {
+    o.pins_body.push_back(o.R.transpose() * (p - o.t));
+    d.wall_points.push_back(p - wall.distance(p) * wall.normal);
+  }
+}
+
+// The metrics settle over `live` objects: a PhysicsEvaluation over every scene object (the others
+// are physics_disabled records at their current pose).
+PhysicsEvaluation evaluate_settle(const Ctx& c, const std::vector<int>& live, double duration) {
+  using clock = std::chrono::steady_clock;
+  const auto t0 = clock::now();
+  PhysicsEvaluation ev;
+  const size_t n = c.objs.size();
+  ev.objects.assign(n, SettleRecord{});
+  ev.t.resize(n);
+  ev.R.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    ev.objects[i].category = metric_category(c.scene.objects[i].dof);
+    ev.objects[i].physics_disabled = true;
+    ev.t[i] = c.objs[i].t, ev.R[i] = c.objs[i].R;
+  }
+  if (!live.empty() && duration > 0) {
+    try {
+      const SettleRun run = joint_settle(c, live, duration, c.cfg.metrics_rest_distance);
+      for (size_t k = 0; k < live.size(); ++k) {
+        const int i = live[k];
+        ev.objects[i] = run.rec[k];
+        ev.t[i] = run.t[k], ev.R[i] = run.R[k];
+      }
+      ev.ran = true;
+      ev.solver_reset = run.reset;
+      ev.scene_peak_energy = run.scene_peak;
+      ev.simulated_time = run.simulated;
+      if (run.reset) ev.message = "MuJoCo reset the data (bad qacc) during the evaluation settle";
+      if (run.full) ev.message = "contact buffers full during the evaluation settle";
+    } catch (const std::exception& e) {
+      ev.message = std::string("evaluation settle failed: ") + e.what();
+      log::warn("{}", ev.message);
+    }
+  }
+  ev.metrics = physics_metrics(ev.objects, c.cfg.metrics, ev.ran ? ev.scene_peak_energy : -1);
+  ev.seconds = std::chrono::duration<double>(clock::now() - t0).count();
+  return ev;
+}
+
 // Best-of-N: the stability figure of one candidate shape for object i. The candidate is placed at
 // `centre` with `statics` as static colliders, its penetration resolved, then it settles alone for
 // candidate_settle_time (stopping once at rest over settle_window). displacement = |final - centre|
@@ -552,6 +738,176 @@ std::vector<int> sequential_order(const Ctx& c, const std::vector<int>& idx) {
   return out;
 }
 
+// The overlay PNG (overlay.h) of a probe run: modal masks (or the rendered visible masks of the
+// corrected objects), OBBs before / targeted, auxiliary crop masks of the resample requests.
+void write_overlay(const ProbeResult& res, const std::vector<Obj>& objs, const std::string& path) {
+  const Scene& scene = res.scene;
+  const size_t n = scene.objects.size();
+  // Visible masks of the corrected scene (for objects without a modal mask file).
+  std::vector<Mesh> world(n);
+  std::vector<const Mesh*> ptrs(n, nullptr);
+  for (size_t i = 0; i < n; ++i)
+    if (objs[i].usable) {
+      world[i] = transform_mesh(objs[i].canonical, objs[i].R * objs[i].s.asDiagonal(), objs[i].t);
+      ptrs[i] = &world[i];
+    }
+  const LabelImage labels = render_labels(scene.camera, ptrs);
+  std::vector<BinaryMask> masks(n), aux(n);
+  std::vector<OverlayItem> items(n);
+  for (size_t i = 0; i < n; ++i) {
+    const SceneObject& so = scene.objects[i];
+    const Diagnostics& d = res.diagnostics[i];
+    OverlayItem& it = items[i];
+    it.label = so.id + " " + to_string(d.branch);
+    try {
+      if (!so.mask_path.empty() && stdfs::exists(so.mask_path)) masks[i] = read_mask(so.mask_path);
+    } catch (const std::exception& e) {
+      log::warn("overlay: {}", e.what());
+    }
+    if (masks[i].width != scene.camera.width || masks[i].height != scene.camera.height) masks[i] = labels.mask_of(int(i));
+    it.mask = &masks[i];
+    if (d.obb_pre.extents.minCoeff() > 0) it.obb = d.obb_pre;
+    if ((d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample) && d.obb_target.extents.minCoeff() > 0)
+      it.obb_target = d.obb_target;
+  }
+  for (const ProbeResampleRequest& r : res.resample_requests) {
+    if (r.object_index < 0 || r.object_index >= int(n) || r.aux_mask.empty()) continue;
+    BinaryMask& m = aux[r.object_index];
+#ifdef SIMU_HAVE_OPENCV
+    m = BinaryMask(r.aux_mask.cols, r.aux_mask.rows);
+    for (int y = 0; y < m.height; ++y)
+      for (int x = 0; x < m.width; ++x) m.at(y, x) = r.aux_mask.at<uint8_t>(y, x) ? 1 : 0;
+#else
+    m = BinaryMask(r.aux_mask.width, r.aux_mask.height);
+    for (size_t k = 0; k < m.data.size(); ++k) m.data[k] = r.aux_mask.data[k] ? 1 : 0;
+#endif
+    items[r.object_index].aux_mask = &m;
+  }
+  write_overlay_png(path, scene.camera, scene.image_path, items);
+}
+
+// Step 1 of the probe (and of evaluate_physics): bases read and decomposed (a bad base is skipped
+// with a warning), objects read, decomposed and checked; problems flag the object, the rest goes on.
+void load_inputs(Ctx& c, std::vector<Diagnostics>& diags) {
+  const Scene& scene = c.scene;
+  const ProbeConfig& cfg = c.cfg;
+  std::vector<Obj>& objs = c.objs;
+  const size_t n = scene.objects.size();
+  // 1. Bases: read, decompose, scale (a bad base is skipped with a warning).
+  for (const auto& b : scene.bases) {
+    if (!b.error.empty()) {
+      log::warn("base skipped: {}", b.error);
+      continue;
+    }
+    try {
+      const Mesh mesh = read_mesh(b.mesh_path);
+      const std::string p = mesh_problem(mesh);
+      SIMU_CHECK(p.empty(), "base {}: {}", b.id, p);
+      const auto shape = decompose(mesh, cfg.collision);
+      c.bases.push_back(b);
+      c.base_hulls.push_back(transform_hulls(shape.hulls, b.scale.asDiagonal()));
+    } catch (const std::exception& e) {
+      log::warn("base {} skipped: {}", b.id, e.what());
+    }
+  }
+
+  // 1. Objects: meshes read and checked; problems flag the object, the rest goes on.
+  std::vector<std::string> mesh_errors(n);
+  std::vector<size_t> to_decompose;
+  for (size_t i = 0; i < n; ++i) {
+    const SceneObject& so = scene.objects[i];
+    Diagnostics& d = diags[i];
+    Obj& o = objs[i];
+    d.t_pre = so.t, d.R_pre = so.R, d.s_pre = so.scale;
+    o.t = so.t, o.R = so.R, o.s = so.scale;
+    if (!so.error.empty()) continue;
+    try {
+      o.canonical = read_mesh(so.mesh_path);
+      const std::string p = mesh_problem(o.canonical);
+      SIMU_CHECK(p.empty(), "{}: {}", so.mesh_path, p);
+      const auto b = mesh_aabb(o.canonical);
+      if (std::abs(b.size().maxCoeff() - 1.0) > 0.02 || b.center().norm() > 0.02)
+        add_flag(d, "not_canonical", fmt::format("mesh AABB longest side {:.3f}, centre offset {:.3f} (expected 1, 0)",
+                                                 b.size().maxCoeff(), b.center().norm()));
+      to_decompose.push_back(i);
+    } catch (const std::exception& e) {
+      mesh_errors[i] = e.what();
+    }
+  }
+  // Collision hulls of every readable mesh, several meshes at a time (cfg.collision.threads).
+  {
+    const unsigned hw = std::max(1u, std::thread::hardware_concurrency());
+    const size_t nthreads = std::min<size_t>(to_decompose.size(), cfg.collision.threads > 0 ? size_t(cfg.collision.threads) : hw);
+    std::atomic<size_t> next{0};
+    auto worker = [&] {
+      for (size_t k = next++; k < to_decompose.size(); k = next++) {
+        const size_t i = to_decompose[k];
+        try {
+          objs[i].shape = decompose(objs[i].canonical, cfg.collision);
+          objs[i].usable = true;
+        } catch (const std::exception& e) {
+          mesh_errors[i] = e.what();
+        }
+      }
+    };
+    if (nthreads <= 1) {
+      worker();
+    } else {
+      std::vector<std::thread> pool;
+      for (size_t t = 0; t < nthreads; ++t) pool.emplace_back(worker);
+      for (auto& t : pool) t.join();
+    }
+  }
+  // Per object: flags, room and wall checks.
+  for (size_t i = 0; i < n; ++i) {
+    const SceneObject& so = scene.objects[i];
+    Diagnostics& d = diags[i];
+    Obj& o = objs[i];
+    if (!so.error.empty()) {
+      add_flag(d, "bad_input", so.error);
+      continue;
+    }
+    if (!o.usable) {
+      add_flag(d, "mesh_error", mesh_errors[i].empty() ? "no collision hulls" : mesh_errors[i]);
+      continue;
+    }
+    // Outside the room: centre behind the floor or a wall.
+    const Vec3 centre = so.to_world(mesh_aabb(o.canonical).center());
+    std::string outside;
+    if (scene.floor && scene.floor->distance(centre) < 0) outside = "below the floor";
+    for (const auto& w : scene.walls)
+      if (w.distance(centre) < 0) outside = "behind wall " + w.id;
+    if (!outside.empty()) {
+      add_flag(d, "outside_room", "object centre is " + outside);
+      continue;
+    }
+    // Anchored objects need a wall.
+    if (so.dof != PoseDof::Free) {
+      int best = -1;
+      double best_d = 1e300;
+      for (size_t k = 0; k < scene.walls.size(); ++k) {
+        if (!so.wall_id.empty() && scene.walls[k].id != so.wall_id) continue;
+        const double dist = std::abs(scene.walls[k].distance(centre));
+        if (dist < best_d) best_d = dist, best = static_cast<int>(k);
+      }
+      if (best < 0) {
+        add_flag(d, "no_wall", so.wall_id.empty() ? "anchored object but the scene has no walls"
+                                                  : "anchored object: wall '" + so.wall_id + "' not found");
+        continue;
+      }
+      o.wall = best;
+      d.wall_id = scene.walls[best].id;
+    }
+    o.simulate = true;
+  }
+  for (size_t i = 0; i < n; ++i)
+    if (!objs[i].simulate) {
+      diags[i].physics_disabled = true;
+      diags[i].branch = ProbeBranch::Disabled;
+    }
+
+}
+
 }  // namespace
 
 nlohmann::json report_json(const ProbeResult& r) {
@@ -589,6 +945,8 @@ nlohmann::json report_json(const ProbeResult& r) {
     e["dt_final_pen"] = vec_j(d.dt_final_pen);
     e["settle_displacement"] = d.settle_displacement;
     e["reverted"] = d.reverted;
+    e["final_settle"] = settle_json(d.final_settle);
+    e["evaluation"] = settle_json(d.evaluation);
     // What changed: OBB extents before / after, displacement of the OBB centre.
     e["change"] = {{"obb_extents_before", vec_j(d.obb_pre.extents)},
                    {"obb_extents_after", vec_j(d.obb_final.extents)},
@@ -612,9 +970,54 @@ nlohmann::json report_json(const ProbeResult& r) {
     }
     objs.push_back(e);
   }
+  json metrics = metrics_json(r.evaluation.metrics);
+  metrics["settle_time"] = r.evaluation.simulated_time;
+  metrics["solver_reset"] = r.evaluation.solver_reset;
+  if (!r.evaluation.message.empty()) metrics["message"] = r.evaluation.message;
   return {{"objects", objs},
           {"order", r.order},
-          {"seconds", {{"probe", r.seconds_probe}, {"resample", r.seconds_resample}, {"final", r.seconds_final}}}};
+          {"metrics", metrics},
+          {"seconds",
+           {{"probe", r.seconds_probe}, {"resample", r.seconds_resample}, {"final", r.seconds_final}, {"metrics", r.seconds_metrics}}}};
+}
+
+nlohmann::json settle_json(const SettleRecord& r) {
+  const char* cat = r.category == MetricCategory::Free ? "free" : r.category == MetricCategory::Hanging ? "hanging" : "fixed";
+  return {{"category", cat},
+          {"physics_disabled", r.physics_disabled},
+          {"displacement", r.displacement},
+          {"initial_penetration", r.initial_penetration},
+          {"initially_penetrating", r.initially_penetrating},
+          {"final_penetration", r.max_penetration},
+          {"peak_kinetic_energy", r.peak_kinetic_energy}};
+}
+
+nlohmann::json metrics_json(const PhysicsMetrics& m) {
+  return {{"stability", m.stability},
+          {"stability_count", m.stability_count},
+          {"penetration_ratio", m.penetration_ratio},
+          {"initial_penetration_ratio", m.initial_penetration_ratio},
+          {"evaluated_count", m.evaluated_count},
+          {"disabled_count", m.disabled_count},
+          {"mean_displacement", m.mean_displacement},
+          {"peak_energy", m.peak_energy}};
+}
+
+PhysicsEvaluation evaluate_physics(const Scene& scene_in, const ProbeConfig& cfg, double settle_time) {
+  Scene scene = scene_in;
+  const size_t n = scene.objects.size();
+  std::vector<Obj> objs(n);
+  std::vector<Diagnostics> diags(n);
+  Ctx c{scene, cfg, objs, {}, {}};
+  load_inputs(c, diags);
+  // Every usable object as read; anchored ones pinned to their wall at this pose.
+  std::vector<int> live;
+  for (size_t i = 0; i < n; ++i) {
+    if (!objs[i].simulate) continue;
+    if (scene.objects[i].dof != PoseDof::Free) place_pins(c, static_cast<int>(i), diags[i]);
+    live.push_back(static_cast<int>(i));
+  }
+  return evaluate_settle(c, live, settle_time < 0 ? cfg.metrics_settle_time : settle_time);
 }
 
 ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::string& out_dir,
@@ -629,83 +1032,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   std::vector<Obj> objs(n);
   Ctx c{scene, cfg, objs, {}, {}};
 
-  // 1. Bases: read, decompose, scale (a bad base is skipped with a warning).
-  for (const auto& b : scene.bases) {
-    if (!b.error.empty()) {
-      log::warn("base skipped: {}", b.error);
-      continue;
-    }
-    try {
-      const Mesh mesh = read_mesh(b.mesh_path);
-      const std::string p = mesh_problem(mesh);
-      SIMU_CHECK(p.empty(), "base {}: {}", b.id, p);
-      const auto shape = decompose(mesh, cfg.collision);
-      c.bases.push_back(b);
-      c.base_hulls.push_back(transform_hulls(shape.hulls, b.scale.asDiagonal()));
-    } catch (const std::exception& e) {
-      log::warn("base {} skipped: {}", b.id, e.what());
-    }
-  }
-
-  // 1. Objects: mesh, hulls, sanity checks. Problems flag the object; the rest goes on.
-  for (size_t i = 0; i < n; ++i) {
-    const SceneObject& so = scene.objects[i];
-    Diagnostics& d = res.diagnostics[i];
-    Obj& o = objs[i];
-    d.t_pre = so.t, d.R_pre = so.R, d.s_pre = so.scale;
-    o.t = so.t, o.R = so.R, o.s = so.scale;
-    if (!so.error.empty()) {
-      add_flag(d, "bad_input", so.error);
-      continue;
-    }
-    try {
-      o.canonical = read_mesh(so.mesh_path);
-      const std::string p = mesh_problem(o.canonical);
-      SIMU_CHECK(p.empty(), "{}: {}", so.mesh_path, p);
-      const auto b = mesh_aabb(o.canonical);
-      if (std::abs(b.size().maxCoeff() - 1.0) > 0.02 || b.center().norm() > 0.02)
-        add_flag(d, "not_canonical", fmt::format("mesh AABB longest side {:.3f}, centre offset {:.3f} (expected 1, 0)",
-                                                 b.size().maxCoeff(), b.center().norm()));
-      o.shape = decompose(o.canonical, cfg.collision);
-      o.usable = true;
-    } catch (const std::exception& e) {
-      add_flag(d, "mesh_error", e.what());
-      continue;
-    }
-    // Outside the room: centre behind the floor or a wall.
-    const Vec3 centre = so.to_world(mesh_aabb(o.canonical).center());
-    std::string outside;
-    if (scene.floor && scene.floor->distance(centre) < 0) outside = "below the floor";
-    for (const auto& w : scene.walls)
-      if (w.distance(centre) < 0) outside = "behind wall " + w.id;
-    if (!outside.empty()) {
-      add_flag(d, "outside_room", "object centre is " + outside);
-      continue;
-    }
-    // Anchored objects need a wall.
-    if (so.dof != PoseDof::Free) {
-      int best = -1;
-      double best_d = 1e300;
-      for (size_t k = 0; k < scene.walls.size(); ++k) {
-        if (!so.wall_id.empty() && scene.walls[k].id != so.wall_id) continue;
-        const double dist = std::abs(scene.walls[k].distance(centre));
-        if (dist < best_d) best_d = dist, best = static_cast<int>(k);
-      }
-      if (best < 0) {
-        add_flag(d, "no_wall", so.wall_id.empty() ? "anchored object but the scene has no walls"
-                                                  : "anchored object: wall '" + so.wall_id + "' not found");
-        continue;
-      }
-      o.wall = best;
-      d.wall_id = scene.walls[best].id;
-    }
-    o.simulate = true;
-  }
-  for (size_t i = 0; i < n; ++i)
-    if (!objs[i].simulate) {
-      res.diagnostics[i].physics_disabled = true;
-      res.diagnostics[i].branch = ProbeBranch::Disabled;
-    }
+  load_inputs(c, res.diagnostics);
 
   // 2. Sequential order over the simulated objects.
   std::vector<int> live;
@@ -732,15 +1059,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
         if (!ok && why.rfind("no contact", 0) == 0) add_flag(d, "no_support", "");
       } else if (ok) {
         // Pins at the current (post-penetration) pose, paired with the wall.
-        const Plane& wall = scene.walls[o.wall];
-        const Mesh world = transform_mesh(o.canonical, o.R * o.s.asDiagonal(), o.t);
-        d.pins_world = choose_pins(world, wall, scene.gravity, pin_count(so.dof), cfg.pin_region);
-        o.pins_body.clear();
-        d.wall_points.clear();
-        for (const auto& p : d.pins_world) {
-          o.pins_body.push_back(o.R.transpose() * (p - o.t));
-          d.wall_points.push_back(p - wall.distance(p) * wall.normal);
-        }
+        place_pins(c, i, d);
         World wp = build_world(c, placed, {i}, true);
         ok = settle_on_pins(c, wp, i, &d.dt_grv, &d.dR_grv, &d.sim_time, &why);
       }
@@ -786,7 +1105,9 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
           if (st.mesh_changed) {
             Mesh m = o.canonical;
             m.V = st.canonical;
-            o.shape = decompose(m, cfg.collision);
+            // The stretch is affine in the canonical frame: map the hulls instead of decomposing anew.
+            auto mapped = map_shape(o.canonical, m, o.shape, cfg.collision);
+            o.shape = mapped ? std::move(*mapped) : decompose(m, cfg.collision);
             o.canonical = m;
           }
           o.s = st.scale;
@@ -949,71 +1270,41 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   int buffer_factor = 1;
   if (!final_order.empty()) {
     try {
-      // Joint settle for T_settle; stops early once every body has been at rest for settle_hold_time.
-      // Full contact/constraint buffers (a warning) restart it with larger ones.
-      World w;
-      bool reset = false, full = true;
-      for (; full && buffer_factor <= 8; buffer_factor *= 2) {
-        w = build_world(c, {}, final_order, true, nullptr, {}, buffer_factor);
-        const mjModel* m = w.model.get();
-        const int steps = static_cast<int>(std::ceil(cfg.final_settle_time / m->opt.timestep));
-        // Rest test every settle_window: no body moved more than settle_rest_distance since the last one.
-        const int window = std::max(1, static_cast<int>(cfg.settle_window / m->opt.timestep));
-        std::vector<Vec3> last(final_order.size());
-        for (size_t k = 0; k < final_order.size(); ++k) last[k] = Eigen::Map<const Vec3>(w.data->xpos + 3 * w.obj_body[final_order[k]]);
-        bool calm = false;
-        full = false;
-        for (int s = 0; s < steps && !calm; ++s) {
-          mj_step(m, w.data.get());
-          const int warn = take_warnings(w.data.get());
-          if (warn & ((1 << mjWARN_CONTACTFULL) | (1 << mjWARN_CNSTRFULL))) {
-            full = true;
-            break;
-          }
-          if (warn & (1 << mjWARN_BADQACC)) {
-            reset = true;
-            break;
-          }
-          if ((s + 1) % window == 0) {
-            double moved = 0;
-            for (size_t k = 0; k < final_order.size(); ++k) {
-              const Vec3 p = Eigen::Map<const Vec3>(w.data->xpos + 3 * w.obj_body[final_order[k]]);
-              moved = std::max(moved, (p - last[k]).norm());
-              last[k] = p;
-            }
-            calm = moved < cfg.settle_rest_distance;
-          }
-        }
-        if (!full) break;
-      }
-      if (full) log::warn("final settle: contact buffers still full at {}x", buffer_factor / 2);
+      // Joint settle for T_settle (stops early once every body is at rest), recorded per object.
+      const SettleRun run = joint_settle(c, final_order, cfg.final_settle_time, cfg.settle_rest_distance);
+      buffer_factor = run.buffer_factor;
+      if (run.full) log::warn("final settle: contact buffers still full at {}x", buffer_factor);
       log::debug("final settle: {:.3f} s ({:.2f} s simulated)", std::chrono::duration<double>(clock::now() - t_pen_done).count(),
-                 w.data->time);
-      for (int i : final_order) {
+                 run.simulated);
+      for (size_t k = 0; k < final_order.size(); ++k) {
+        const int i = final_order[k];
         Diagnostics& d = res.diagnostics[i];
-        if (reset) {
+        d.final_settle = run.rec[k];
+        if (run.reset) {
           add_flag(d, "solver_reset", "MuJoCo reset the data during the final settle; pre-settle poses kept");
           d.reverted = true;
           continue;
         }
-        Vec3 t;
-        Mat3 R;
-        get_pose(w, w.obj_body[i], &t, &R);
-        d.settle_displacement = (t - objs[i].t).norm();
-        if (!t.allFinite() || d.settle_displacement > cfg.divergence_bound) {
+        d.settle_displacement = run.rec[k].displacement;
+        if (!run.t[k].allFinite() || !(d.settle_displacement <= cfg.divergence_bound)) {
           d.reverted = true;
           add_flag(d, "reverted", fmt::format("moved {:.3f} m in the final settle (> {:.2f} m): pre-settle pose kept",
                                               d.settle_displacement, cfg.divergence_bound));
           continue;
         }
-        objs[i].t = t;
-        objs[i].R = R;
+        objs[i].t = run.t[k];
+        objs[i].R = run.R[k];
       }
     } catch (const std::exception& e) {
       log::warn("final settle failed: {}", e.what());
       for (int i : final_order) add_flag(res.diagnostics[i], "settle_failed", e.what());
     }
   }
+  for (size_t i = 0; i < n; ++i)
+    if (!objs[i].simulate) {
+      res.diagnostics[i].final_settle.category = metric_category(scene.objects[i].dof);
+      res.diagnostics[i].final_settle.physics_disabled = true;
+    }
   // The final MJCF: free objects dynamic, anchored ones on their pins, disabled ones visual only.
   try {
     build_world(c, {}, final_order, true, &res.mjcf, visual, std::max(1, buffer_factor));
@@ -1021,6 +1312,26 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
     log::warn("final MJCF does not compile: {}", e.what());
   }
   res.seconds_final = std::chrono::duration<double>(clock::now() - t2).count();
+
+  // Evaluation settle of the final scene (supplementary "Metrics": 5 s under gravity).
+  if (cfg.metrics_settle_time > 0) {
+    res.evaluation = evaluate_settle(c, final_order, cfg.metrics_settle_time);
+  } else {
+    // No separate settle: the metrics of the final settle.
+    res.evaluation.objects.clear();
+    for (size_t i = 0; i < n; ++i) res.evaluation.objects.push_back(res.diagnostics[i].final_settle);
+    res.evaluation.metrics = physics_metrics(res.evaluation.objects, cfg.metrics);
+  }
+  for (size_t i = 0; i < n && i < res.evaluation.objects.size(); ++i) {
+    res.diagnostics[i].evaluation = res.evaluation.objects[i];
+    res.diagnostics[i].evaluation.physics_disabled = res.diagnostics[i].evaluation.physics_disabled || res.diagnostics[i].physics_disabled;
+  }
+  res.evaluation.metrics = physics_metrics([&] {
+    std::vector<SettleRecord> v;
+    for (const auto& d : res.diagnostics) v.push_back(d.evaluation);
+    return v;
+  }(), cfg.metrics, res.evaluation.ran ? res.evaluation.scene_peak_energy : -1);
+  res.seconds_metrics = res.evaluation.seconds;
 
   // Corrected scene: final poses and scales (and each object's final OBB for the report).
   for (size_t i = 0; i < n; ++i) {
@@ -1065,6 +1376,20 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
       fs::atomic_write(dir + "/request.json", j.dump(2) + "\n");
     }
     fs::atomic_write(out_dir + "/report.json", report_json(res).dump(2) + "\n");
+    // Overlay for a person to look at (needs OpenCV's PNG codec and a camera).
+#ifdef SIMU_HAVE_OPENCV
+    if (scene.camera.valid()) {
+      try {
+        write_overlay(res, objs, out_dir + "/overlay.png");
+      } catch (const std::exception& e) {
+        log::warn("overlay.png not written: {}", e.what());
+      }
+    } else {
+      log::info("overlay.png skipped: the scene has no valid camera");
+    }
+#else
+    log::info("overlay.png skipped: built without OpenCV (SIMU_WITH_OPENCV=OFF)");
+#endif
   }
   return res;
 }

@@ -15,7 +15,11 @@
 //  5. final composition: sequential penetration resolution on the corrected objects, then one
 //     joint settle (free objects 6-DoF, anchored ones on their pins) for T_settle; objects moving
 //     more than the divergence bound are reverted to their pre-settle pose;
-//  6. writes DIR/scene.json (+ DIR/meshes/), DIR/scene.xml (standalone MJCF), DIR/report.json.
+//  6. evaluation settle of the final scene (5 s, supplementary "Metrics"): per-object SettleRecords
+//     and the PhysicsMetrics;
+//  7. writes DIR/scene.json (+ DIR/meshes/), DIR/scene.xml (standalone MJCF), DIR/report.json and,
+//     built with OpenCV, DIR/overlay.png (per object: modal mask, or its rendered visible mask when
+//     it has none; pre-simulation OBB solid, target OBB dashed; auxiliary crop mask M' outlined).
 #pragma once
 
 #include <array>
@@ -30,6 +34,7 @@
 
 #include "pipeline/collision.h"
 #include "pipeline/geometry.h"
+#include "pipeline/metrics.h"
 #include "pipeline/mjcf.h"
 #include "pipeline/scene.h"
 
@@ -85,6 +90,8 @@ struct Diagnostics {
   Vec3 dt_final_pen = Vec3::Zero();
   double settle_displacement = 0; // m, during the joint settle
   bool reverted = false;
+  SettleRecord final_settle;      // the final joint settle (T_settle) of this object
+  SettleRecord evaluation;        // the metrics settle (metrics_settle_time) of the final scene
   // Resampling (branch Resample with a resampler): what the resampler returned and where it went.
   struct Candidate {
     std::string label;            // the resampler's name for it (e.g. "sample 1 (seed 0)")
@@ -161,7 +168,28 @@ struct ProbeConfig {
   double divergence_bound = 0.25;  // m: larger final-settle motion is reverted
   double candidate_settle_time = 1.0;  // s: settle of each best-of-N candidate (stops early at rest)
   double pin_region = 0.1;         // top-back pin region, fraction of the object's extent
-  bool write_outputs = true;       // scene.json, meshes, scene.xml, report.json, hand-off
+  // Evaluation (supplementary "Metrics"): a gravity settle of the final scene for this long (paper:
+  // 5 s; 0 = none, the metrics then come from the final settle). It stops early once, over one
+  // settle_window, no body moved more than metrics_rest_distance.
+  double metrics_settle_time = 5.0;
+  double metrics_rest_distance = 1e-4;
+  MetricsConfig metrics;           // stability / penetration thresholds (5 cm, 2 mm)
+  bool write_outputs = true;       // scene.json, meshes, scene.xml, report.json, hand-off, overlay.png
+};
+
+// A joint gravity settle of a scene (free objects 6-DoF, anchored ones on their pins) with the
+// paper's physics metrics over it.
+struct PhysicsEvaluation {
+  bool ran = false;                   // false: nothing to simulate (or the model did not compile)
+  std::vector<SettleRecord> objects;  // per Scene::objects index (unsimulated ones: physics_disabled)
+  std::vector<Vec3> t;                // per object: position after the settle (input pose if unsimulated)
+  std::vector<Mat3> R;
+  PhysicsMetrics metrics;
+  double scene_peak_energy = 0;       // J: max over time of the total kinetic energy
+  double simulated_time = 0;          // s simulated
+  double seconds = 0;                 // wall time
+  bool solver_reset = false;          // MuJoCo reset the data (bad qacc): poses are the initial ones
+  std::string message;
 };
 
 // Progress of one object (for a progress line per object).
@@ -173,7 +201,8 @@ struct ProbeResult {
   std::vector<int> order;           // object indices in sequential order
   std::vector<ProbeResampleRequest> resample_requests;
   std::string mjcf;                 // final MJCF text
-  double seconds_probe = 0, seconds_resample = 0, seconds_final = 0;
+  PhysicsEvaluation evaluation;     // metrics settle of the final scene (report.json "metrics")
+  double seconds_probe = 0, seconds_resample = 0, seconds_final = 0, seconds_metrics = 0;
 };
 
 // Runs the whole probe on a scene. out_dir may be "" (nothing written). Never throws for a bad
@@ -181,8 +210,20 @@ struct ProbeResult {
 ProbeResult run_probe(const Scene& scene, const ProbeConfig& cfg, const std::string& out_dir,
                       const ResampleFn& resampler = nullptr, const ProbeProgress& progress = nullptr);
 
-// Per-object report as JSON (what report.json holds).
+// Per-object report as JSON (what report.json holds): per object the diagnostics and the
+// "final_settle" / "evaluation" SettleRecords; "metrics": the PhysicsMetrics of the evaluation.
 nlohmann::json report_json(const ProbeResult& r);
+
+// Physics metrics of a scene as it is (no probe, no correction): reads and decomposes the meshes,
+// pins anchored objects to their walls (choose_pins at the given pose), then settles every usable
+// object jointly for settle_time (< 0: cfg.metrics_settle_time) and records each one. Bad objects
+// are physics_disabled records. This is the "before" column of the synthetic benchmark.
+PhysicsEvaluation evaluate_physics(const Scene& scene, const ProbeConfig& cfg, double settle_time = -1);
+
+// JSON of one SettleRecord / of PhysicsMetrics.
+nlohmann::json settle_json(const SettleRecord& r);
+nlohmann::json metrics_json(const PhysicsMetrics& m);
+
 
 // Pieces exposed for tests and for the geometry half.
 // Ordering key: max over the 8 world-AABB corners of g.x (larger = lower); objects sort by its negation.

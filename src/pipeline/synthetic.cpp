@@ -4,6 +4,7 @@
 #include "common/error.h"
 #include "common/fs.h"
 #include "pipeline/camera.h"
+#include "pipeline/mesh.h"
 #include "pipeline/metrics.h"
 #include "pipeline/overlay.h"
 
@@ -504,6 +505,59 @@ void write_scene_dir(const SyntheticScene& s, const std::string& dir_in) {
   }
 #endif
   save_scene(to_probe_scene(s, dir), (sfs::path(dir) / "scene.json").string());
+}
+
+SyntheticScene load_synthetic_scene(const std::string& scene_json) {
+  namespace sfs = std::filesystem;
+  const Scene sc = load_scene(scene_json);
+  const sfs::path dir = sfs::absolute(scene_json).parent_path();
+  SyntheticScene s;
+  s.name = dir.filename().string();
+  s.layout = sc.extra.value("synthetic_layout", std::string());
+  s.camera = sc.camera;
+  s.gravity = sc.gravity;
+  SIMU_CHECK(sc.floor.has_value(), "{}: a synthetic scene needs a floor", scene_json);
+  s.floor = *sc.floor;
+  s.walls = sc.walls;
+  for (const BaseBody& b : sc.bases) {
+    SIMU_CHECK(b.error.empty(), "{}: base {}: {}", scene_json, b.id, b.error);
+    SyntheticBase sb;
+    sb.id = b.id, sb.mesh = read_mesh(b.mesh_path), sb.scale = b.scale, sb.R = b.R, sb.t = b.t;
+    s.bases.push_back(std::move(sb));
+  }
+  auto vec = [&](const nlohmann::json& j, const std::string& what) {
+    SIMU_CHECK(j.is_array() && j.size() == 3, "{}: {} is not a 3-vector", scene_json, what);
+    return Vec3(j[0].get<double>(), j[1].get<double>(), j[2].get<double>());
+  };
+  for (const SceneObject& so : sc.objects) {
+    SIMU_CHECK(so.error.empty(), "{}: object {}: {}", scene_json, so.id, so.error);
+    SIMU_CHECK(so.extra.contains("synthetic"), "{}: object {} has no \"synthetic\" record", scene_json, so.id);
+    const nlohmann::json& syn = so.extra["synthetic"];
+    const std::string what = "object " + so.id + ".synthetic";
+    SyntheticObject o;
+    o.id = so.id, o.label = so.label, o.dof = so.dof, o.wall_id = so.wall_id;
+    o.pred_mesh = read_mesh(so.mesh_path);
+    o.pred_scale = so.scale, o.pred_R = so.R, o.pred_t = so.t;
+    const auto err = parse_injected_error(syn.value("error", std::string("none")));
+    SIMU_CHECK(err.has_value(), "{}: {}.error: unknown value {}", scene_json, what, syn.value("error", std::string()));
+    o.error = *err;
+    o.magnitude = syn.value("magnitude", 0.0);
+    o.support_y = syn.value("support_y", 0.0);
+    SIMU_CHECK(syn.contains("gt"), "{}: {}.gt missing", scene_json, what);
+    const nlohmann::json& gt = syn["gt"];
+    o.gt_mesh = read_mesh((dir / gt.at("mesh").get<std::string>()).string());
+    o.gt_scale = vec(gt.at("scale"), what + ".gt.scale");
+    for (int r = 0; r < 3; ++r) o.gt_R.row(r) = vec(gt.at("R").at(r), what + ".gt.R").transpose();
+    o.gt_t = vec(gt.at("t"), what + ".gt.t");
+    if (so.gt_box) o.gt_box = *so.gt_box;
+    else o.gt_box = world_aabb(place(o.gt_mesh, o.gt_scale, o.gt_R, o.gt_t));
+    o.modal_mask = read_mask(so.mask_path);
+    SIMU_CHECK(o.modal_mask.width == s.camera.width && o.modal_mask.height == s.camera.height,
+               "{}: mask {} is {}x{}, the camera {}x{}", scene_json, so.mask_path, o.modal_mask.width,
+               o.modal_mask.height, s.camera.width, s.camera.height);
+    s.objects.push_back(std::move(o));
+  }
+  return s;
 }
 
 std::optional<ResampleProxy> parse_resample_proxy(const std::string& s) {

@@ -101,6 +101,11 @@ Scene to_probe_scene(const SyntheticScene& s, const std::string& dir);
 // dir/depth.png (when depth is present) and dir/rgb.png (the ground-truth label render, coloured).
 void write_scene_dir(const SyntheticScene& s, const std::string& dir);
 
+// Reads a scene written by write_scene_dir back (dir/scene.json with its "synthetic" records, meshes,
+// masks): the inverse of write_scene_dir up to depth. Throws simu::Error naming the file and the
+// object when a record, mesh or mask is missing. Masks need OpenCV.
+SyntheticScene load_synthetic_scene(const std::string& scene_json);
+
 // Canonical primitive meshes (AABB-centred, longest side 1, up = canonical y):
 Mesh canonical_box_mesh(const Vec3& extents);  // normalised box of these proportions
 // A surface of revolution about canonical y from a radius profile (heights top to bottom, in y-down

@@ -1,6 +1,5 @@
 #include "training/checkpoint.h"
 
-#include <ftw.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -31,18 +30,11 @@ void maybe_stall() {
 
 }  // namespace
 
-void remove_tree(const std::string& path) {
-  // Depth-first, not following links: files and links unlinked, directories removed after their contents.
-  ::nftw(path.c_str(), [](const char* p, const struct stat*, int type, struct FTW*) -> int {
-    return type == FTW_DP ? ::rmdir(p) : ::unlink(p);
-  }, 16, FTW_DEPTH | FTW_PHYS);
-}
-
 std::string save_checkpoint(const std::string& root, const CheckpointData& data, int keep_last) {
   stdfs::create_directories(root);
   // Stale temporaries of killed writers.
   for (const auto& e : stdfs::directory_iterator(root))
-    if (e.is_directory() && e.path().filename().string().rfind(".tmp-", 0) == 0) remove_tree(e.path());
+    if (e.is_directory() && e.path().filename().string().rfind(".tmp-", 0) == 0) fs::remove_tree(e.path());
 
   const std::string name = fmt::format("step_{:08d}", data.step);
   const std::string tmp = fmt::format("{}/.tmp-{}-{}", root, name, ::getpid());
@@ -63,14 +55,14 @@ std::string save_checkpoint(const std::string& root, const CheckpointData& data,
     const std::string old = fmt::format("{}/.tmp-old-{}-{}", root, name, ::getpid());
     simu::fs::atomic_rename(dst, old);
     simu::fs::atomic_rename(tmp, dst);
-    remove_tree(old);
+    fs::remove_tree(old);
   } else {
     simu::fs::atomic_rename(tmp, dst);
   }
   // Keep the last N.
   if (keep_last > 0) {
     auto all = list_checkpoints(root);
-    for (size_t i = 0; i + keep_last < all.size(); ++i) remove_tree(all[i]);
+    for (size_t i = 0; i + keep_last < all.size(); ++i) fs::remove_tree(all[i]);
     simu::fs::fsync_dir(root);
   }
   return dst;

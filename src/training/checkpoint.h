@@ -35,9 +35,6 @@ CheckpointData load_checkpoint(const std::string& dir);
 std::vector<std::string> list_checkpoints(const std::string& root);
 // The newest checkpoint under root, if any.
 std::optional<std::string> latest_checkpoint(const std::string& root);
-// Removes a file or directory tree (own implementation: the std::filesystem::remove_all that
-// libtorch.so exports crashes when resolved instead of libstdc++'s).
-void remove_tree(const std::string& path);
 // "latest" -> newest under root (error if none); otherwise arg is a checkpoint directory.
 std::string resolve_resume(const std::string& root, const std::string& arg);
 

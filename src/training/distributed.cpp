@@ -14,18 +14,24 @@
 #include <unistd.h>
 
 #include <torch/csrc/distributed/c10d/ProcessGroupNCCL.hpp>
+// Gloo process group: needs the gloo headers (Debian libgloo-dev; the symbols are in libtorch_cpu).
+// CMake defines USE_C10D_GLOO for this library when it finds them.
+#ifdef USE_C10D_GLOO
+#include <torch/csrc/distributed/c10d/ProcessGroupGloo.hpp>
+#endif
 #include <torch/csrc/distributed/c10d/TCPStore.hpp>
 
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
+#include <functional>
 #include <thread>
 
 #include <fmt/ranges.h>
 
 #include "common/error.h"
+#include "common/fs.h"
 #include "common/log.h"
-#include "training/checkpoint.h"
 
 namespace simu::training {
 
@@ -79,6 +85,7 @@ class StoreCommunicator : public Communicator {
   }
   int rank() const override { return rank_; }
   int world_size() const override { return world_; }
+  std::string backend() const override { return "store"; }
 
   void all_reduce_mean(std::vector<torch::Tensor>& tensors) override {
     if (tensors.empty()) return;
@@ -105,6 +112,24 @@ class StoreCommunicator : public Communicator {
 
   void barrier() override { exchange("barrier", {1}); }
 
+ protected:
+  // Names the ranks that have not posted key(r) (or cannot be asked: the store is gone).
+  std::vector<int> ranks_without(const std::function<std::string(int)>& key) {
+    std::vector<int> missing;
+    for (int r = 0; r < world_; ++r) {
+      try {
+        if (!store_->check({key(r)})) missing.push_back(r);
+      } catch (const std::exception&) {
+        missing.push_back(r);
+      }
+    }
+    return missing;
+  }
+
+  c10::intrusive_ptr<c10d::Store> store_;
+  int rank_, world_;
+  std::chrono::milliseconds timeout_;
+
  private:
   static std::vector<uint8_t> bytes_of(const torch::Tensor& t) {
     std::vector<uint8_t> b(t.numel() * sizeof(double));
@@ -128,14 +153,7 @@ class StoreCommunicator : public Communicator {
     try {
       store_->wait(keys, timeout_);
     } catch (const std::exception&) {
-      std::vector<int> missing;
-      for (int r = 0; r < world_; ++r) {
-        try {
-          if (!store_->check({keys[r]})) missing.push_back(r);
-        } catch (const std::exception&) {
-          missing.push_back(r);
-        }
-      }
+      const auto missing = ranks_without([&](int r) { return keys[r]; });
       fail_hint("check the log of the named rank(s); raise dist.timeout_s if they are only slow",
                 "rank {}: {} #{} timed out after {} s waiting for rank(s) {} (dead or hung)", rank_, what, round,
                 timeout_.count() / 1000.0, fmt::join(missing, ", "));
@@ -147,9 +165,6 @@ class StoreCommunicator : public Communicator {
     return out;
   }
 
-  c10::intrusive_ptr<c10d::Store> store_;
-  int rank_, world_;
-  std::chrono::milliseconds timeout_;
   int64_t round_ = 0;
 };
 
@@ -173,16 +188,94 @@ class NcclCommunicator : public StoreCommunicator {
     work->wait();
     unflatten((buf[0] / world_size()).to(tensors[0].scalar_type()), tensors);
   }
+  std::string backend() const override { return "nccl"; }
 
  private:
   c10::intrusive_ptr<c10d::ProcessGroupNCCL> pg_;
 };
+
+#ifdef USE_C10D_GLOO
+// c10d ProcessGroupGloo for tensors and metrics. Each collective is announced in the store first
+// (simu/gloo/<round>/<rank>) so that a failure -- a peer's connection closed, or Gloo's timeout --
+// can name the ranks that never reached it.
+class GlooCommunicator : public StoreCommunicator {
+ public:
+  GlooCommunicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world, std::chrono::milliseconds timeout)
+      : StoreCommunicator(store, rank, world, timeout) {
+    // A write to a dead peer's socket must be an error, not a SIGPIPE that kills this rank.
+    ::signal(SIGPIPE, SIG_IGN);
+    auto opts = c10d::ProcessGroupGloo::Options::create(timeout);
+    // GLOO_SOCKET_IFNAME picks the interface (as in torch.distributed); else this host's address.
+    const char* ifname = std::getenv("GLOO_SOCKET_IFNAME");
+    opts->devices.push_back(ifname && *ifname ? c10d::ProcessGroupGloo::createDeviceForInterface(ifname)
+                                              : c10d::ProcessGroupGloo::createDefaultDevice());
+    try {
+      pg_ = c10::make_intrusive<c10d::ProcessGroupGloo>(c10::make_intrusive<c10d::PrefixStore>("gloo", store), rank,
+                                                        world, opts);
+    } catch (const std::exception& e) {
+      fail_hint("check that every rank started and can reach the others (GLOO_SOCKET_IFNAME selects the interface)",
+                "rank {}: Gloo process group setup failed (world size {}, timeout {} s): {}", rank, world,
+                timeout.count() / 1000.0, e.what());
+    }
+  }
+  std::string backend() const override { return "gloo"; }
+
+  void all_reduce_mean(std::vector<torch::Tensor>& tensors) override {
+    if (tensors.empty()) return;
+    // [N] in the tensors' dtype, on CPU (Gloo here is CPU-only).
+    std::vector<at::Tensor> buf{flatten(tensors).detach().to(torch::kCPU).contiguous()};
+    run("allreduce", [&] { return pg_->allreduce(buf, sum_options()); });
+    unflatten((buf[0] / world_size()).to(tensors[0].device(), tensors[0].scalar_type()), tensors);
+  }
+
+  std::vector<double> all_reduce_sum(const std::vector<double>& values) override {
+    std::vector<at::Tensor> buf{torch::tensor(values, torch::kFloat64)};
+    if (!values.empty()) run("sum", [&] { return pg_->allreduce(buf, sum_options()); });
+    auto t = buf[0].contiguous();
+    return std::vector<double>(t.data_ptr<double>(), t.data_ptr<double>() + t.numel());
+  }
+
+  void barrier() override {
+    run("barrier", [&] { return pg_->barrier(); });
+  }
+
+ private:
+  static c10d::AllreduceOptions sum_options() {
+    c10d::AllreduceOptions o;
+    o.reduceOp = c10d::ReduceOp::SUM;
+    return o;
+  }
+  std::string key(int64_t round, int r) const { return fmt::format("simu/gloo/{}/{}", round, r); }
+  // Announces collective #round, runs it, waits for it; on failure names the ranks that never arrived.
+  void run(const char* what, const std::function<c10::intrusive_ptr<c10d::Work>()>& op) {
+    const int64_t round = round_++;
+    store_->set(key(round, rank_), std::vector<uint8_t>{1});
+    try {
+      // Gloo ends the operation itself after the options' timeout; the margin lets its error win.
+      op()->wait(timeout_ + std::chrono::seconds(5));
+    } catch (const std::exception& e) {
+      const auto missing = ranks_without([&](int r) { return key(round, r); });
+      const std::string who = missing.empty() ? std::string("no rank missing: every rank reached it")
+                                              : fmt::format("waiting for rank(s) {} (dead or hung)", fmt::join(missing, ", "));
+      fail_hint("check the log of the named rank(s); raise dist.timeout_s if they are only slow",
+                "rank {}: gloo {} #{} failed (timeout {} s), {}: {}", rank_, what, round, timeout_.count() / 1000.0, who,
+                e.what());
+    }
+    // Every rank entered this round, so all are done with the previous one: drop my old key.
+    if (round >= 1) store_->deleteKey(key(round - 1, rank_));
+  }
+
+  c10::intrusive_ptr<c10d::ProcessGroupGloo> pg_;
+  int64_t round_ = 0;
+};
+#endif
 
 // World of one: nothing to do.
 class SoloCommunicator : public Communicator {
  public:
   int rank() const override { return 0; }
   int world_size() const override { return 1; }
+  std::string backend() const override { return "single"; }
   void all_reduce_mean(std::vector<torch::Tensor>&) override {}
   std::vector<double> all_reduce_sum(const std::vector<double>& v) override { return v; }
   void barrier() override {}
@@ -229,12 +322,34 @@ std::unique_ptr<Communicator> make_store_communicator(c10::intrusive_ptr<c10d::S
   return std::make_unique<StoreCommunicator>(std::move(store), rank, world_size, timeout);
 }
 
+bool have_gloo() {
+#ifdef USE_C10D_GLOO
+  return true;
+#else
+  return false;
+#endif
+}
+
+std::unique_ptr<Communicator> make_cpu_communicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world_size,
+                                                    std::chrono::milliseconds timeout) {
+#ifdef USE_C10D_GLOO
+  return std::make_unique<GlooCommunicator>(std::move(store), rank, world_size, timeout);
+#else
+  static bool warned = false;
+  if (!warned && rank == 0)
+    simu::log::warn("this build has no gloo headers (install libgloo-dev and reconfigure): CPU ranks average "
+                    "through the TCPStore instead of c10d ProcessGroupGloo");
+  warned = true;
+  return std::make_unique<StoreCommunicator>(std::move(store), rank, world_size, timeout);
+#endif
+}
+
 std::unique_ptr<Communicator> Communicator::create(const DistEnv& env, const torch::Device& device,
                                                    std::chrono::milliseconds timeout) {
   if (env.world_size == 1) return std::make_unique<SoloCommunicator>();
   auto store = connect_store(env, timeout);
   if (device.is_cuda()) return std::make_unique<NcclCommunicator>(store, env.rank, env.world_size, timeout);
-  return std::make_unique<StoreCommunicator>(store, env.rank, env.world_size, timeout);
+  return make_cpu_communicator(store, env.rank, env.world_size, timeout);
 }
 
 int free_port() {
@@ -330,7 +445,7 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
         ::waitpid(p, nullptr, 0);
         p = -1;
       }
-    remove_tree(beat_dir);
+    simu::fs::remove_tree(beat_dir);
   };
 
   // Watch: exits, signals, heartbeats.
@@ -366,7 +481,7 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
-  remove_tree(beat_dir);
+  simu::fs::remove_tree(beat_dir);
 }
 
 }  // namespace simu::training

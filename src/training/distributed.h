@@ -1,10 +1,11 @@
 // Data-parallel plumbing: rendezvous from the environment, gradient averaging, the local launcher.
 //
 // One process per GPU. Ranks meet through c10d's TCPStore at MASTER_ADDR:MASTER_PORT (rank 0 hosts
-// it). Gradients are averaged with ProcessGroupNCCL on GPU. On CPU the torch wheel ships no gloo
-// headers (ProcessGroupGloo.hpp includes <gloo/...>, absent from the wheel), so ProcessGroupGloo
-// cannot be built from C++ here; CPU ranks average through the same TCPStore instead (each rank
-// posts its flattened tensor, all sum in rank order: deterministic, fine for CPU-sized adapters).
+// it). Gradients are averaged with c10d ProcessGroupNCCL on GPU and c10d ProcessGroupGloo on CPU.
+// The torch wheel ships Gloo's code inside libtorch_cpu but not its headers, which ProcessGroupGloo.hpp
+// includes: they come from Debian's libgloo-dev (headers only, never linked). A build without them
+// (CMake says so) falls back on CPU to a store-based reduction (each rank posts its flattened tensor,
+// all sum in rank order) and logs why; backend() tells which one runs.
 // Every collective waits at most `timeout`; a rank missing from it is named in the error.
 #pragma once
 
@@ -32,12 +33,15 @@ struct DistEnv {
 // Collectives among the ranks of a job (a no-op for world size 1).
 class Communicator {
  public:
-  // device: cuda -> NCCL for tensors; cpu -> store-based reduction. timeout bounds every collective.
+  // device: cuda -> NCCL for tensors; cpu -> Gloo (store-based without the gloo headers). timeout
+  // bounds every collective.
   static std::unique_ptr<Communicator> create(const DistEnv& env, const torch::Device& device,
                                               std::chrono::milliseconds timeout);
   virtual ~Communicator() = default;
   virtual int rank() const = 0;
   virtual int world_size() const = 0;
+  // What moves the tensors: "nccl", "gloo", "store" (TCPStore fallback) or "single" (world of one).
+  virtual std::string backend() const = 0;
   // Averages tensors (all on the same device, floating point) over ranks, in place, as one buffer.
   virtual void all_reduce_mean(std::vector<torch::Tensor>& tensors) = 0;
   // Sums numbers over ranks (metrics); every rank gets the sums.
@@ -46,8 +50,14 @@ class Communicator {
   virtual void barrier() = 0;
 };
 
-// Communicator over an existing store with store-based reduction (tests use this with two threads
-// or processes; production CPU runs get it from create()).
+// CPU communicator over an existing store: c10d ProcessGroupGloo when this build has the gloo headers
+// (have_gloo()), else the store-based reduction with a logged warning. What create() uses on CPU;
+// tests use it with two threads. All ranks must call it together (Gloo connects them within timeout).
+std::unique_ptr<Communicator> make_cpu_communicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world_size,
+                                                    std::chrono::milliseconds timeout);
+// True when this build has c10d ProcessGroupGloo (the gloo headers were found at configure time).
+bool have_gloo();
+// Communicator over an existing store with the store-based reduction (the fallback; tests).
 std::unique_ptr<Communicator> make_store_communicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world_size,
                                                       std::chrono::milliseconds timeout);
 // TCPStore for env (rank 0 serves); waits for all ranks to connect within timeout.

@@ -3,6 +3,8 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <ATen/autocast_mode.h>
 
+#include <mutex>
+
 #include "common/error.h"
 
 namespace simu::training {
@@ -34,9 +36,12 @@ torch::Tensor flow_mse(const torch::Tensor& pred, const torch::Tensor& target) {
 
 namespace {
 
-// Keeps the closure of a checkpointed segment alive in the autograd context.
+// Keeps the closure of a checkpointed segment and the RNG states it started from alive in the
+// autograd context.
 struct SegmentHolder : torch::CustomClassHolder {
-  std::function<torch::Tensor(const std::vector<torch::Tensor>&)> fn;
+  SegmentFn fn;
+  torch::Tensor cpu_rng;                 // CPU default generator state at the segment's forward
+  std::vector<std::pair<torch::Device, torch::Tensor>> cuda_rng;  // per CUDA device of the inputs
 };
 
 // Autocast state to replay in the backward recompute (the engine thread has its own).
@@ -59,12 +64,61 @@ struct AutocastState {
   }
 };
 
+// Autocast's weight cache off for a scope (restored at exit).
+struct AutocastCacheOff {
+  bool before = at::autocast::is_autocast_cache_enabled();
+  AutocastCacheOff() { at::autocast::set_autocast_cache_enabled(false); }
+  ~AutocastCacheOff() { at::autocast::set_autocast_cache_enabled(before); }
+};
+
+// State of a default generator (under its lock).
+torch::Tensor rng_get(at::Generator g) {
+  std::lock_guard<std::mutex> lock(g.mutex());
+  return g.get_state();
+}
+void rng_set(at::Generator g, const torch::Tensor& state) {
+  std::lock_guard<std::mutex> lock(g.mutex());
+  g.set_state(state);
+}
+
+// Sets the default generators to the states saved at the segment's forward; restores the current
+// ones at scope exit (so a recompute draws the same dropout masks and leaves the stream untouched).
+struct RngReplay {
+  const SegmentHolder& h;
+  torch::Tensor cpu_now;
+  std::vector<torch::Tensor> cuda_now;
+  explicit RngReplay(const SegmentHolder& holder) : h(holder) {
+    cpu_now = rng_get(at::detail::getDefaultCPUGenerator());
+    rng_set(at::detail::getDefaultCPUGenerator(), h.cpu_rng);
+    for (const auto& [dev, state] : h.cuda_rng) {
+      auto g = at::globalContext().defaultGenerator(dev);
+      cuda_now.push_back(rng_get(g));
+      rng_set(g, state);
+    }
+  }
+  ~RngReplay() {
+    rng_set(at::detail::getDefaultCPUGenerator(), cpu_now);
+    for (size_t i = 0; i < h.cuda_rng.size(); ++i) rng_set(at::globalContext().defaultGenerator(h.cuda_rng[i].first), cuda_now[i]);
+  }
+};
+
 struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction> {
+  // all = inputs (first n_inputs) + params; returns fn(inputs), computed without a graph.
   static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx,
                                                 at::TensorList all_list, int64_t n_inputs,
                                                 c10::intrusive_ptr<SegmentHolder> holder) {
     const torch::autograd::variable_list all(all_list.begin(), all_list.end());
     const auto ac = AutocastState::capture();
+    // RNG states this forward starts from (CPU, and every CUDA device among the inputs).
+    holder->cpu_rng = rng_get(at::detail::getDefaultCPUGenerator());
+    holder->cuda_rng.clear();
+    for (int64_t i = 0; i < n_inputs; ++i) {
+      const auto dev = all[i].device();
+      if (!dev.is_cuda()) continue;
+      bool seen = false;
+      for (const auto& [d, st] : holder->cuda_rng) seen = seen || d == dev;
+      if (!seen) holder->cuda_rng.emplace_back(dev, rng_get(at::globalContext().defaultGenerator(dev)));
+    }
     ctx->saved_data["n_inputs"] = n_inputs;
     ctx->saved_data["fn"] = c10::IValue::make_capsule(c10::intrusive_ptr<torch::CustomClassHolder>(holder));
     ctx->saved_data["ac_cuda"] = ac.cuda;
@@ -73,8 +127,11 @@ struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction>
     ctx->saved_data["ac_cpu_dtype"] = static_cast<int64_t>(ac.cpu_dtype);
     ctx->save_for_backward(all);
     std::vector<torch::Tensor> ins(all.begin(), all.begin() + n_inputs);
-    // No graph kept: custom functions run forward with grad mode off.
-    return {holder->fn(ins)};
+    // No graph kept (custom functions already run forward with grad mode off), and no graph-less bf16
+    // copies of the adapter weights left in the autocast cache for a later forward of this scope.
+    torch::NoGradGuard no_grad;
+    AutocastCacheOff no_cache;
+    return holder->fn(ins);
   }
 
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
@@ -87,7 +144,8 @@ struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction>
     ac.cpu = ctx->saved_data["ac_cpu"].toBool();
     ac.cuda_dtype = static_cast<at::ScalarType>(ctx->saved_data["ac_cuda_dtype"].toInt());
     ac.cpu_dtype = static_cast<at::ScalarType>(ctx->saved_data["ac_cpu_dtype"].toInt());
-    // Recompute with a graph: inputs detached (fresh leaves), parameters as they are.
+    // Recompute with a graph: inputs detached (fresh leaves), parameters as they are; same autocast
+    // and RNG states as the forward.
     std::vector<torch::Tensor> ins;
     std::vector<torch::Tensor> targets;
     std::vector<int64_t> target_index;
@@ -102,18 +160,36 @@ struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction>
         target_index.push_back(i);
       }
     }
-    torch::Tensor out;
+    std::vector<torch::Tensor> outs;
     {
       const auto before = AutocastState::capture();
+      // No autocast weight cache here: this thread's cache is never cleared (it would hand later
+      // recomputes stale bf16 copies of the adapter weights) and the forward's copies have no graph.
+      AutocastCacheOff no_cache;
+      RngReplay rng(*holder);
       torch::AutoGradMode grad_on(true);
       ac.apply();
-      out = holder->fn(ins);
+      try {
+        outs = holder->fn(ins);
+      } catch (...) {
+        before.apply();
+        throw;
+      }
       before.apply();
     }
+    SIMU_CHECK(outs.size() == grad_out.size(), "checkpointed segment: recompute gave {} outputs, forward {}",
+               outs.size(), grad_out.size());
+    // Gradients of the outputs that carry a graph and an incoming gradient, w.r.t. every target.
+    std::vector<torch::Tensor> o, go;
+    for (size_t k = 0; k < outs.size(); ++k)
+      if (outs[k].requires_grad() && grad_out[k].defined()) {
+        o.push_back(outs[k]);
+        go.push_back(grad_out[k]);
+      }
     torch::autograd::variable_list grads(saved.size() + 2);
-    if (!targets.empty() && out.requires_grad()) {
-      auto g = torch::autograd::grad({out}, targets, {grad_out[0]}, /*retain_graph=*/false,
-                                     /*create_graph=*/false, /*allow_unused=*/true);
+    if (!targets.empty() && !o.empty()) {
+      auto g = torch::autograd::grad(o, targets, go, /*retain_graph=*/false, /*create_graph=*/false,
+                                     /*allow_unused=*/true);
       for (size_t k = 0; k < g.size(); ++k) grads[target_index[k]] = g[k];
     }
     return grads;
@@ -137,14 +213,22 @@ struct AdaptersOff {
 
 }  // namespace
 
-torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<torch::Tensor>&)>& fn,
-                           const std::vector<torch::Tensor>& inputs, const std::vector<torch::Tensor>& params) {
+std::vector<torch::Tensor> checkpointed_segment(const SegmentFn& fn, const std::vector<torch::Tensor>& inputs,
+                                                const std::vector<torch::Tensor>& params) {
+  // Outside a graph (no grad mode, or nothing requires grad) there is nothing to save.
+  if (!torch::GradMode::is_enabled()) return fn(inputs);
   auto holder = c10::make_intrusive<SegmentHolder>();
   holder->fn = fn;
   torch::autograd::variable_list all(inputs.begin(), inputs.end());
   all.insert(all.end(), params.begin(), params.end());
   // Passed as a TensorList so that autograd sees every tensor as an input (a std::vector is not).
-  return CheckpointFunction::apply(at::TensorList(all), static_cast<int64_t>(inputs.size()), holder)[0];
+  return CheckpointFunction::apply(at::TensorList(all), static_cast<int64_t>(inputs.size()), holder);
+}
+
+torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<torch::Tensor>&)>& fn,
+                           const std::vector<torch::Tensor>& inputs, const std::vector<torch::Tensor>& params) {
+  return checkpointed_segment([fn](const std::vector<torch::Tensor>& v) { return std::vector<torch::Tensor>{fn(v)}; },
+                              inputs, params)[0];
 }
 
 PairNoise draw_pair_noise(uint64_t seed, int64_t step, int64_t pair_id, at::IntArrayRef latent_shape, double t_mean,
@@ -178,7 +262,15 @@ FmdpoTerms fmdpo_terms(PolicyModel& model, const FmdpoInputs& in, double beta, b
   FmdpoTerms out;
   // Policy: adapters on, with graph.
   torch::Tensor pred;
-  if (checkpoint) {
+  if (checkpoint && model.set_block_checkpointing(true)) {
+    // Per transformer block: each block recomputes in backward; switched off again for the reference.
+    struct BlocksOff {
+      PolicyModel& m;
+      ~BlocksOff() { m.set_block_checkpointing(false); }
+    } off{model};
+    pred = model.predict_shape(xt, t_scaled, cond, d);
+  } else if (checkpoint) {
+    // A model without blocks: the whole forward is one segment.
     std::vector<torch::Tensor> params;
     for (auto& [n, p] : model.adapter_parameters()) params.push_back(p);
     pred = checkpointed(

@@ -37,6 +37,13 @@ class PolicyModel {
   virtual std::vector<std::pair<std::string, torch::Tensor>> adapter_parameters() = 0;
   // Writes the adapter in PEFT format (adapter_config.json + adapter_model.safetensors) into dir.
   virtual void export_peft(const std::string& dir) = 0;
+  // Per-block activation checkpointing of later predict_shape calls (each transformer block keeps
+  // only its inputs and recomputes in backward). Returns false when the model has no blocks to
+  // checkpoint (fmdpo_terms then checkpoints the whole forward as one segment).
+  virtual bool set_block_checkpointing(bool enabled) {
+    (void)enabled;
+    return false;
+  }
 };
 
 // objective: section of the training config.
@@ -67,17 +74,24 @@ struct FmdpoTerms {
 };
 
 // Evaluates the objective. The policy runs on both members in one batch of 2B; the reference too
-// (adapters switched off inside, restored on exit, even on error). checkpoint: recompute the policy
-// forward in backward instead of keeping its activations (see checkpointed()).
+// (adapters switched off inside, restored on exit, even on error). checkpoint: activation
+// checkpointing of the policy forward, per transformer block when the model supports it
+// (PolicyModel::set_block_checkpointing), else of the whole forward (see checkpointed()).
 FmdpoTerms fmdpo_terms(PolicyModel& model, const FmdpoInputs& in, double beta, bool checkpoint = false);
 
 // Flow-matching MSE per sample: mean over all but dim 0 of (pred - target)^2, in float32. -> [B]
 torch::Tensor flow_mse(const torch::Tensor& pred, const torch::Tensor& target);
 
-// Activation checkpointing as a custom autograd function: runs fn(inputs) without keeping
-// activations and recomputes it (same autocast state) in backward to get gradients for inputs and
-// for params (tensors fn reads that require grad, e.g. adapter weights). Stochastic layers inside fn
-// would draw new noise in the recompute (LoRA dropout 0 keeps the paper's setting exact).
+// A segment of a forward: fn(inputs) -> outputs.
+using SegmentFn = std::function<std::vector<torch::Tensor>(const std::vector<torch::Tensor>&)>;
+// Activation checkpointing as a custom autograd function: runs fn(inputs) under no-grad (keeping only
+// inputs and params) and recomputes it in backward with grad on, the same autocast state and the same
+// CPU/CUDA RNG states (dropout draws the same masks; the generators are restored afterwards), then
+// returns the gradients for inputs and params (tensors fn reads that require grad, e.g. adapter
+// weights; autograd accumulates them into .grad). Under no-grad mode it just runs fn.
+std::vector<torch::Tensor> checkpointed_segment(const SegmentFn& fn, const std::vector<torch::Tensor>& inputs,
+                                                const std::vector<torch::Tensor>& params);
+// Same for a single-output segment.
 torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<torch::Tensor>&)>& fn,
                            const std::vector<torch::Tensor>& inputs, const std::vector<torch::Tensor>& params);
 

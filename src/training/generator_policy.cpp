@@ -22,7 +22,11 @@ namespace {
 class GeneratorPolicy : public PolicyModel {
  public:
   GeneratorPolicy(simu::models::Generator gen, simu::lora::LoraConfig lora)
-      : gen_(std::move(gen)), lora_(std::move(lora)) {}
+      : gen_(std::move(gen)), lora_(std::move(lora)) {
+    // Policy (with gradients) and reference (without) forwards must share one arithmetic: no fused
+    // inference kernels in training.
+    gen_->backbone()->set_fused_kernels(false);
+  }
 
   torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled, const torch::Tensor& cond,
                               const torch::Tensor& d) override {
@@ -46,6 +50,23 @@ class GeneratorPolicy : public PolicyModel {
   }
   void export_peft(const std::string& dir) override {
     simu::lora::save_peft(dir, *gen_, lora_, "FM-DPO (train_fmdpo)");
+  }
+  // Wraps every MOT block of the backbone in a checkpointed segment over the block's trainable
+  // parameters (its LoRA weights).
+  bool set_block_checkpointing(bool enabled) override {
+    auto backbone = gen_->backbone();
+    if (!enabled) {
+      backbone->set_block_wrapper(nullptr);
+      return true;
+    }
+    backbone->set_block_wrapper([](int64_t, torch::nn::Module& block, const std::vector<torch::Tensor>& inputs,
+                                   const simu::models::BlockFn& fn) {
+      std::vector<torch::Tensor> params;
+      for (auto& p : block.parameters())
+        if (p.requires_grad()) params.push_back(p);
+      return checkpointed_segment(fn, inputs, params);
+    });
+    return true;
   }
 
  private:

@@ -41,7 +41,7 @@ struct DataConfig {
 struct LoopConfig {
   int64_t steps = 1500;
   std::string precision = "bf16";         // "bf16" (CUDA autocast; adapters stay fp32) or "fp32"
-  bool activation_checkpointing = false;  // recompute the policy forward in backward
+  bool activation_checkpointing = false;  // recompute each transformer block in backward (per-block checkpointing)
   uint64_t seed = 0;                      // noise and t seed
   std::string device = "cuda";            // "cuda" (rank's local GPU) or "cpu"
   static LoopConfig from(simu::config::Reader& r);

@@ -408,7 +408,7 @@ TEST(PairStream, CollateStacksAndMasks) {
 class DamagedCache : public ::testing::Test {
  protected:
   void SetUp() override {
-    // One directory per test: temp_dir's remove_all of a non-empty directory crashes here (it binds to
+    // One directory per test (std::filesystem::remove_all of a non-empty directory crashes here: it binds to
     // the std::filesystem copy inside libtorch.so), so never reuse a name.
     dir = simu::testing::temp_dir(std::string("pc_damaged_") +
                                   ::testing::UnitTest::GetInstance()->current_test_info()->name());

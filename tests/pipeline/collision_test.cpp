@@ -130,3 +130,32 @@ TEST(Collision, FlatMeshIsThickened) {
   for (const auto& h : c.hulls) EXPECT_GT(signed_volume(h), 0);
 #endif
 }
+
+// A convex mesh (a box) is its own single hull without decomposition; an L prism is not convex.
+// An affine image of a decomposed mesh gets the mapped hulls: volume scales by |det A|.
+TEST(Collision, ConvexShortcutAndAffineMapping) {
+  using namespace simu::pipeline;
+  const Mesh box = box_mesh(Vec3(0.5, 0.3, 0.2));
+  EXPECT_TRUE(is_closed_oriented(box));
+  const CollisionShape s = decompose(box);
+  EXPECT_EQ(s.method, "convex");
+  ASSERT_EQ(s.hulls.size(), 1u);
+  EXPECT_NEAR(mass_properties(s.hulls, 1.0).volume, 1.0 * 0.6 * 0.4, 1e-12);
+  Mesh open = box;
+  open.F.conservativeResize(11, 3);  // one triangle missing
+  EXPECT_FALSE(is_closed_oriented(open));
+  const Mesh ell = prism_mesh({{0.5, 0.5}, {0.5, 1}, {0, 1}, {0, 0}, {1, 0}, {1, 0.5}}, 0.25);
+  const CollisionShape se = decompose(ell);
+  EXPECT_NE(se.method, "convex");
+  // Affine image: x -> diag(1, 2, 0.5) x + (0.1, 0, 0), det = 1.
+  Mesh stretched = ell;
+  stretched.V = (ell.V * Vec3(1, 2, 0.5).asDiagonal()).rowwise() + Eigen::RowVector3d(0.1, 0, 0);
+  const auto mapped = map_shape(ell, stretched, se);
+  ASSERT_TRUE(mapped.has_value());
+  EXPECT_EQ(mapped->hulls.size(), se.hulls.size());
+  EXPECT_NEAR(mass_properties(mapped->hulls, 1.0).volume, mass_properties(se.hulls, 1.0).volume, 1e-9);
+  // Not an affine image (one vertex moved): no mapping.
+  Mesh bent = stretched;
+  bent.V(0, 0) += 0.05;
+  EXPECT_FALSE(map_shape(ell, bent, se).has_value());
+}

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <string>
 
+#include "common/fs.h"
 #include "pipeline/mesh.h"
 #include "pipeline/scene.h"
 
@@ -14,7 +15,7 @@ namespace simu::testing {
 // A fresh temporary directory for one test.
 inline std::string pipeline_temp_dir(const std::string& name) {
   auto p = std::filesystem::temp_directory_path() / ("simu_pipeline_" + name + "_" + std::to_string(::getpid()));
-  std::filesystem::remove_all(p);
+  simu::fs::remove_tree(p.string());
   std::filesystem::create_directories(p);
   return p.string();
 }

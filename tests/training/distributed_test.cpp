@@ -97,3 +97,100 @@ TEST(Distributed, EnvFromTorchrunAndSlurm) {
   for (const char* k : {"RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_PORT", "SLURM_PROCID", "SLURM_NTASKS", "SLURM_LOCALID"})
     ::unsetenv(k);
 }
+
+namespace {
+// Rank `rank` of a 2-rank CPU job on loopback port: the communicator create() would use on CPU.
+std::unique_ptr<Communicator> cpu_rank(int rank, int port, std::chrono::milliseconds timeout) {
+  DistEnv env;
+  env.rank = rank;
+  env.world_size = 2;
+  env.master_port = port;
+  return make_cpu_communicator(connect_store(env, std::chrono::seconds(20)), rank, 2, timeout);
+}
+}  // namespace
+
+// The CPU communicator is c10d ProcessGroupGloo: means, sums and barriers agree across two ranks.
+TEST(Distributed, GlooAllReduceAveragesAcrossRanks) {
+  ASSERT_TRUE(have_gloo()) << "this build has no gloo headers: install libgloo-dev and reconfigure";
+  const int port = free_port();
+  auto rank_fn = [port](int rank) {
+    auto comm = cpu_rank(rank, port, std::chrono::seconds(20));
+    std::vector<torch::Tensor> ts{torch::full({3, 2}, 1.0f + rank), torch::full({4}, 10.0f * rank),
+                                  torch::full({2}, 0.25 * (rank + 1), torch::kFloat64)};
+    comm->all_reduce_mean(ts);
+    auto sums = comm->all_reduce_sum({1.0 + rank, 2.0, 1e-17 * rank});
+    comm->barrier();
+    return std::make_tuple(comm->backend(), ts, sums);
+  };
+  auto f0 = std::async(std::launch::async, rank_fn, 0);
+  auto f1 = std::async(std::launch::async, rank_fn, 1);
+  auto [be0, t0, s0] = f0.get();
+  auto [be1, t1, s1] = f1.get();
+  EXPECT_EQ(be0, "gloo");
+  EXPECT_EQ(be1, "gloo");
+  EXPECT_TRUE(torch::equal(t0[0], torch::full({3, 2}, 1.5f)));
+  EXPECT_TRUE(torch::equal(t0[1], torch::full({4}, 5.0f)));
+  EXPECT_TRUE(torch::equal(t0[2], torch::full({2}, 0.375, torch::kFloat64)));
+  EXPECT_EQ(t0[2].scalar_type(), torch::kFloat64);
+  for (int i = 0; i < 3; ++i) EXPECT_TRUE(torch::equal(t0[i], t1[i]));
+  EXPECT_EQ(s0, (std::vector<double>{3.0, 4.0, 1e-17}));
+  EXPECT_EQ(s0, s1);
+}
+
+// Gloo: a rank that leaves the job is named by the survivor's next collective, within the timeout.
+TEST(Distributed, GlooDeadRankIsNamedWithinTimeout) {
+  ASSERT_TRUE(have_gloo()) << "this build has no gloo headers";
+  const int port = free_port();
+  auto survivor = std::async(std::launch::async, [port] {
+    auto comm = cpu_rank(0, port, std::chrono::milliseconds(2000));
+    std::vector<torch::Tensor> ts{torch::ones({2})};
+    comm->all_reduce_mean(ts);  // rank 1 joins this one
+    const auto t0 = std::chrono::steady_clock::now();
+    try {
+      comm->all_reduce_mean(ts);  // rank 1 is gone
+      return std::string("no error");
+    } catch (const simu::Error& e) {
+      const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      return std::string(e.what()) + (s < 10 ? "" : " (too late)");
+    }
+  });
+  {
+    auto comm = cpu_rank(1, port, std::chrono::seconds(5));
+    std::vector<torch::Tensor> ts{torch::ones({2})};
+    comm->all_reduce_mean(ts);
+  }  // rank 1 "dies": its process group closes its connections
+  const std::string msg = survivor.get();
+  EXPECT_NE(msg.find("gloo allreduce"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("waiting for rank(s) 1"), std::string::npos) << msg;
+  EXPECT_EQ(msg.find("too late"), std::string::npos) << msg;
+}
+
+// Gloo: a rank that is alive but never reaches the collective (hung) is named after the timeout.
+TEST(Distributed, GlooHungRankIsNamedAfterTimeout) {
+  ASSERT_TRUE(have_gloo()) << "this build has no gloo headers";
+  const int port = free_port();
+  std::promise<void> survivor_done;
+  auto done = survivor_done.get_future().share();
+  auto hung = std::async(std::launch::async, [port, done] {
+    auto comm = cpu_rank(1, port, std::chrono::seconds(20));
+    auto sums = comm->all_reduce_sum({1.0});  // takes part once
+    done.wait();                              // then hangs until rank 0 has given up
+    return sums;
+  });
+  auto comm = cpu_rank(0, port, std::chrono::milliseconds(1500));
+  comm->all_reduce_sum({1.0});
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string msg = "no error";
+  try {
+    comm->barrier();
+  } catch (const simu::Error& e) {
+    msg = e.what();
+  }
+  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  survivor_done.set_value();
+  EXPECT_EQ(hung.get(), std::vector<double>{2.0});
+  EXPECT_NE(msg.find("gloo barrier"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("waiting for rank(s) 1"), std::string::npos) << msg;
+  EXPECT_GE(s, 1.0) << "failed before the timeout: " << msg;
+  EXPECT_LT(s, 10.0) << msg;
+}

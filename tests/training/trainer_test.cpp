@@ -42,6 +42,7 @@ class SoloComm : public Communicator {
  public:
   int rank() const override { return 0; }
   int world_size() const override { return 1; }
+  std::string backend() const override { return "single"; }
   void all_reduce_mean(std::vector<torch::Tensor>&) override {}
   std::vector<double> all_reduce_sum(const std::vector<double>& v) override { return v; }
   void barrier() override {}
@@ -118,7 +119,7 @@ TEST(Trainer, AccumulationMatchesOneMicroBatch) {
   EXPECT_TRUE(simu::testing::close(results[1][1], results[0][1], 1e-5, "B"));
 }
 
-// Two ranks (threads, TCPStore on loopback, store all-reduce) == one rank with the same global batch.
+// Two ranks (threads, TCPStore on loopback, Gloo all-reduce) == one rank with the same global batch.
 TEST(Trainer, TwoRanksMatchOneRank) {
   auto pairs = simu::testing::toy_pairs(24, T, C, L, Cc, 10);
   const int steps = 4;
@@ -131,12 +132,14 @@ TEST(Trainer, TwoRanksMatchOneRank) {
     solo = adapter_values(m);
   }
   const int port = free_port();
+  std::string backends[2];
   auto rank_fn = [&](int rank) {
     DistEnv env;
     env.rank = rank;
     env.world_size = 2;
     env.master_port = port;
-    auto comm = make_store_communicator(connect_store(env, std::chrono::seconds(20)), rank, 2, std::chrono::seconds(30));
+    auto comm = make_cpu_communicator(connect_store(env, std::chrono::seconds(20)), rank, 2, std::chrono::seconds(30));
+    backends[rank] = comm->backend();
     ToyPolicy m(C, Cc, R, 4);
     Trainer tr(toy_config(simu::testing::temp_dir("duo" + std::to_string(rank)), steps, 8, 2), m, memory_source(pairs),
                *comm, torch::kCPU);
@@ -146,6 +149,10 @@ TEST(Trainer, TwoRanksMatchOneRank) {
   auto f0 = std::async(std::launch::async, rank_fn, 0);
   auto f1 = std::async(std::launch::async, rank_fn, 1);
   auto r0 = f0.get(), r1 = f1.get();
+  // The gradients really went through c10d ProcessGroupGloo (not the store fallback).
+  EXPECT_TRUE(have_gloo()) << "this build has no gloo headers: install libgloo-dev and reconfigure";
+  EXPECT_EQ(backends[0], "gloo");
+  EXPECT_EQ(backends[1], "gloo");
   for (int i = 0; i < 2; ++i) {
     EXPECT_TRUE(torch::equal(r0[i], r1[i])) << "ranks disagree";
     EXPECT_TRUE(simu::testing::close(r0[i], solo[i], 1e-5, i ? "B" : "A"));

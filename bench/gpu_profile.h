@@ -1,0 +1,58 @@
+// Benchmark helper: where the GPU time of one call goes (PyTorch's Kineto profiler, CUPTI kernels).
+#pragma once
+
+#include <torch/csrc/autograd/profiler_kineto.h>
+#include <torch/cuda.h>
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <functional>
+#include <map>
+#include <string>
+#include <vector>
+
+namespace simu::bench {
+
+// Runs fn once under the profiler and prints the `top` GPU kernels by total time (name cut to 90
+// characters), their share of all kernel time, and kernel time versus the wall time of the call.
+inline void print_gpu_kernel_profile(const std::string& title, const std::function<void()>& fn, int top = 20) {
+  namespace prof = torch::autograd::profiler;
+  namespace impl = torch::profiler::impl;
+  const impl::ProfilerConfig cfg(impl::ProfilerState::KINETO);
+  const std::set<impl::ActivityType> acts{impl::ActivityType::CPU, impl::ActivityType::CUDA};
+  prof::prepareProfiler(cfg, acts);
+  torch::cuda::synchronize();
+  prof::enableProfiler(cfg, acts);
+  const auto t0 = std::chrono::steady_clock::now();
+  fn();
+  torch::cuda::synchronize();
+  const double wall_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  const auto result = prof::disableProfiler();
+  // Sum kernel durations by name.
+  std::map<std::string, std::pair<double, int>> by_name;  // name -> (ms, count)
+  double total = 0;
+  for (const auto& e : result->events()) {
+    if (e.deviceType() != c10::DeviceType::CUDA) continue;
+    const double ms = static_cast<double>(e.durationNs()) * 1e-6;
+    auto& slot = by_name[e.name()];
+    slot.first += ms;
+    slot.second += 1;
+    total += ms;
+  }
+  std::vector<std::pair<std::string, std::pair<double, int>>> rows(by_name.begin(), by_name.end());
+  std::sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.second.first > b.second.first; });
+  fmt::print("\nprofile: {}: wall {:.2f} ms (profiled), GPU kernel time {:.2f} ms ({:.0f}% of wall), {} kernel names\n",
+             title, wall_ms, total, wall_ms > 0 ? 100 * total / wall_ms : 0.0, rows.size());
+  fmt::print("| kernel | calls | ms | % of kernel time |\n|---|---|---|---|\n");
+  for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
+    std::string name = rows[i].first;
+    if (name.size() > 90) name = name.substr(0, 90) + "...";
+    for (auto& ch : name)
+      if (ch == '|') ch = '/';
+    fmt::print("| {} | {} | {:.3f} | {:.1f}% |\n", name, rows[i].second.second, rows[i].second.first,
+               total > 0 ? 100 * rows[i].second.first / total : 0.0);
+  }
+}
+
+}  // namespace simu::bench

@@ -1,0 +1,27 @@
+// Launchers of the flow model's fused CUDA kernels (src/models/fused_kernels.cu). Plain pointers and a
+// stream so that the .cu file needs no torch headers; the checked, tensor-level API is fused_ops.h.
+#pragma once
+
+#include <cstdint>
+
+#include <cuda_bf16.h>
+#include <cuda_runtime_api.h>
+
+namespace simu::models::kernels {
+
+// y[r, :] = (x[r, :] - mean) * rstd * w[r / rows_per_w, :] + b[r / rows_per_w, :] in fp32, stored as bf16.
+// x: [rows, C] fp32 contiguous; w, b: [rows / rows_per_w, C] fp32 (b may be null); C % 128 == 0, C <= 1024.
+cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
+                                   int64_t rows_per_w, int C, float eps, cudaStream_t stream);
+
+// From a fused projection qkv [B, L, 3, H, D] (bf16, contiguous) writes, per token and head,
+//   q = bf16(q / max(|q|, 1e-12) * gq[h] * scale), k likewise with gk, v copied,
+// into outputs addressed as out + b*sb + l*sl + h*D + d (strides in elements). D % 64 == 0, D <= 256.
+struct QkvOut {
+  __nv_bfloat16* ptr;
+  int64_t sb, sl;
+};
+cudaError_t split_qkv_rms_norm(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale, QkvOut q,
+                               QkvOut k, QkvOut v, int B, int L, int H, int D, cudaStream_t stream);
+
+}  // namespace simu::models::kernels

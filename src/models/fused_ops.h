@@ -1,0 +1,41 @@
+// The flow model's fused inference kernels at tensor level, each next to the plain-ATen reference it
+// must match (tests/models/fused_ops_gpu.cpp compares them). The fused versions run on CUDA only, on
+// shapes the kernels support (see supports_*); callers check and otherwise take the reference.
+#pragma once
+
+#include <torch/torch.h>
+
+namespace simu::models::fused {
+
+// True when the library was compiled with the CUDA kernels (nvcc present at build time).
+bool compiled();
+// Number of fused kernel launches so far in this process (tests check that a fast path really ran).
+int64_t launch_count();
+
+// LayerNorm (no affine of its own, fp32 math) followed by a per-row-group affine, stored as bf16:
+//   x: [B, L, C] float32 contiguous; w, b: [G, C] float32 with G = 1 or G = B (b may be undefined).
+//   y[b, l] = LN(x[b, l]) * w[b or 0] + b[b or 0]  -> [B, L, C] bfloat16.
+// This is norm1/norm3 + the adaLN modulation (w = 1 + scale, b = shift) and the affine norm2.
+bool supports_layer_norm_affine(const torch::Tensor& x);
+torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps);
+torch::Tensor layer_norm_affine_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b,
+                                               double eps);
+
+// Splits a fused projection qkv: [B, L, 3, H, D] bfloat16 into q, k, v, with the official multi-head
+// RMS norm on q and k (q / max(|q|, 1e-12) * gamma * scale in fp32, gamma: [H, D] float32).
+// Writes into the given outputs ([B, L, H, D] views, last two dims contiguous, any batch/token strides),
+// so that k and v can land directly in a larger key/value buffer.
+bool supports_split_qkv(const torch::Tensor& qkv);
+void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k, double scale,
+                        torch::Tensor q, torch::Tensor k, torch::Tensor v);
+void split_qkv_rms_norm_reference(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k,
+                                  double scale, torch::Tensor q, torch::Tensor k, torch::Tensor v);
+
+// y = gelu_tanh(x @ w^T + b) with the GELU in the matrix product's epilogue (cuBLASLt), bf16:
+//   x: [..., K] (cast to bf16), w: [N, K], b: [N] (the fp32 parameters; bf16 copies from the autocast
+//   cache when autocast is on) -> [..., N] bfloat16. Reference: linear, then gelu(approximate="tanh").
+bool supports_linear_gelu(const torch::Tensor& x);
+torch::Tensor linear_gelu_tanh_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b);
+torch::Tensor linear_gelu_tanh_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b);
+
+}  // namespace simu::models::fused

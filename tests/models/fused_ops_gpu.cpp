@@ -1,0 +1,135 @@
+// The flow model's fused CUDA kernels against their plain-ATen references, and the whole forward with
+// and without them (bf16 autocast on CUDA).
+#include <ATen/CPUGeneratorImpl.h>
+
+#include <fstream>
+
+#include "models/flow_model.h"
+#include "models/fused_ops.h"
+#include "models/generator.h"
+#include "test_util.h"
+
+namespace {
+// max |a - b| / max |b| over float copies.
+double rel(const torch::Tensor& a, const torch::Tensor& b) {
+  auto fa = a.to(torch::kFloat32).cpu(), fb = b.to(torch::kFloat32).cpu();
+  return (fa - fb).abs().max().item<double>() / std::max(fb.abs().max().item<double>(), 1e-30);
+}
+}  // namespace
+
+TEST(FusedOpsGpu, LayerNormAffineMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled()) << "built without nvcc: no fused kernels to test";
+  torch::manual_seed(1);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  for (const int64_t C : {256, 1024}) {
+    // Residual-stream-like input (offset and spread) with per-batch and shared affine rows.
+    auto x = torch::randn({2, 1031, C}, f32) * 3 + 0.5;
+    for (const int64_t G : {1, 2}) {
+      auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
+      const auto before = simu::models::fused::launch_count();
+      auto got = simu::models::fused::layer_norm_affine_bf16(x, w, b, 1e-6);
+      EXPECT_EQ(simu::models::fused::launch_count(), before + 1);
+      auto want = simu::models::fused::layer_norm_affine_bf16_reference(x, w, b, 1e-6);
+      ASSERT_EQ(got.scalar_type(), torch::kBFloat16);
+      // One bf16 rounding of the same fp32 value on both sides: at most one bf16 ulp apart.
+      EXPECT_LE(rel(got, want), 1.0 / 128) << "C " << C << " G " << G;
+      EXPECT_LT((got.to(torch::kFloat32) - want.to(torch::kFloat32)).abs().mean().item<double>(), 1e-3);
+      // Without bias.
+      EXPECT_LE(rel(simu::models::fused::layer_norm_affine_bf16(x, w, {}, 1e-6),
+                    simu::models::fused::layer_norm_affine_bf16_reference(x, w, {}, 1e-6)), 1.0 / 128);
+    }
+  }
+}
+
+TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(2);
+  const auto bf = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kBFloat16);
+  const int64_t B = 2, L = 517, H = 16, D = 64, extra = 5;
+  auto qkv = (torch::randn({B, L, 3, H, D}, bf.dtype(torch::kFloat32)) * 4).to(torch::kBFloat16);
+  qkv.select(1, 3).select(1, 0).select(1, 0).zero_();  // a zero query (token 3, head 0): the clamp keeps it zero
+  auto gq = 1 + 0.2 * torch::randn({H, D}, bf.dtype(torch::kFloat32)), gk = torch::randn({H, D}, bf.dtype(torch::kFloat32));
+  // Keys and values land in a larger buffer at an offset (the pose stream's keys come first).
+  auto k_buf = torch::zeros({B, L + extra, H, D}, bf), v_buf = torch::zeros({B, L + extra, H, D}, bf);
+  auto q = torch::empty({B, L, H, D}, bf);
+  simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q, k_buf.narrow(1, extra, L), v_buf.narrow(1, extra, L));
+  auto q_ref = torch::empty_like(q), k_ref = torch::empty_like(q), v_ref = torch::empty_like(q);
+  simu::models::fused::split_qkv_rms_norm_reference(qkv, gq, gk, 8.0, q_ref, k_ref, v_ref);
+  EXPECT_LE(rel(q, q_ref), 1.0 / 128);
+  EXPECT_LE(rel(k_buf.narrow(1, extra, L), k_ref), 1.0 / 128);
+  EXPECT_TRUE(torch::equal(v_buf.narrow(1, extra, L), v_ref));
+  EXPECT_EQ(q.select(1, 3).select(1, 0).abs().max().item<float>(), 0.f);
+  // The buffer outside the written slice is untouched.
+  EXPECT_EQ(k_buf.narrow(1, 0, extra).abs().max().item<float>(), 0.f);
+  // Independent check of the norm: |q| = scale * |gamma-weighted unit vector|; with gamma = 1 it is scale.
+  auto ones = torch::ones({H, D}, bf.dtype(torch::kFloat32));
+  simu::models::fused::split_qkv_rms_norm(qkv, ones, ones, 8.0, q, k_ref, v_ref);
+  auto norms = q.to(torch::kFloat32).norm(2, {-1});  // [B, L, H]
+  norms.select(1, 3).select(1, 0).fill_(8.0);          // the zero query
+  EXPECT_LT((norms - 8.0).abs().max().item<double>(), 8.0 * 0.01);
+}
+
+TEST(FusedOpsGpu, LinearGeluMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(3);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  auto x = torch::randn({2, 301, 256}, f32).to(torch::kBFloat16);
+  auto w = torch::randn({1024, 256}, f32) / 16, b = torch::randn({1024}, f32);
+  for (const bool autocast : {false, true}) {
+    simu::models::Bf16Autocast ac(autocast);
+    auto got = simu::models::fused::linear_gelu_tanh_bf16(x, w, b);
+    auto want = simu::models::fused::linear_gelu_tanh_bf16_reference(x, w, b);
+    ASSERT_EQ(got.sizes(), want.sizes());
+    // The epilogue applies GELU before rounding to bf16, the reference after: about one bf16 ulp.
+    EXPECT_LE(rel(got, want), 2.0 / 128) << "autocast " << autocast;
+    // Independent: tanh-GELU of the fp32 product.
+    auto y = torch::matmul(x.to(torch::kFloat32), w.to(torch::kBFloat16).to(torch::kFloat32).t()) +
+             b.to(torch::kBFloat16).to(torch::kFloat32);
+    auto g = 0.5 * y * (1 + torch::tanh(std::sqrt(2.0 / M_PI) * (y + 0.044715 * y.pow(3))));
+    EXPECT_LE(rel(got, g), 2.0 / 128);
+  }
+}
+
+TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  const torch::Device dev(torch::kCUDA);
+  // A mid-size model the kernels support (256 channels, 4 heads of 64, 512 shape tokens + pose).
+  std::ifstream in(std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml");
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
+           {"model_channels: 64", "model_channels: 256"}, {"num_blocks: 2", "num_blocks: 3"}, {"resolution: 4", "resolution: 8"}}) {
+    const auto at = text.find(from);
+    ASSERT_NE(at, std::string::npos) << from;
+    text.replace(at, from.size(), to);
+  }
+  const auto path = simu::testing::temp_dir("fused_flow") + "/stage1_mid.yaml";
+  std::ofstream(path) << text;
+  auto gen = simu::models::load_generator(path, "", dev);
+  auto rng = at::make_generator<at::CPUGeneratorImpl>(5);
+  auto x = gen->noise(2, rng, dev);
+  auto cond = torch::randn({2, 77, gen->config().backbone.cond_channels}, rng).to(dev);
+  auto t = torch::full({1}, 400.0, torch::TensorOptions().device(dev));
+  c10::optional<torch::Tensor> d = torch::zeros({1}, torch::TensorOptions().device(dev));
+  torch::NoGradGuard ng;
+  simu::models::Bf16Autocast ac(true);
+  gen->backbone()->set_fused_kernels(false);
+  const auto n0 = simu::models::fused::launch_count();
+  auto want = gen->backbone()->forward(x, t, cond, d);
+  EXPECT_EQ(simu::models::fused::launch_count(), n0) << "fused kernels ran although switched off";
+  gen->backbone()->set_fused_kernels(true);
+  auto got = gen->backbone()->forward(x, t, cond, d);
+  // 3 blocks x 2 streams x (3 norms + 1 qkv split + 1 fc1-GELU) launches.
+  EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5);
+  for (const auto& [k, v] : want) EXPECT_LE(rel(got.at(k), v), 2e-2) << k;
+  // With gradients recorded the reference path runs (training).
+  {
+    at::AutoGradMode grad(true);
+    const auto n1 = simu::models::fused::launch_count();
+    (void)gen->backbone()->forward(x, t, cond, d);
+    EXPECT_EQ(simu::models::fused::launch_count(), n1);
+  }
+}
