@@ -12,48 +12,10 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "pipeline/camera.h"
-#include "pipeline/mesh.h"
-#include "pipeline/overlay.h"
 #include "pipeline/probe.h"
 #include "pipeline/probe_resampler.h"
-#include "pipeline/raster.h"
 
 namespace {
-
-// OUT/overlay.png: every object's final silhouette tinted, B_pre solid, the target B_str dashed, and
-// the auxiliary crop mask M' of resampled objects outlined.
-void write_probe_overlay(const simu::pipeline::ProbeResult& r, const std::string& path) {
-  using namespace simu::pipeline;
-  const Scene& s = r.scene;
-  std::vector<BinaryMask> silhouettes(s.objects.size()), aux(s.objects.size());
-  std::vector<OverlayItem> items;
-  for (size_t i = 0; i < s.objects.size(); ++i) {
-    const auto& d = r.diagnostics[i];
-    OverlayItem it;
-    it.label = s.objects[i].id + ": " + to_string(d.branch) + (d.resampled ? " (replaced)" : "");
-    try {
-      silhouettes[i] = render_silhouette(s.camera, world_mesh(read_mesh(s.objects[i].mesh_path), s.objects[i]));
-      it.mask = &silhouettes[i];
-    } catch (const std::exception& e) {
-      simu::log::warn("overlay: object {}: {}", s.objects[i].id, e.what());
-    }
-    if (d.obb_pre.extents.maxCoeff() > 0) it.obb = d.obb_pre;
-    if (d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample) it.obb_target = d.obb_target;
-    items.push_back(it);
-  }
-  for (const auto& q : r.resample_requests) {
-#ifdef SIMU_HAVE_OPENCV
-    if (q.aux_mask.empty() || q.object_index < 0) continue;
-    BinaryMask m(q.aux_mask.cols, q.aux_mask.rows);
-    for (int y = 0; y < m.height; ++y)
-      for (int x = 0; x < m.width; ++x) m.at(y, x) = q.aux_mask.at<uint8_t>(y, x) ? 1 : 0;
-    aux[q.object_index] = m;
-    items[q.object_index].aux_mask = &aux[q.object_index];
-#endif
-  }
-  write_overlay_png(path, s.camera, s.image_path, items);
-}
 
 // One line per corrected object: branch and what changed (report.json holds the details).
 void print_changes(const simu::pipeline::ProbeResult& r) {
@@ -89,7 +51,7 @@ int main(int argc, char** argv) {
   std::vector<std::string> scenes;
   int threads = 1;
   double rho = 0.15, settle = 2.0, bound = 0.25;
-  bool no_coacd = false, quiet = false, overlay = false;
+  bool no_coacd = false, quiet = false;
   std::string cache_dir;
   app.add_option("--scene", scene_path, "scene file (JSON)");
   app.add_option("--scenes", scenes, "several scene files (outputs go to OUT/<file stem>/)");
@@ -101,7 +63,6 @@ int main(int argc, char** argv) {
   app.add_option("--cache-dir", cache_dir, "collision hull cache (default: $SIMU_HULL_CACHE or ~/.cache/simuscene/hulls)");
   app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh instead of CoACD's decomposition");
   app.add_flag("--quiet", quiet, "no per-object progress lines");
-  app.add_flag("--overlay", overlay, "also write OUT/overlay.png (final silhouettes, B_pre, B_str, M')");
   // In-process resampling (SAM 3D Stage 1 + optional LoRA adapter), loaded once for every scene.
   simu::pipeline::ResamplerConfig rcfg;
   bool resample = false;
@@ -176,14 +137,6 @@ int main(int argc, char** argv) {
           fmt::print("{}: {} objects ({} flagged), probe {:.2f} s, final {:.2f} s -> {}\n", path, scene.objects.size(),
                      flagged, r.seconds_probe, r.seconds_final, out);
           print_changes(r);
-          if (overlay) {
-            try {
-              write_probe_overlay(r, out + "/overlay.png");
-              fmt::print("  overlay: {}/overlay.png\n", out);
-            } catch (const std::exception& e) {
-              simu::log::warn("{}: overlay not written: {}", path, e.what());
-            }
-          }
         } catch (const std::exception& e) {
           ++failed;
           std::lock_guard<std::mutex> lock(print_mu);

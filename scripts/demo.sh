@@ -5,7 +5,7 @@
 #   3. the adapter exported in PEFT format            (export_adapter)
 #   4. a synthetic scene whose one object has its bottom cut away (synth_bench --write)
 #   5. the physics probe with in-process resampling by the adapted Stage 1, best of 4 samples,
-#      final settle -> MJCF + overlay PNG + report + corrected scene   (probe --resample --overlay)
+#      final settle -> MJCF + overlay PNG + report + corrected scene   (probe --resample; run_probe writes overlay.png)
 # The small models have RANDOM weights (fixtures, embedder random init), so the decoded shapes and
 # poses are arbitrary and often too large for the table: candidates whose penetration resolution
 # fails are rejected, the one that moves least is kept; when none settles the probe keeps the one that
@@ -44,7 +44,7 @@ PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 "$BUILD/probe" --scene "$scene" --out "$OUT/probe" --resample --device cpu --steps 4 --seed 1 --num-samples 4 \
   --generator-config "$FIX/ss_generator_small.json" --generator-weights "$FIX/ss_generator_small.safetensors" \
   --decoder-config configs/ss_decoder_small.yaml --decoder-weights "$FIX/ss_decoder_small.safetensors" \
-  --embedder-config configs/demo_embedder_small.json --adapter "$OUT/adapter" --overlay --no-coacd
+  --embedder-config configs/demo_embedder_small.json --adapter "$OUT/adapter" --no-coacd
 # The demo's point: the cut object must have been replaced by the resampled mesh.
 "$PY" - "$OUT/probe/report.json" <<'PYEOF'
 import json, sys
