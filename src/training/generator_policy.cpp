@@ -104,6 +104,9 @@ std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_
 }
 
 std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch::Device device) {
+  // train.seed fixes the random parts of the model (the LoRA A init, and the base when no weights are
+  // given), identically on every rank and for every world size.
+  torch::manual_seed(cfg.train.seed);
   return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device);
 }
 #else

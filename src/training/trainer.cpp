@@ -201,6 +201,18 @@ Trainer::Trainer(TrainConfig cfg, PolicyModel& model, PairSourceFactory sources,
   (void)per_rank;
   opt_ = std::make_unique<AdamW>(model_.adapter_parameters(), cfg_.optim);
   source_ = make_source_(comm_.rank(), comm_.world_size(), cfg_.data.global_batch, cfg_.data.seed, DataPosition{});
+  // Every rank must start from the same adapters (gradients are averaged, never the weights): compare
+  // a fingerprint of them across ranks (sum and sum of squares of the per-rank sums).
+  if (world > 1) {
+    double fp = 0;
+    for (const auto& [name, p] : opt_->params()) fp += p.detach().to(torch::kFloat64).sum().item<double>() * (1 + 1e-3 * fp);
+    const auto s = comm_.all_reduce_sum({fp, fp * fp});
+    const double mean = s[0] / world, var = s[1] / world - mean * mean;
+    if (var > 1e-18 * std::max(1.0, mean * mean))
+      fail_hint("seed every rank alike (train.seed) before the adapters are created",
+                "rank {}: the adapters differ across the {} ranks at the start (fingerprint {} vs mean {})", comm_.rank(),
+                world, fp, mean);
+  }
 }
 
 CheckpointData Trainer::checkpoint_data() const {
