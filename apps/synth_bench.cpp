@@ -2,8 +2,12 @@
 // reads written ones with --from), measures each free object's displacement with the MuJoCo probe
 // (or the ideal "oracle": drop to the known support), runs the paper's stretch-or-resample decision
 // and correction, and prints the decision accuracy per injected error type, the overlap metrics
-// before / after correction and, with the MuJoCo probe, the physics metrics before (the scene as
-// read, settled 5 s without correction) and after (the probe's corrected scene, settled 5 s).
+// before (the input reconstruction) / after correction and, with the MuJoCo probe, the physics
+// metrics before (the scene as read, settled 5 s without correction) and after (the probe's corrected
+// scene, settled 5 s). With the MuJoCo probe every "after" figure comes from the probe's output: the
+// overlap metrics score its corrected scene (settled poses, corrected scales, the meshes it used),
+// the physics metrics the evaluation settle that starts from that same scene. With the oracle the
+// "after" objects are each corrected alone from the known support (no simulation).
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/log.h"
@@ -45,7 +49,9 @@ int main(int argc, char** argv) {
   app.add_option("--config", config_path, "YAML/JSON with `synthetic:` (generator) and `correction:` sections");
   app.add_option("--threshold", threshold, "rho threshold for resampling (default: config, else the paper's 0.15)");
   app.add_option("--resample-proxy", proxy_name,
-                 "stand-in for the resampler on the resample branch: stretch (fill B_str), drop (layout-only), keep");
+                 "stand-in for the resampler on the resample branch: stretch (the input mesh stretched to fill B_str, placed "
+                 "by the probe), drop (no resampler: the probe keeps the input mesh where the diagnostic left it), keep "
+                 "(oracle only: left as reconstructed)");
   app.add_option("--probe", probe_name,
                  "displacement source: mujoco (run_probe on the written scene; physics metrics) or oracle (drop to the "
                  "known support; overlap metrics only)")->capture_default_str();
@@ -80,7 +86,9 @@ int main(int argc, char** argv) {
     const auto proxy = parse_resample_proxy(proxy_name);
     SIMU_CHECK(proxy, "--resample-proxy: got '{}', expected stretch, drop or keep", proxy_name);
     SIMU_CHECK(probe_name == "oracle" || probe_name == "mujoco", "--probe: got '{}', expected oracle or mujoco", probe_name);
-    std::atomic<int> disabled{0};
+    SIMU_CHECK(!(probe_name == "mujoco" && *proxy == ResampleProxy::Keep),
+               "--resample-proxy keep needs --probe oracle (the probe's final settle moves every object)");
+    std::atomic<int> disabled{0}, reverted{0};
     // Written scenes to evaluate (--from), in name order.
     std::vector<std::string> from_scenes;
     if (!from_dir.empty()) {
@@ -107,9 +115,8 @@ int main(int argc, char** argv) {
           const bool from = !from_scenes.empty();
           const SyntheticScene s = from ? load_synthetic_scene(from_scenes[k]) : generate_scene(syn, seed + k, name);
           std::string dir = write_dir.empty() ? "" : (std::filesystem::path(write_dir) / name).string();
-          std::vector<Displacement> disp;
           if (probe_name == "mujoco") {
-            // The physics probe measures dt_pen / dt_grv on the written scene (no outputs, no resampler).
+            // The physics probe on the written scene (no files written); its corrected scene is scored.
             std::string scene_file = from ? from_scenes[k] : "";
             if (!from) {
               if (dir.empty())
@@ -124,17 +131,21 @@ int main(int argc, char** argv) {
             const Scene input = load_scene(scene_file);
             // Before: the reconstruction as read, settled without any correction.
             phys_before[k] = evaluate_physics(input, pc);
-            // After: the probe's corrected scene (its own evaluation settle).
-            const ProbeResult pr = run_probe(input, pc, "");
+            // After: the probe's corrected scene (settled poses, corrected scales and meshes; the
+            // resample branch through the proxy, or left where the diagnostic put it with "drop"), and
+            // the evaluation settle that starts from it.
+            const ResampleFn resampler = *proxy == ResampleProxy::Stretch ? stretch_resampler(s, corr) : nullptr;
+            const ProbeResult pr = run_probe(input, pc, "", resampler);
             phys_after[k] = pr.evaluation;
             for (const Diagnostics& d : pr.diagnostics) {
-              disp.push_back({d.dt_pen, d.dt_grv});
               disabled += d.physics_disabled;
+              reverted += d.reverted;
             }
-          } else if (!dir.empty()) {
-            write_scene_dir(s, dir);
+            results[k] = evaluate_probe_output(s, pr);
+          } else {
+            if (!dir.empty()) write_scene_dir(s, dir);
+            results[k] = evaluate_scene(s, corr, {}, *proxy);
           }
-          results[k] = evaluate_scene(s, corr, disp, *proxy);
         } catch (const std::exception& e) {
           errors[k] = e.what();
         }
@@ -153,7 +164,7 @@ int main(int argc, char** argv) {
     std::map<std::string, std::array<int, 3>> per;  // error -> {n, correct, resampled}
     int n = 0, correct = 0;
     double gap_before = 0, gap_after = 0;
-    int failed = 0;
+    int failed = 0, undecided = 0;
     for (int k = 0; k < num_scenes; ++k) {
       if (!errors[k].empty()) {
         ++failed;
@@ -163,7 +174,9 @@ int main(int argc, char** argv) {
       for (const ObjectOutcome& o : results[k].objects) {
         auto& a = per[to_string(o.error)];
         ++a[0], ++n;
-        a[1] += o.got == o.expected, correct += o.got == o.expected;
+        const bool right = o.decided && o.got == o.expected;
+        a[1] += right, correct += right;
+        undecided += !o.decided;
         a[2] += o.got == Branch::Resample;
         gap_before += o.support_gap_before, gap_after += o.support_gap_after;
       }
@@ -174,7 +187,8 @@ int main(int argc, char** argv) {
     for (const auto& [e, a] : per)
       fmt::print("{:<12} {:>6} {:>8.1f}% {:>9.1f}%\n", e, a[0], a[0] ? 100.0 * a[1] / a[0] : 0.0,
                  a[0] ? 100.0 * a[2] / a[0] : 0.0);
-    fmt::print("{:<12} {:>6} {:>8.1f}%\n", "all", n, n ? 100.0 * correct / n : 0.0);
+    fmt::print("{:<12} {:>6} {:>8.1f}%   ({} / {} correct", "all", n, n ? 100.0 * correct / n : 0.0, correct, n);
+    fmt::print(undecided ? fmt::format("; {} without a decision, counted wrong)\n", undecided) : std::string(")\n"));
 
     // Mean overlap metrics before / after over the scenes.
     auto mean = [&](auto get) {
@@ -184,7 +198,8 @@ int main(int argc, char** argv) {
         if (errors[k].empty()) s += get(results[k]), ++c;
       return c ? s / c : 0.0;
     };
-    fmt::print("\nMetric (mean over {} scenes)       before    after\n", num_scenes - failed);
+    fmt::print("\nMetric (mean over {} scenes)       before    after   (before: input; after: {})\n", num_scenes - failed,
+               probe_name == "mujoco" ? "the probe's corrected scene" : "oracle correction of each object alone");
     fmt::print("2D IoU                          {:8.4f} {:8.4f}\n", mean([](auto& r) { return r.mask_before.iou; }),
                mean([](auto& r) { return r.mask_after.iou; }));
     fmt::print("2D ABO                          {:8.4f} {:8.4f}\n", mean([](auto& r) { return r.mask_before.abo; }),
@@ -222,7 +237,9 @@ int main(int argc, char** argv) {
     }
     fmt::print("resample branch stand-in: {}\n", proxy_name);
     if (probe_name == "mujoco")
-      fmt::print("probe: MuJoCo run_probe (dt_pen, dt_grv); physics-disabled objects: {}\n", disabled.load());
+      fmt::print("probe: MuJoCo run_probe; physics-disabled objects: {} (scored at their input pose, invalid), "
+                 "reverted in the final settle: {} (scored at their pre-settle pose)\n",
+                 disabled.load(), reverted.load());
     else
       fmt::print("probe: oracle drop to the known support (physics metrics: --probe mujoco)\n");
     if (failed) fmt::print("{} scene(s) failed (see warnings)\n", failed);

@@ -1333,9 +1333,11 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   }(), cfg.metrics, res.evaluation.ran ? res.evaluation.scene_peak_energy : -1);
   res.seconds_metrics = res.evaluation.seconds;
 
-  // Corrected scene: final poses and scales (and each object's final OBB for the report).
+  // Corrected scene: final poses, scales and meshes (and each object's final OBB for the report).
+  res.meshes.assign(n, Mesh{});
   for (size_t i = 0; i < n; ++i) {
     if (!objs[i].usable) continue;
+    res.meshes[i] = objs[i].canonical;
     try {
       res.diagnostics[i].obb_final = object_obb(objs[i].canonical, objs[i].s, objs[i].R, objs[i].t, scene.gravity);
     } catch (const std::exception&) {

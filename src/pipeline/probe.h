@@ -197,6 +197,11 @@ using ProbeProgress = std::function<void(int done, int total, const std::string&
 
 struct ProbeResult {
   Scene scene;                      // corrected scene (mesh paths point into out_dir when written)
+  // Per Scene::objects index: the canonical mesh the corrected scene uses (the input mesh, its
+  // gravity-axis stretch when the stretch changed it, or the resampled shape); empty when the
+  // object's mesh could not be used (bad input, mesh error). With scene's pose and scale this is
+  // the output object, written or not.
+  std::vector<Mesh> meshes;
   std::vector<Diagnostics> diagnostics;  // per Scene::objects index
   std::vector<int> order;           // object indices in sequential order
   std::vector<ProbeResampleRequest> resample_requests;

@@ -11,6 +11,7 @@
 
 #include "pipeline/geometry.h"
 #include "pipeline/metrics.h"
+#include "pipeline/probe.h"
 #include "pipeline/raster.h"
 #include "pipeline/scene.h"
 
@@ -134,27 +135,70 @@ struct ObjectOutcome {
   std::string id;
   InjectedError error = InjectedError::None;
   Branch expected = Branch::Stretch, got = Branch::Stretch;
+  bool decided = true;       // false: no stretch-or-resample decision was made (physics-disabled,
+                             // decision failed); `got` is then meaningless and counts as wrong
   double rho = 0, eta = 0;
   double support_gap_before = 0, support_gap_after = 0;  // |lowest point - support| (metres)
+  std::vector<std::string> flags;  // the probe's flags for the object (physics_disabled, reverted, ...)
 };
 
 // What stands in for the resampler in the benchmark (it lives in another component):
 //   Stretch: the gravity-axis stretch applied anyway (the object fills B_str; the paper's "Stretched"
 //            baseline), Drop: moved by the measured displacement only (layout-only fix),
-//   Keep: left as reconstructed.
+//   Keep: left as reconstructed (oracle only: the physics probe always moves an object).
 enum class ResampleProxy { Stretch, Drop, Keep };
 std::optional<ResampleProxy> parse_resample_proxy(const std::string& s);
 
-// Before/after scores of one scene: the reconstruction as given vs corrected (stretch branch: the
-// gravity-axis stretch; resample branch: the proxy). Overlap metrics are over all objects (hanging
-// ones unchanged), with every object valid (no simulation).
+// One object after the correction, as the benchmark scores it: world geometry R (scale .* mesh) + t.
+struct CorrectedObject {
+  Mesh mesh;                   // canonical mesh used (empty: the input reconstruction's pred_mesh)
+  Vec3 scale = Vec3::Ones();
+  Mat3 R = Mat3::Identity();
+  Vec3 t = Vec3::Zero();
+  bool valid = true;           // false: physics-disabled or unusable (zeroed by the strict fh/fo variants)
+  bool decided = true;         // free objects: a stretch-or-resample decision was made
+  Branch branch = Branch::Stretch;
+  double rho = 0, eta = 0;
+  std::vector<std::string> flags;
+};
+
+// Before/after scores of one scene: "before" is the reconstruction as given (injected errors, every
+// object valid), "after" the corrected objects. Overlap metrics are over all objects; the masks are
+// rendered jointly from the camera with the bases as occluders; 3D boxes are the world AABBs of the
+// placed meshes against SyntheticObject::gt_box.
 struct SceneEvaluation {
-  std::vector<ObjectOutcome> objects;
+  std::vector<ObjectOutcome> objects;  // free objects, in scene order
   OverlapMetrics mask_before, mask_after, box_before, box_after;
 };
-// displacements[i] is object i's measurement (free objects; others ignored). Empty: the oracle.
+// Scores `after` (one per SyntheticScene::objects index) against the ground truth.
+SceneEvaluation evaluate_corrected(const SyntheticScene& s, const std::vector<CorrectedObject>& after);
+
+// The idealised correction without simulation: each free object diagnosed from its displacement
+// (displacements[i]; empty: the oracle drop to its known support) and corrected in isolation from
+// its input pose (stretch branch: the gravity-axis stretch; resample branch: the proxy); hanging
+// objects unchanged. No penetration resolution between objects, no joint settle.
 SceneEvaluation evaluate_scene(const SyntheticScene& s, const CorrectionConfig& config,
                                const std::vector<Displacement>& displacements = {},
                                ResampleProxy proxy = ResampleProxy::Stretch);
+
+// The physics probe's output for a synthetic scene (run_probe on to_probe_scene / the written scene,
+// objects in the same order): per object the corrected scene's pose and scale (ProbeResult::scene:
+// after the stretch or the resampler, the final penetration resolution and the joint settle) with
+// the mesh it uses (ProbeResult::meshes: stretched or resampled). The decision is the probe's own
+// (Diagnostics::branch, rho, eta). Handled as the probe leaves them:
+//   physics-disabled objects: the probe restores their input pose (and mesh); scored there, invalid,
+//     no decision (counted as a wrong decision by synth_bench);
+//   reverted objects (diverged in the final settle, or a solver reset): their pre-settle pose, valid;
+//   resample-branch objects without a resampler: the input mesh where the diagnostic left it
+//     (dropped / pushed out), then through the final composition;
+//   unusable meshes (bad input, mesh error): the input reconstruction at its input pose, invalid.
+std::vector<CorrectedObject> probe_output_objects(const SyntheticScene& s, const ProbeResult& r);
+// evaluate_corrected(s, probe_output_objects(s, r)).
+SceneEvaluation evaluate_probe_output(const SyntheticScene& s, const ProbeResult& r);
+
+// The --resample-proxy stretch as a resampler for run_probe: for each request, the object's input
+// mesh stretched along gravity so that, placed by the probe at the request's target OBB centre, it
+// fills B_str (the paper's "Stretched" baseline in place of a learned resampler).
+ResampleFn stretch_resampler(const SyntheticScene& s, const CorrectionConfig& config = {});
 
 }  // namespace simu::pipeline

@@ -1,11 +1,13 @@
 // Synthetic scene generator: ground truth consistent with its supports, injected errors as recorded,
 // masks rendered, the ideal-probe decisions matching the injected error types, files written and
-// read back through the scene loader.
+// read back through the scene loader; the benchmark's "after" metrics score the probe's output.
 #include "pipeline/synthetic.h"
 
 #include "test_util.h"
 
 #include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
 
 #include <filesystem>
 
@@ -135,4 +137,127 @@ TEST(Synthetic, CommittedDefaultScenes) {
     }
   }
   EXPECT_EQ(scenes, 3);
+}
+
+namespace {
+// World AABB of a box of full extents e placed at (R, t), from its 8 corners.
+Box3 box_aabb(const Vec3& e, const Mat3& R, const Vec3& t) {
+  Box3 b{Vec3::Constant(1e300), Vec3::Constant(-1e300)};
+  for (int c = 0; c < 8; ++c) {
+    const Vec3 local(((c & 1) ? 0.5 : -0.5) * e.x(), ((c & 2) ? 0.5 : -0.5) * e.y(), ((c & 4) ? 0.5 : -0.5) * e.z());
+    const Vec3 w = R * local + t;
+    b.min = b.min.cwiseMin(w), b.max = b.max.cwiseMax(w);
+  }
+  return b;
+}
+// IoU of two axis-aligned boxes (written out here, not metrics.h's box_iou).
+double aabb_iou(const Box3& a, const Box3& b) {
+  const Vec3 lo = a.min.cwiseMax(b.min), hi = a.max.cwiseMin(b.max);
+  const double inter = (hi - lo).cwiseMax(0.0).prod();
+  return inter / ((a.max - a.min).prod() + (b.max - b.min).prod() - inter);
+}
+}  // namespace
+
+// The "after" column scores the probe's corrected scene, not a stretch re-applied to the input. A
+// 10 x 16 x 10 cm box is reconstructed tilted 12 degrees about the camera axis, balanced on one bottom
+// edge 1 mm above the floor: the diagnostics see (almost) no displacement, so the stretch is the
+// identity and a stretch re-applied to the input keeps the tilt; the probe's final joint settle
+// tips it back onto its face about that edge, which (by construction) puts it on its ground truth.
+// A second object lies behind the back wall: the probe disables it and it is scored at its input
+// pose, invalid for the strict variants, without a decision.
+TEST(Synthetic, AfterMetricsUseTheProbesSettledScene) {
+  constexpr double kPi = 3.14159265358979323846;
+  const double floor_y = 0.4, wall_z = 1.6, theta = 12 * kPi / 180;
+  SyntheticScene s;
+  s.name = "topple";
+  s.layout = "tabletop";
+  s.camera.fx = s.camera.fy = 280;
+  s.camera.width = 320, s.camera.height = 240, s.camera.cx = 160, s.camera.cy = 120;
+  s.camera.R_world_cam = Eigen::AngleAxisd(-15 * kPi / 180, Vec3::UnitX()).toRotationMatrix();
+  s.floor = Plane{"floor", Vec3(0, floor_y, 0), Vec3(0, -1, 0)};
+  s.walls.push_back(Plane{"back", Vec3(0, 0, wall_z), Vec3(0, 0, -1)});
+  // The tilted box: ground truth upright on the floor; reconstruction rotated by theta about the
+  // bottom edge p (x = +5 cm, on the floor), lifted 1 mm.
+  const Vec3 ext(0.10, 0.16, 0.10);
+  SyntheticObject box;
+  box.id = "box", box.label = "box", box.error = InjectedError::Rotation, box.magnitude = 12;
+  box.gt_mesh = canonical_box_mesh(ext), box.gt_scale = Vec3::Constant(0.16);
+  box.gt_t = Vec3(0, floor_y - 0.08, 1.0);
+  box.support_y = floor_y;
+  const Mat3 Rz = Eigen::AngleAxisd(theta, Vec3::UnitZ()).toRotationMatrix();
+  const Vec3 p(0.05, floor_y, 1.0);
+  box.pred_mesh = box.gt_mesh, box.pred_scale = box.gt_scale, box.pred_R = Rz;
+  box.pred_t = p + Rz * (box.gt_t - p) - Vec3(0, 0.001, 0);
+  box.gt_box = box_aabb(ext, Mat3::Identity(), box.gt_t);
+  // It really stands on the edge p: its lowest corner is p, 1 mm up, and its centre of mass lies
+  // over the footprint side (x < p.x), so gravity tips it back.
+  const Box3 tilted = box_aabb(ext, Rz, box.pred_t);
+  ASSERT_NEAR(tilted.max.y(), floor_y - 0.001, 1e-12);
+  ASSERT_LT(box.pred_t.x(), p.x());
+  // A 8 cm cube behind the back wall (outside the room): disabled by the probe.
+  SyntheticObject out;
+  out.id = "outside", out.label = "box";
+  out.gt_mesh = out.pred_mesh = canonical_box_mesh(Vec3::Ones());
+  out.gt_scale = out.pred_scale = Vec3::Constant(0.08);
+  out.gt_t = out.pred_t = Vec3(0.35, floor_y - 0.04, wall_z + 0.1);
+  out.support_y = floor_y;
+  out.gt_box = box_aabb(Vec3::Constant(0.08), Mat3::Identity(), out.gt_t);
+  s.objects = {box, out};
+  for (SyntheticObject& o : s.objects)
+    o.modal_mask = render_silhouette(s.camera, placed(o.gt_mesh, o.gt_scale, o.gt_R, o.gt_t));
+
+  // The probe on the scene (meshes written; masks are not read without a resampler).
+  const std::string dir = simu::testing::temp_dir("synthetic_topple");
+  std::filesystem::create_directories(dir + "/meshes");
+  for (const SyntheticObject& o : s.objects) write_obj(dir + "/meshes/" + o.id + ".obj", o.pred_mesh);
+  ProbeConfig pc;
+  pc.collision.use_coacd = false;
+  pc.write_outputs = false;
+  pc.final_settle_time = 1.5;
+  pc.metrics_settle_time = 1.0;
+  const ProbeResult pr = run_probe(to_probe_scene(s, dir), pc, "");
+  ASSERT_EQ(pr.diagnostics.size(), 2u);
+  const Diagnostics& d = pr.diagnostics[0];
+  ASSERT_FALSE(d.physics_disabled) << d.message;
+  EXPECT_EQ(d.branch, ProbeBranch::Stretch);
+  EXPECT_LT(d.rho, 0.02);
+  EXPECT_FALSE(d.reverted) << d.message;
+  // The output pose is the geometric prediction: flat (tilt undone) on the ground truth.
+  const SceneObject& settled = pr.scene.objects[0];
+  EXPECT_LT(Eigen::AngleAxisd(settled.R).angle(), 1.0 * kPi / 180);
+  EXPECT_LT((settled.t - box.gt_t).norm(), 0.005);
+  EXPECT_TRUE(pr.diagnostics[1].physics_disabled);
+
+  const SceneEvaluation ev = evaluate_probe_output(s, pr);
+  ASSERT_EQ(ev.objects.size(), 2u);
+  // 3D: "before" is the tilted input (independent AABB of its corners); "after" the settled box.
+  // The outside cube is where its ground truth is, before and after (IoU 1).
+  const double stale = aabb_iou(tilted, box.gt_box);  // what a re-applied (identity) stretch scores
+  const double settled_iou = aabb_iou(box_aabb(ext.cwiseProduct(settled.scale) / 0.16, settled.R, settled.t), box.gt_box);
+  EXPECT_LT(stale, 0.75);
+  EXPECT_GT(settled_iou, 0.92);  // the geometric prediction (IoU 1) up to a few mm of slip
+  EXPECT_NEAR(ev.box_before.iou, 0.5 * (stale + 1.0), 1e-9);
+  EXPECT_NEAR(ev.box_after.iou, 0.5 * (settled_iou + 1.0), 1e-6);
+  // Strict "free only" variant: the disabled cube counts 0 after, 1 before.
+  EXPECT_NEAR(ev.box_after.iou_fo, 0.5 * settled_iou, 1e-6);
+  EXPECT_NEAR(ev.box_before.iou_fo, 0.5 * (stale + 1.0), 1e-9);
+  // 2D: the settled box covers its ground-truth mask; the tilted one does not.
+  EXPECT_GT(ev.mask_after.iou, 0.95);
+  EXPECT_LT(ev.mask_before.iou, ev.mask_after.iou - 0.05);
+  // Decisions: the box's is the probe's; the disabled cube has none.
+  EXPECT_TRUE(ev.objects[0].decided);
+  EXPECT_EQ(ev.objects[0].got, Branch::Stretch);
+  EXPECT_FALSE(ev.objects[1].decided);
+  // Support gap after: the settled box rests on the floor.
+  EXPECT_LT(ev.objects[0].support_gap_after, 0.003);
+  // The disabled cube is scored at its input pose, invalid.
+  const std::vector<CorrectedObject> objs = probe_output_objects(s, pr);
+  EXPECT_FALSE(objs[1].valid);
+  EXPECT_LT((objs[1].t - out.pred_t).norm(), 1e-12);
+  EXPECT_TRUE(objs[0].valid);
+  // The physics "after" column starts from the same output: the evaluation settle's displacement is
+  // measured from the corrected scene's pose, and the settled box barely moves in it.
+  ASSERT_TRUE(pr.evaluation.ran) << pr.evaluation.message;
+  EXPECT_NEAR(pr.evaluation.objects[0].displacement, (pr.evaluation.t[0] - settled.t).norm(), 1e-9);
+  EXPECT_LT(pr.evaluation.objects[0].displacement, 0.003);
 }
