@@ -149,6 +149,15 @@ int main(int argc, char** argv) {
         rows.push_back({L, "forward B=2", ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
         simu::log::info("cond {}: forward {:.2f} ms", L, ms);
         if (profile && dev.is_cuda()) simu::bench::print_gpu_kernel_profile(fmt::format("forward B=2, cond {}", L), fwd);
+        // The same forward replayed from a CUDA graph (as the sampler runs it): no launch gaps.
+        if (dev.is_cuda()) {
+          simu::models::GraphedForward graphed(gen->backbone(), cond, nullptr);
+          auto fwd_graph = [&] { auto y = graphed.run(x, t, d); };
+          reset_peak(dev);
+          const double gms = time_ms(dev, warmup, iters, fwd_graph);
+          rows.push_back({L, "forward B=2, CUDA graph", gms, flops / (gms * 1e-3) / 1e12, peak_gib(dev)});
+          simu::log::info("cond {}: forward (CUDA graph) {:.2f} ms", L, gms);
+        }
       }
       // Full sampling with CFG (batch 1 -> batch-2 forwards while guided).
       {
@@ -172,10 +181,16 @@ int main(int argc, char** argv) {
         }
         if (any_guided) flops += simu::models::flow_condition_kv_flops(mc, 2, L);
         if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
-        reset_peak(dev);
-        const double ms = time_ms(dev, 1, sample_iters, run);
-        rows.push_back({L, fmt::format("sample {} steps CFG {}", o.steps, cfg), ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
-        simu::log::info("cond {}: sampling {:.1f} ms", L, ms);
+        // With CUDA graphs (the default) and, for comparison, eager launches.
+        for (const bool graphs : {true, false}) {
+          if (!graphs && !dev.is_cuda()) continue;
+          o.cuda_graphs = graphs;
+          reset_peak(dev);
+          const double ms = time_ms(dev, 1, sample_iters, run);
+          rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, cfg, graphs ? "" : ", eager"), ms,
+                          flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
+          simu::log::info("cond {}: sampling{} {:.1f} ms", L, graphs ? "" : " (eager)", ms);
+        }
       }
     }
     fmt::print("\n| cond tokens | run | ms (median) | TFLOP/s | % of matmul rate | peak alloc GiB |\n|---|---|---|---|---|---|\n");

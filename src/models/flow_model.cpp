@@ -233,8 +233,9 @@ TimestepEmbedderImpl::TimestepEmbedderImpl(int64_t hidden_size, int64_t freq_siz
 torch::Tensor TimestepEmbedderImpl::timestep_embedding(const torch::Tensor& t, int64_t dim, double max_period) {
   const int64_t half = dim / 2;
   // freqs = exp(-ln(max_period) * arange(half) / half), float32 like the official
-  auto freqs = torch::exp(-std::log(max_period) * torch::arange(half, torch::kFloat32) / static_cast<double>(half))
-                   .to(t.device());
+  // Made on t's device: no host-to-device copy inside the forward (CUDA graph capture forbids it).
+  auto freqs = torch::exp(-std::log(max_period) * torch::arange(half, t.options().dtype(torch::kFloat32)) /
+                          static_cast<double>(half));
   auto args = t.reshape({-1, 1}).to(torch::kFloat32) * freqs.unsqueeze(0);  // [B, half]
   auto emb = torch::cat({torch::cos(args), torch::sin(args)}, -1);         // [B, 2*half]
   if (dim % 2) emb = torch::cat({emb, torch::zeros_like(emb.narrow(1, 0, 1))}, -1);
@@ -494,6 +495,28 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     }
     return norm->forward(xi) * (1 + scale) + shift;
   };
+  if (fast) {
+    // Residual update and the next LayerNorm in one kernel when the sublayer output allows it.
+    auto residual_norm = [&](const torch::Tensor& xi, const torch::Tensor& hi, const torch::Tensor& gate,
+                             const torch::Tensor& w, const torch::Tensor& b, double eps) {
+      if (fused::supports_residual_layer_norm_affine(xi, hi)) return fused::residual_layer_norm_affine_bf16(xi, hi, gate, w, b, eps);
+      auto xn = gate.defined() ? torch::addcmul(xi, hi, gate.unsqueeze(1)) : xi + hi;
+      return std::make_pair(xn, fused::layer_norm_affine_bf16(xn, w, b, eps));
+    };
+    const auto gate_a = gate_msa.squeeze(1), gate_m = gate_mlp.squeeze(1);  // [1 or B, C]
+    // Self attention on the modulated norm1.
+    for (size_t i = 0; i < S; ++i) h[i] = fused::layer_norm_affine_bf16(x[i], affine_msa.first, affine_msa.second, norm1[i]->eps);
+    h = self_attn->forward(h);
+    for (size_t i = 0; i < S; ++i) {
+      // x + h * gate, then norm2 (affine) -> cross attention over the condition.
+      auto [xa, n2] = residual_norm(x[i], h[i], gate_a, norm2[i]->weight.unsqueeze(0), norm2[i]->bias.unsqueeze(0), norm2[i]->eps);
+      auto c = kv ? cross_attn[i]->attend(n2, (*kv)[i].first, (*kv)[i].second) : cross_attn[i]->forward(n2, cond);
+      // x + c, then the modulated norm3 -> MLP; gated residual.
+      auto [xb, n3] = residual_norm(xa, c, torch::Tensor(), affine_mlp.first, affine_mlp.second, norm3[i]->eps);
+      x[i] = torch::addcmul(xb, mlp[i]->forward(n3), gate_m.unsqueeze(1));
+    }
+    return x;
+  }
   // Self attention on the modulated norm1; gated residual x + h * gate.
   for (size_t i = 0; i < S; ++i) h[i] = modulate(norm1[i], x[i], scale_msa, shift_msa, affine_msa);
   h = self_attn->forward(h);

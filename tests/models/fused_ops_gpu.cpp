@@ -42,6 +42,35 @@ TEST(FusedOpsGpu, LayerNormAffineMatchesReference) {
   }
 }
 
+TEST(FusedOpsGpu, ResidualLayerNormAffineMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(4);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const int64_t B = 2, L = 517, C = 1024;
+  auto x = torch::randn({B, L, C}, f32) * 3 + 0.5;
+  auto h = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+  for (const int64_t G : {1, 2}) {
+    auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
+    // Gates as the modulation gives them (bf16 under autocast), per batch row or shared; and no gate.
+    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(torch::kBFloat16), torch::Tensor()}) {
+      const auto before = simu::models::fused::launch_count();
+      auto [x_new, y] = simu::models::fused::residual_layer_norm_affine_bf16(x, h, gate, w, b, 1e-6);
+      EXPECT_EQ(simu::models::fused::launch_count(), before + 1);
+      auto [x_ref, y_ref] = simu::models::fused::residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, 1e-6);
+      ASSERT_EQ(x_new.scalar_type(), torch::kFloat32);
+      ASSERT_EQ(y.scalar_type(), torch::kBFloat16);
+      // The fp32 residual: the same two operations (at most a fused multiply-add's rounding apart).
+      EXPECT_LE(rel(x_new, x_ref), 1e-6) << "G " << G << " gated " << gate.defined();
+      // Independent check of the residual itself against fp64 math.
+      auto want64 = x.to(torch::kFloat64) + h.to(torch::kFloat64) * (gate.defined() ? gate.to(torch::kFloat64).unsqueeze(1) : torch::ones({1}, f32.dtype(torch::kFloat64)));
+      EXPECT_LE(rel(x_new.to(torch::kFloat64), want64), 1e-6);
+      EXPECT_LE(rel(y, y_ref), 1.0 / 128);
+      EXPECT_LT((y.to(torch::kFloat32) - y_ref.to(torch::kFloat32)).abs().mean().item<double>(), 1e-3);
+    }
+  }
+}
+
 TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
