@@ -73,8 +73,10 @@ struct SampleOptions {
   // On CUDA, with cache_condition: capture the backbone forward (once per batch shape: guided and
   // unguided steps) as a CUDA graph and replay it at every step. The same kernels run on the same
   // inputs, without the per-kernel launch gaps. Falls back to eager launches (with a warning) where
-  // capture fails.
-  bool cuda_graphs = true;
+  // capture fails. Off by default: the capture (an eager warm-up forward, the capture, instantiation)
+  // happens per sample() call and costs more than 25 steps save (H100, bench_stage1: 808 ms with
+  // graphs vs 725 ms eager at 2,800 condition tokens); it pays for long solves (many steps, rk4).
+  bool cuda_graphs = false;
   // Called after each solver step with (step index from 1, steps).
   std::function<void(int, int)> on_step;
 
