@@ -183,7 +183,7 @@ int main(int argc, char** argv) {
         if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
         // Eager launches (the default) and, for comparison, CUDA graphs captured per call.
         for (const bool graphs : {false, true}) {
-          if (!graphs && !dev.is_cuda()) continue;
+          if (graphs && !dev.is_cuda()) continue;
           o.cuda_graphs = graphs;
           reset_peak(dev);
           const double ms = time_ms(dev, 1, sample_iters, run);
