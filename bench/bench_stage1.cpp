@@ -148,7 +148,10 @@ int main(int argc, char** argv) {
         const double flops = simu::models::flow_forward_flops(mc, 2, L);
         rows.push_back({L, "forward B=2", ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
         simu::log::info("cond {}: forward {:.2f} ms", L, ms);
-        if (profile && dev.is_cuda()) simu::bench::print_gpu_kernel_profile(fmt::format("forward B=2, cond {}", L), fwd);
+        if (profile && dev.is_cuda()) {
+          simu::bench::print_gpu_kernel_profile(fmt::format("forward B=2, cond {}", L), fwd);
+          simu::bench::print_gpu_op_profile(fmt::format("forward B=2, cond {}", L), fwd);
+        }
         // The same forward replayed from a CUDA graph (as the sampler runs it): no launch gaps.
         if (dev.is_cuda()) {
           simu::models::GraphedForward graphed(gen->backbone(), cond, nullptr);
