@@ -151,9 +151,20 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   EXPECT_EQ(simu::models::fused::launch_count(), n0) << "fused kernels ran although switched off";
   gen->backbone()->set_fused_kernels(true);
   auto got = gen->backbone()->forward(x, t, cond, d);
-  // 3 blocks x 2 streams x (3 norms + 1 qkv split + 1 fc1-GELU) launches.
+  // 3 blocks x 2 streams x (3 norms, two of them with the residual in front, + 1 qkv split + 1
+  // fc1-GELU) launches.
   EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5);
   for (const auto& [k, v] : want) EXPECT_LE(rel(got.at(k), v), 2e-2) << k;
+  // The pose stream on a second CUDA stream (the default) or on the same one: the same kernels on
+  // the same inputs, so the same numbers.
+  gen->backbone()->set_stream_overlap(false);
+  auto serial = gen->backbone()->forward(x, t, cond, d);
+  gen->backbone()->set_stream_overlap(true);
+  for (const auto& [k, v] : serial) EXPECT_TRUE(torch::equal(got.at(k), v)) << k;
+  // The condition-cache path (sampling) agrees with the uncached one.
+  auto cache = gen->backbone()->condition_cache(cond);
+  auto cached = gen->backbone()->forward(x, t, cond, d, &cache);
+  for (const auto& [k, v] : want) EXPECT_LE(rel(cached.at(k), v), 2e-2) << k;
   // With gradients recorded the reference path runs (training).
   {
     at::AutoGradMode grad(true);
