@@ -193,6 +193,8 @@ int main(int argc, char** argv) {
           rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, cfg, graphs ? ", CUDA graphs" : ""), ms,
                           flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
           simu::log::info("cond {}: sampling{} {:.1f} ms", L, graphs ? " (CUDA graphs)" : "", ms);
+          if (profile && !graphs && dev.is_cuda())
+            simu::bench::print_gpu_kernel_profile(fmt::format("sample {} steps, cond {}", o.steps, L), run, 12);
         }
       }
     }
