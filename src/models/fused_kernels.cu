@@ -10,26 +10,18 @@ __device__ __forceinline__ float warp_sum(float v) {
   return v;
 }
 
-// One warp per row; each lane keeps VPL float4 of the row in registers (C = 128 * VPL).
+// The LayerNorm + affine of one row held in registers (lane's VPL float4; C = 128 * VPL) by one warp:
+// mean and variance about the mean (two passes over registers, as torch's fp32 layer_norm), then
+// y = (v - mean) * rstd * w + b stored as bf16.
 template <int VPL>
-__global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const float* __restrict__ w,
-                                              const float* __restrict__ b, __nv_bfloat16* __restrict__ y, int64_t rows,
-                                              int64_t rows_per_w, float eps) {
+__device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], int lane, int64_t row,
+                                                        const float* __restrict__ w, const float* __restrict__ b,
+                                                        __nv_bfloat16* __restrict__ y, int64_t rows_per_w, float eps) {
   constexpr int C = 128 * VPL;
-  const int lane = threadIdx.x & 31;
-  const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
-  if (row >= rows) return;
-  const float4* xr = reinterpret_cast<const float4*>(x + row * C);
-  // Load the row and take the mean.
-  float4 v[VPL];
   float s = 0.f;
 #pragma unroll
-  for (int i = 0; i < VPL; ++i) {
-    v[i] = xr[lane + 32 * i];
-    s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
-  }
+  for (int i = 0; i < VPL; ++i) s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
   const float mean = warp_sum(s) * (1.f / C);
-  // Variance about the mean (two passes over registers, as torch's fp32 layer_norm).
   float q = 0.f;
 #pragma unroll
   for (int i = 0; i < VPL; ++i) {
@@ -54,6 +46,22 @@ __global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const
   }
 }
 
+// One warp per row; each lane keeps VPL float4 of the row in registers (C = 128 * VPL).
+template <int VPL>
+__global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const float* __restrict__ w,
+                                              const float* __restrict__ b, __nv_bfloat16* __restrict__ y, int64_t rows,
+                                              int64_t rows_per_w, float eps) {
+  constexpr int C = 128 * VPL;
+  const int lane = threadIdx.x & 31;
+  const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (row >= rows) return;
+  const float4* xr = reinterpret_cast<const float4*>(x + row * C);
+  float4 v[VPL];
+#pragma unroll
+  for (int i = 0; i < VPL; ++i) v[i] = xr[lane + 32 * i];
+  layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
+}
+
 // layer_norm_affine_bf16_kernel with the residual update in front: x_out = x + h * gate (fp32), then
 // the LayerNorm + affine of x_out stored as bf16. One warp per row, VPL float4 per lane.
 template <int VPL>
@@ -70,9 +78,8 @@ __global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__
   const __nv_bfloat162* hr = reinterpret_cast<const __nv_bfloat162*>(h + row * C);
   const float4* gr = gate ? reinterpret_cast<const float4*>(gate + (row / rows_per_gate) * C) : nullptr;
   float4* xo = reinterpret_cast<float4*>(x_out + row * C);
-  // Residual update (x + h * gate, as addcmul computes it), written out, and the mean.
+  // Residual update (x + h * gate, as addcmul computes it), written out.
   float4 v[VPL];
-  float s = 0.f;
 #pragma unroll
   for (int i = 0; i < VPL; ++i) {
     const int j = lane + 32 * i;
@@ -85,31 +92,8 @@ __global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__
       v[i] = make_float4(a.x + h01.x, a.y + h01.y, a.z + h23.x, a.w + h23.y);
     }
     xo[j] = v[i];
-    s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
   }
-  const float mean = warp_sum(s) * (1.f / C);
-  float q = 0.f;
-#pragma unroll
-  for (int i = 0; i < VPL; ++i) {
-    const float a = v[i].x - mean, bb = v[i].y - mean, c = v[i].z - mean, d = v[i].w - mean;
-    q += (a * a + bb * bb) + (c * c + d * d);
-  }
-  const float rstd = rsqrtf(warp_sum(q) * (1.f / C) + eps);
-  // Affine, store bf16.
-  const int64_t wr = row / rows_per_w;
-  const float4* wv = reinterpret_cast<const float4*>(w + wr * C);
-  const float4* bv = b ? reinterpret_cast<const float4*>(b + wr * C) : nullptr;
-  __nv_bfloat162* yr = reinterpret_cast<__nv_bfloat162*>(y + row * C);
-#pragma unroll
-  for (int i = 0; i < VPL; ++i) {
-    const int j = lane + 32 * i;
-    const float4 ww = wv[j];
-    const float4 bb = bv ? bv[j] : make_float4(0.f, 0.f, 0.f, 0.f);
-    const float o0 = (v[i].x - mean) * rstd * ww.x + bb.x, o1 = (v[i].y - mean) * rstd * ww.y + bb.y;
-    const float o2 = (v[i].z - mean) * rstd * ww.z + bb.z, o3 = (v[i].w - mean) * rstd * ww.w + bb.w;
-    yr[2 * j] = __floats2bfloat162_rn(o0, o1);
-    yr[2 * j + 1] = __floats2bfloat162_rn(o2, o3);
-  }
+  layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
 }
 
 // One warp per (token, head); each lane handles D / 64 pairs of channels of q, k and v.

@@ -13,6 +13,11 @@ simu::models::Latents prefixed(const std::map<std::string, torch::Tensor>& io, c
     if (k.rfind(p, 0) == 0) out[k.substr(p.size())] = v.to(d);
   return out;
 }
+// The fixture's small generator with its weights, on dev.
+simu::models::Generator small_generator(torch::Device dev) {
+  return simu::models::load_generator(simu::testing::fixture("ss_generator_small.json"),
+                                      simu::testing::fixture("ss_generator_small.safetensors"), dev);
+}
 }  // namespace
 
 TEST(FlowModelGpu, ForwardMatchesCpuReference) {
@@ -44,8 +49,7 @@ TEST(FlowModelGpu, ForwardMatchesCpuReference) {
 TEST(FlowModelGpu, SamplingIsDeterministic) {
   SIMU_REQUIRE_CUDA();
   const torch::Device dev(torch::kCUDA);
-  auto gen = simu::models::load_generator(simu::testing::fixture("ss_generator_small.json"),
-                                          simu::testing::fixture("ss_generator_small.safetensors"), dev);
+  auto gen = small_generator(dev);
   auto io = simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"));
   auto o = simu::models::SampleOptions::from(gen->config());
   auto run = [&] {
@@ -62,8 +66,7 @@ TEST(FlowModelGpu, SamplingIsDeterministic) {
 TEST(FlowModelGpu, CudaGraphSamplingMatchesEager) {
   SIMU_REQUIRE_CUDA();
   const torch::Device dev(torch::kCUDA);
-  auto gen = simu::models::load_generator(simu::testing::fixture("ss_generator_small.json"),
-                                          simu::testing::fixture("ss_generator_small.safetensors"), dev);
+  auto gen = small_generator(dev);
   auto io = simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"));
   auto o = simu::models::SampleOptions::from(gen->config());
   // Guided and unguided steps both occur (CFG interval) and each batch shape gets its own graph.
