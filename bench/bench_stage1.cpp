@@ -56,7 +56,7 @@ int main(int argc, char** argv) {
   std::vector<int64_t> cond_lens = {2800, 7500};
   int steps = 25, iters = 5, sample_iters = 3, warmup = 2;
   double cfg = 7.0;
-  bool small = false, fp32 = false, profile = false;
+  bool small = false, fp32 = false, profile = false, one_stream = false;
   std::string sdp = "default";
   app.add_option("--config", config, "generator config (official or project layout)")->capture_default_str();
   app.add_option("--cond-lens", cond_lens, "condition lengths")->capture_default_str();
@@ -69,6 +69,7 @@ int main(int argc, char** argv) {
   app.add_flag("--small", small, "use configs/stage1_small.yaml and short conditions (CPU smoke run)");
   app.add_flag("--fp32", fp32, "no bf16 autocast");
   app.add_flag("--profile", profile, "print the GPU kernels of one forward by time (Kineto/CUPTI)");
+  app.add_flag("--one-stream", one_stream, "run the pose stream on the same CUDA stream as the shape stream");
   app.add_option("--sdp-backend", sdp, "attention backend tried first: default | flash | cudnn | efficient")
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
   simu::cli::CommonOptions common;
@@ -103,6 +104,7 @@ int main(int argc, char** argv) {
     }
     auto gen = simu::models::load_generator(config, "", dev, common.sets);
     const auto& mc = gen->config().backbone;
+    if (one_stream) gen->backbone()->set_stream_overlap(false);
     const bool bf16 = dev.is_cuda() && !fp32;
     fmt::print("device {}, config {}\nmodel: {} channels, {} blocks, {} heads, streams [{}], cond {} ch; {}\n", device,
                config, mc.model_channels, mc.num_blocks, mc.num_heads, fmt::join(mc.stream_names(), ", "), mc.cond_channels,
