@@ -119,9 +119,17 @@ int main(int argc, char** argv) {
       const int64_t n = 8192;
       auto a = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
       auto b = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
-      const double ms = time_ms(dev, 3, 10, [&] { (void)torch::mm(a, b); });
-      mm_tflops = 2.0 * n * n * n / (ms * 1e-3) / 1e12;
-      fmt::print("bf16 matmul {}^3: {:.3f} ms = {:.1f} TFLOP/s\n", n, ms, mm_tflops);
+      // Ceiling: the best of 5 batches of 10 back-to-back products (after 20 to warm the clocks), so
+      // that host synchronisation does not lower it and the ratios below are not flattered.
+      const int reps = 10;
+      for (int i = 0; i < 20; ++i) (void)torch::mm(a, b);
+      double best_ms = 1e30;
+      for (int k = 0; k < 5; ++k)
+        best_ms = std::min(best_ms, time_ms(dev, 0, 1, [&] {
+                             for (int i = 0; i < reps; ++i) (void)torch::mm(a, b);
+                           }) / reps);
+      mm_tflops = 2.0 * n * n * n / (best_ms * 1e-3) / 1e12;
+      fmt::print("bf16 matmul {}^3: {:.3f} ms = {:.1f} TFLOP/s (best of 5 x 10 back-to-back)\n", n, best_ms, mm_tflops);
     }
 
     struct Row {
