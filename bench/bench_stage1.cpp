@@ -77,14 +77,7 @@ int main(int argc, char** argv) {
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
     const torch::Device dev(device);
-    if (dev.is_cuda() && !torch::cuda::is_available()) {
-      fmt::print("bench_stage1 needs a CUDA device (none here); for a CPU smoke run use --device cpu --small\n");
-      return 0;
-    }
-    if (!dev.is_cuda() && !small) {
-      fmt::print("bench_stage1 measures the real model on CUDA; on CPU only --device cpu --small is supported\n");
-      return 0;
-    }
+    if (!simu::bench::device_usable("bench_stage1", dev, small)) return 0;
     if (small) {
       config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml";
       cond_lens = {10, 30};

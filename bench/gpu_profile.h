@@ -129,4 +129,18 @@ inline void print_gpu_op_profile(const std::string& title, const std::function<v
   }
 }
 
+// Whether a benchmark of the real-size model can run on `dev`: CUDA, or the CPU with --small (a smoke
+// run). Otherwise prints why (a missing device is not an error for a benchmark) and returns false.
+inline bool device_usable(const std::string& name, const torch::Device& dev, bool small) {
+  if (dev.is_cuda() && !torch::cuda::is_available()) {
+    fmt::print("{} needs a CUDA device (none here); for a CPU smoke run use --device cpu --small\n", name);
+    return false;
+  }
+  if (!dev.is_cuda() && !small) {
+    fmt::print("{} measures the real model on CUDA; on CPU only --device cpu --small is supported\n", name);
+    return false;
+  }
+  return true;
+}
+
 }  // namespace simu::bench

@@ -8,6 +8,7 @@
 
 #include "common/config.h"
 #include "common/error.h"
+#include "models/official_yaml.h"
 #include "models/fused_ops.h"
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
@@ -19,25 +20,6 @@
 namespace simu::models {
 
 namespace {
-
-// Official `_target_` names are full Python paths; compare by the last component.
-std::string short_target(const YAML::Node& node) {
-  if (!node || !node.IsMap() || !node["_target_"]) return "";
-  std::string t = node["_target_"].as<std::string>();
-  const auto dot = t.rfind('.');
-  return dot == std::string::npos ? t : t.substr(dot + 1);
-}
-
-template <typename T>
-T get_or(const YAML::Node& node, const std::string& key, const T& fallback, const std::string& file) {
-  if (!node[key] || node[key].IsNull()) return fallback;
-  try {
-    return node[key].as<T>();
-  } catch (const YAML::Exception&) {
-    fail("{}: key '{}': expected {}, got '{}'", file, key, config::type_name<T>(),
-         node[key].IsScalar() ? node[key].Scalar() : std::string("a non-scalar"));
-  }
-}
 
 // Registers `modules` under one ModuleDict named `name` (keys = stream names) so state-dict keys read
 // `<name>.<stream>.<param>` like the official torch.nn.ModuleDict.
