@@ -70,12 +70,24 @@ std::vector<Vec3> choose_pins(const Mesh& world, const Plane& wall, const Vec3& 
     d[i] = wall.distance(p);
     l[i] = lateral.dot(p);
   }
-  // Top-back region: within `region` of the extent from the top and from the wall-facing back.
+  // Top-back region: within `region` of the extent from the top and from the wall-facing back. It is
+  // widened (doubling, up to the whole object) while it is empty or, for two pins, while its vertices
+  // span less than half the object's lateral extent: on a coarse, slightly tilted mesh the top region
+  // can hold a single corner, and two pins at one point would let the object swing about it.
   const double hr = std::max(h.maxCoeff() - h.minCoeff(), 1e-9), dr = std::max(d.maxCoeff() - d.minCoeff(), 1e-9);
+  const double lr = l.maxCoeff() - l.minCoeff();
   std::vector<Eigen::Index> cand;
-  for (double f = region; cand.empty() && f <= 1.0 + 1e-9; f *= 2) {
+  for (double f = region;; f = std::min(2 * f, 1.0)) {
+    cand.clear();
+    double lmin = 1e300, lmax = -1e300;
     for (Eigen::Index i = 0; i < n; ++i)
-      if (h[i] >= h.maxCoeff() - f * hr && d[i] <= d.minCoeff() + f * dr) cand.push_back(i);
+      if (h[i] >= h.maxCoeff() - f * hr && d[i] <= d.minCoeff() + f * dr) {
+        cand.push_back(i);
+        lmin = std::min(lmin, l[i]);
+        lmax = std::max(lmax, l[i]);
+      }
+    const bool enough = !cand.empty() && (count < 2 || lmax - lmin >= 0.5 * lr);
+    if (enough || f >= 1.0) break;
   }
   if (cand.empty()) cand.push_back(0);
   if (count == 1) {

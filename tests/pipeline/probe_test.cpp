@@ -238,3 +238,26 @@ TEST(Probe, LargeDropSelectsResampleAndHandsOff) {
   EXPECT_NEAR(r2.scene.objects[0].t.z(), 0.13, 5e-3);
   EXPECT_NEAR(r2.scene.objects[0].scale.z(), 0.26, 1e-12);
 }
+
+// Two pins on a coarse, slightly tilted frame: the top region holds one corner, but the pins must
+// still be the frame's top-left and top-right (apart by most of its width), not one point twice.
+TEST(Probe, TwoPinsOnATiltedCoarseFrameAreApart) {
+  // A 1 m wide, 0.8 m tall, 4 cm deep frame (8 vertices), tilted 8 degrees about the wall normal: the
+  // top 10% of its height then holds only the higher top corner.
+  Mesh frame = box_mesh(Vec3(0.5, 0.02, 0.4));
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(8.0 * M_PI / 180.0, Vec3::UnitY()).toRotationMatrix();
+  for (Eigen::Index i = 0; i < frame.V.rows(); ++i)
+    frame.V.row(i) = (R * frame.V.row(i).transpose() + Vec3(0, 0.5, 1.5)).transpose();
+  Plane wall;  // the wall y = 0.54 behind the frame, facing -y; gravity -z
+  wall.point = Vec3(0, 0.54, 0);
+  wall.normal = Vec3(0, -1, 0);
+  const auto pins = choose_pins(frame, wall, Vec3(0, 0, -9.81), 2, 0.1);
+  ASSERT_EQ(pins.size(), 2u);
+  // The lateral axis is x: the pins sit near the two top corners, about 1 m apart.
+  EXPECT_GT(std::abs(pins[0].x() - pins[1].x()), 0.9);
+  // Both on the top edge (within the tilt's height change across the width: sin 8 deg x 1 m).
+  const double top = frame.V.col(2).maxCoeff();
+  for (const auto& p : pins) EXPECT_GT(p.z(), top - std::sin(8.0 * M_PI / 180.0) * 1.0 - 1e-9);
+  // Back side (towards the wall).
+  for (const auto& p : pins) EXPECT_GT(p.y(), 0.5);
+}
