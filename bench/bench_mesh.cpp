@@ -2,7 +2,8 @@
 // (pipeline::mesh_from_logits: occupied voxels, marching cubes on the logits, voxel frame, canonical
 // frame) on 64^3 grids: (a) random logits as random weights give (~42% occupied, spatially
 // uncorrelated), (b) the same noise smoothed by a 3^3 box filter (larger components), (c) a ball.
-// Prints a table per thread count: ms per object for the whole step and for marching cubes alone,
+// Prints a table per thread count: ms per object for the whole step, for marching cubes alone, and for
+// the sequential marching_cubes_reference (the implementation before the fast path, same mesh);
 // vertices, triangles, and the threads used (at::get_num_threads()). The median of --reps runs.
 #include <ATen/Parallel.h>
 #include <fmt/format.h>
@@ -71,8 +72,8 @@ int main(int argc, char** argv) {
         {"sphere", (r - d).contiguous()},
     };
     fmt::print("bench_mesh: {}^3 grids, median of {} runs, {} cores reported by ATen\n", res, reps, default_threads);
-    fmt::print("{:<16} {:>7} {:>9} {:>10} {:>10} {:>13} {:>11}\n", "case", "threads", "occupied", "vertices",
-               "triangles", "mesh_from_ms", "mc_only_ms");
+    fmt::print("{:<16} {:>7} {:>9} {:>10} {:>10} {:>13} {:>11} {:>11}\n", "case", "threads", "occupied", "vertices",
+               "triangles", "mesh_from_ms", "mc_only_ms", "mc_ref_ms");
     for (int t : threads) {
       at::set_num_threads(t > 0 ? t : default_threads);
       for (const auto& [name, logits] : cases) {
@@ -80,9 +81,10 @@ int main(int argc, char** argv) {
         const double full = median_ms(reps, [&] { mesh_from_logits(logits, out); });
         TriangleMesh mesh;
         const double mc = median_ms(reps, [&] { mesh = marching_cubes(logits); });
+        const double ref = median_ms(reps, [&] { mesh = marching_cubes_reference(logits); });
         const double occ = (logits > 0).to(torch::kFloat64).mean().item<double>();
-        fmt::print("{:<16} {:>7} {:>9.3f} {:>10} {:>10} {:>13.2f} {:>11.2f}\n", name, at::get_num_threads(), occ,
-                   out.mesh.V.rows(), out.mesh.F.rows(), full, mc);
+        fmt::print("{:<16} {:>7} {:>9.3f} {:>10} {:>10} {:>13.2f} {:>11.2f} {:>11.2f}\n", name, at::get_num_threads(), occ,
+                   out.mesh.V.rows(), out.mesh.F.rows(), full, mc, ref);
       }
     }
     at::set_num_threads(default_threads);
