@@ -27,16 +27,19 @@ int main(int argc, char** argv) {
   // pairs make
   auto* make = app.add_subcommand("make", "Write a synthetic pair cache (deterministic from --seed)");
   std::string out;
-  int64_t n = 0, tokens = 4096, channels = 8, cond_len = 64, cond_channels = 1024;
+  int64_t n = 0, tokens = 4096, channels = 8, cond_len = 64, cond_len_min = 0, cond_channels = 1024;
   std::string dtype = "f16";
   uint64_t seed = 0;
   make->add_option("--out", out, "output file (.h5); written atomically")->required();
   make->add_option("--n", n, "number of pairs")->required()->check(CLI::PositiveNumber);
   make->add_option("--tokens", tokens, "latent tokens T")->capture_default_str()->check(CLI::PositiveNumber);
   make->add_option("--channels", channels, "latent channels C")->capture_default_str()->check(CLI::PositiveNumber);
-  make->add_option("--cond-len", cond_len, "condition tokens L (maximum; lengths vary in [L/2, L])")
+  make->add_option("--cond-len", cond_len, "condition tokens L (maximum; lengths vary in [--cond-len-min, L])")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
+  make->add_option("--cond-len-min", cond_len_min,
+                   "shortest condition (default L/2; = L gives every pair L tokens, like one embedder config)")
+      ->check(CLI::NonNegativeNumber);
   make->add_option("--cond-channels", cond_channels, "condition channels Cc")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
@@ -60,7 +63,7 @@ int main(int argc, char** argv) {
     if (*make) {
       simu::Progress progress{"make"};
       make_synthetic_cache(out, n, {tokens, channels}, {cond_len, cond_channels}, seed, parse_dtype(dtype),
-                           std::ref(progress));
+                           std::ref(progress), cond_len_min);
       fmt::print("wrote {} ({} pairs, {:.1f} MiB)\n", out, n,
                  std::filesystem::file_size(out) / (1024.0 * 1024.0));
       return 0;

@@ -18,6 +18,7 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
+#include "gpu_profile.h"
 #include "training/distributed.h"
 #include "training/generator_policy.h"
 #include "training/trainer.h"
@@ -46,7 +47,7 @@ int main(int argc, char** argv) {
   int steps = 10, warmup = 3, nproc = 0;
   int64_t cond_len = 2800;
   double peak_tflops = 989.4;
-  bool checkpointing = false;
+  bool checkpointing = false, profile = false;
   app.add_option("--generator", generator, "generator config (official layout)");
   app.add_option("--micro", micros, "micro-batch sizes")->delimiter(',');
   app.add_option("--steps", steps, "timed steps per setting");
@@ -55,6 +56,7 @@ int main(int argc, char** argv) {
   app.add_option("--peak-tflops", peak_tflops, "device peak dense bf16 TFLOP/s for MFU");
   app.add_flag("--activation-checkpointing", checkpointing, "recompute the policy forward in backward");
   app.add_option("--nproc-per-node", nproc, "ranks (GPUs) to start");
+  app.add_flag("--profile", profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&]() -> int {
@@ -138,6 +140,11 @@ int main(int argc, char** argv) {
         r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * peak_tflops * 1e12);
         r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
         rows.push_back(r);
+        if (profile && m == micros.front() && comm == solo.get() && env.rank == 0) {
+          const auto title = fmt::format("FM-DPO step, micro-batch {}", m);
+          simu::bench::print_gpu_kernel_profile(title, [&] { tr.step(); }, 25);
+          simu::bench::print_gpu_op_profile(title, [&] { tr.step(); }, 40);
+        }
         together->barrier();
       }
     }

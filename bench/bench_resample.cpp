@@ -14,6 +14,7 @@
 #include <chrono>
 
 #include "common/cli.h"
+#include "gpu_profile.h"
 #include "common/error.h"
 #include "common/log.h"
 #include "pipeline/resampler.h"
@@ -45,14 +46,7 @@ int main(int argc, char** argv) {
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
     const torch::Device dev(device);
-    if (dev.is_cuda() && !torch::cuda::is_available()) {
-      fmt::print("bench_resample needs a CUDA device (none here); for a CPU smoke run use --device cpu --small\n");
-      return 0;
-    }
-    if (!dev.is_cuda() && !small) {
-      fmt::print("bench_resample measures the real model on CUDA; on CPU only --device cpu --small is supported\n");
-      return 0;
-    }
+    if (!simu::bench::device_usable("bench_resample", dev, small)) return 0;
     simu::pipeline::ResamplerConfig cfg;  // official sampling defaults, real-size configs
     cfg.device = device;
     cfg.steps = steps;

@@ -5,10 +5,12 @@
 #include <torch/cuda.h>
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include <algorithm>
 #include <functional>
 #include <map>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -53,6 +55,92 @@ inline void print_gpu_kernel_profile(const std::string& title, const std::functi
     fmt::print("| {} | {} | {:.3f} | {:.1f}% |\n", name, rows[i].second.second, rows[i].second.first,
                total > 0 ? 100 * rows[i].second.first / total : 0.0);
   }
+}
+
+// Like print_gpu_kernel_profile, but groups kernel time by the ATen call chain that launched each
+// kernel (the op that launched it and the ops around it on the same thread, outermost first, with the
+// launching op's input shapes): shows which tensor operation a copy or an elementwise kernel serves.
+inline void print_gpu_op_profile(const std::string& title, const std::function<void()>& fn, int top = 30) {
+  namespace prof = torch::autograd::profiler;
+  namespace impl = torch::profiler::impl;
+  const impl::ProfilerConfig cfg(impl::ProfilerState::KINETO, /*report_input_shapes=*/true);
+  const std::set<impl::ActivityType> acts{impl::ActivityType::CPU, impl::ActivityType::CUDA};
+  prof::prepareProfiler(cfg, acts);
+  torch::cuda::synchronize();
+  prof::enableProfiler(cfg, acts);
+  fn();
+  torch::cuda::synchronize();
+  const auto result = prof::disableProfiler();
+  struct Op {
+    std::string name, shapes;
+    uint64_t start, end, thread;
+  };
+  std::vector<Op> ops;
+  std::map<uint64_t, size_t> by_corr;
+  for (const auto& e : result->events()) {
+    if (e.deviceType() != c10::DeviceType::CPU || e.isAsync()) continue;
+    std::string shapes;
+    if (e.hasShapes()) {
+      int n = 0;
+      for (const auto& sh : e.shapes()) {
+        if (n++ == 2) break;
+        shapes += "[" + fmt::format("{}", fmt::join(sh, ",")) + "]";
+      }
+    }
+    by_corr[e.correlationId()] = ops.size();
+    ops.push_back({e.name(), shapes, e.startNs(), e.endNs(), e.startThreadId()});
+  }
+  std::map<std::string, std::pair<double, int>> by_key;
+  double total = 0;
+  for (const auto& e : result->events()) {
+    if (e.deviceType() != c10::DeviceType::CUDA) continue;
+    const double ms = static_cast<double>(e.durationNs()) * 1e-6;
+    total += ms;
+    std::string kname = e.name().substr(0, 40);
+    std::string key;
+    const auto it = by_corr.find(e.linkedCorrelationId());
+    if (it == by_corr.end()) {
+      key = "(no ATen op) " + kname;
+    } else {
+      const Op& op = ops[it->second];
+      // Enclosing ops on the launching thread, outermost first (at most 3).
+      std::vector<const Op*> outer;
+      for (const auto& o : ops)
+        if (&o != &op && o.thread == op.thread && o.start <= op.start && o.end >= op.end) outer.push_back(&o);
+      std::sort(outer.begin(), outer.end(), [](const Op* a, const Op* b) { return a->start < b->start || (a->start == b->start && a->end > b->end); });
+      if (outer.size() > 3) outer.erase(outer.begin(), outer.end() - 3);
+      for (const auto* o : outer) key += o->name + " > ";
+      key += op.name + " " + op.shapes + " / " + kname;
+    }
+    auto& slot = by_key[key];
+    slot.first += ms;
+    slot.second += 1;
+  }
+  std::vector<std::pair<std::string, std::pair<double, int>>> rows(by_key.begin(), by_key.end());
+  std::sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.second.first > b.second.first; });
+  fmt::print("\nop profile: {}: GPU kernel time {:.2f} ms\n| call chain [input shapes] / kernel | calls | ms | % |\n|---|---|---|---|\n",
+             title, total);
+  for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
+    std::string k = rows[i].first;
+    for (auto& ch : k)
+      if (ch == '|') ch = '/';
+    fmt::print("| {} | {} | {:.3f} | {:.1f}% |\n", k, rows[i].second.second, rows[i].second.first,
+               total > 0 ? 100 * rows[i].second.first / total : 0.0);
+  }
+}
+
+// Whether a benchmark of the real-size model can run on `dev`: CUDA, or the CPU with --small (a smoke
+// run). Otherwise prints why (a missing device is not an error for a benchmark) and returns false.
+inline bool device_usable(const std::string& name, const torch::Device& dev, bool small) {
+  if (dev.is_cuda() && !torch::cuda::is_available()) {
+    fmt::print("{} needs a CUDA device (none here); for a CPU smoke run use --device cpu --small\n", name);
+    return false;
+  }
+  if (!dev.is_cuda() && !small) {
+    fmt::print("{} measures the real model on CUDA; on CPU only --device cpu --small is supported\n", name);
+    return false;
+  }
+  return true;
 }
 
 }  // namespace simu::bench

@@ -13,7 +13,7 @@ nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
 [ -x build-gpu/train_fmdpo ] || { bash scripts/gpu_build_test.sh -R NONE > $OUT/build.txt 2>&1; grep "configure+build" $OUT/build.txt; }
 B=build-gpu
 sed -e 's#config: checkpoints/ss_generator.yaml#config: configs/stage1_real.yaml#' -e 's#weights: checkpoints/ss_generator.safetensors#weights: ""#' configs/lora64.yaml > /tmp/lora64_random.yaml
-[ -f /tmp/pairs.h5 ] || $B/pairs make --out /tmp/pairs.h5 --n 256 --tokens 4096 --channels 8 --cond-len 2800 --cond-channels 1024 --dtype f16 > $OUT/pairs.txt 2>&1; tail -1 $OUT/pairs.txt
+[ -f /tmp/pairs.h5 ] || $B/pairs make --out /tmp/pairs.h5 --n 256 --tokens 4096 --channels 8 --cond-len 2800 --cond-len-min 2800 --cond-channels 1024 --dtype f16 > $OUT/pairs.txt 2>&1; tail -1 $OUT/pairs.txt
 for N in $WORLDS; do
   nvidia-smi --query-gpu=index,memory.used --format=csv,noheader,nounits -lms 500 > $OUT/mem$N.txt & SMI=$!
   t0=$(date +%s.%N)
@@ -32,6 +32,10 @@ for l in open(f"{out}/mem{n}.txt"):
     p=l.split(",");
     if len(p)==2: mem[p[0].strip()]=max(mem.get(p[0].strip(),0),int(p[1]))
 print(f"world {n}: rc {rc} wall {t1-t0:.1f}s steps {len(rows)} median pairs/s (steps 11-50) {sorted(pps)[len(pps)//2]:.2f} step ms {16/sorted(pps)[len(pps)//2]*1e3:.0f} loss last {rows[-1]['loss'] if rows else 'n/a'} peak MiB/GPU {max(mem.values()) if mem else 0}")
+def med(k):
+    v=sorted(r.get(k,0) for r in rows[10:]) or [0]
+    return v[len(v)//2]*1e3
+if rows: print(f"world {n}: rank-0 median ms per step: step {med('time/step_s'):.0f} = data wait {med('time/data_wait_s'):.0f} + compute {med('time/compute_s'):.0f} + all-reduce {med('time/allreduce_s'):.0f} + optimizer {med('time/optimizer_s'):.0f} (+ metrics)")
 PY
   [ "$rc" = 0 ] || tail -5 $OUT/train$N.txt
 done

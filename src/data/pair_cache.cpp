@@ -875,8 +875,11 @@ CacheInfo validate_cache(const std::string& path, const std::function<void(int64
 
 void make_synthetic_cache(const std::string& path, int64_t n, std::vector<int64_t> latent_shape,
                           std::vector<int64_t> cond_shape, uint64_t seed, torch::ScalarType dtype,
-                          const std::function<void(int64_t, int64_t)>& progress) {
+                          const std::function<void(int64_t, int64_t)>& progress, int64_t cond_len_min) {
   SIMU_CHECK(n >= 1, "synthetic pair cache '{}': n must be >= 1, got {}", path, n);
+  SIMU_CHECK(cond_shape.size() == 2 && cond_len_min <= cond_shape[0],
+             "synthetic pair cache '{}': the minimum condition length {} exceeds the maximum {}", path, cond_len_min,
+             cond_shape.empty() ? 0 : cond_shape[0]);
   PairCacheWriter writer(path, latent_shape, cond_shape, dtype);
   writer.set_created_by(fmt::format("simuscene_resampler make_synthetic_cache(seed={})", seed));
   auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
@@ -906,8 +909,8 @@ void make_synthetic_cache(const std::string& path, int64_t n, std::vector<int64_
     }
     r.latent_pos = pos;
     r.latent_neg = neg;
-    // Condition tokens with a length in [L/2, L].
-    const int64_t lo = std::max<int64_t>(1, L / 2);
+    // Condition tokens with a length in [lo, L] (lo = L/2 unless given).
+    const int64_t lo = std::max<int64_t>(1, cond_len_min > 0 ? cond_len_min : L / 2);
     const int64_t len = lo + static_cast<int64_t>(rng() % static_cast<uint64_t>(L - lo + 1));
     r.cond = torch::randn({len, Cc}, gen, f32);
     writer.append(r);

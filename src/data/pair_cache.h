@@ -152,11 +152,13 @@ CacheInfo validate_cache(const std::string& path,
 // Writes a synthetic cache of n pairs with deterministic content from seed (torch CPU generator, not
 // the global RNG): latent_pos ~ smooth random fields, latent_neg a corrupted version of it (strongly
 // for occlusion-completion, mildly for clean-preservation), cond ~ N(0, 1) with lengths varying in
-// [L/2, L], kinds mixed (about 2/3 occlusion-completion, at least one of each when n >= 2), default
-// weights, ids "syn-000000"...
+// [cond_len_min, L] (L/2 when cond_len_min <= 0; = L gives one length, as a fixed embedder does),
+// kinds mixed (about 2/3 occlusion-completion, at least one of each when n >= 2), default weights,
+// ids "syn-000000"...
 void make_synthetic_cache(const std::string& path, int64_t n, std::vector<int64_t> latent_shape,
                           std::vector<int64_t> cond_shape, uint64_t seed, torch::ScalarType dtype,
-                          const std::function<void(int64_t, int64_t)>& progress = nullptr);
+                          const std::function<void(int64_t, int64_t)>& progress = nullptr,
+                          int64_t cond_len_min = 0);
 
 // Position of a stream: the next global batch to produce is batch `step` of epoch `epoch`.
 struct StreamPosition {

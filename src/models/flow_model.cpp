@@ -8,30 +8,18 @@
 
 #include "common/config.h"
 #include "common/error.h"
+#include "models/official_yaml.h"
 #include "models/fused_ops.h"
+
+#ifdef SIMU_HAVE_CUDA_KERNELS
+#include <ATen/cuda/CUDAEvent.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#endif
 
 namespace simu::models {
 
 namespace {
-
-// Official `_target_` names are full Python paths; compare by the last component.
-std::string short_target(const YAML::Node& node) {
-  if (!node || !node.IsMap() || !node["_target_"]) return "";
-  std::string t = node["_target_"].as<std::string>();
-  const auto dot = t.rfind('.');
-  return dot == std::string::npos ? t : t.substr(dot + 1);
-}
-
-template <typename T>
-T get_or(const YAML::Node& node, const std::string& key, const T& fallback, const std::string& file) {
-  if (!node[key] || node[key].IsNull()) return fallback;
-  try {
-    return node[key].as<T>();
-  } catch (const YAML::Exception&) {
-    fail("{}: key '{}': expected {}, got '{}'", file, key, config::type_name<T>(),
-         node[key].IsScalar() ? node[key].Scalar() : std::string("a non-scalar"));
-  }
-}
 
 // Registers `modules` under one ModuleDict named `name` (keys = stream names) so state-dict keys read
 // `<name>.<stream>.<param>` like the official torch.nn.ModuleDict.
@@ -233,8 +221,9 @@ TimestepEmbedderImpl::TimestepEmbedderImpl(int64_t hidden_size, int64_t freq_siz
 torch::Tensor TimestepEmbedderImpl::timestep_embedding(const torch::Tensor& t, int64_t dim, double max_period) {
   const int64_t half = dim / 2;
   // freqs = exp(-ln(max_period) * arange(half) / half), float32 like the official
-  auto freqs = torch::exp(-std::log(max_period) * torch::arange(half, torch::kFloat32) / static_cast<double>(half))
-                   .to(t.device());
+  // Made on t's device: no host-to-device copy inside the forward (CUDA graph capture forbids it).
+  auto freqs = torch::exp(-std::log(max_period) * torch::arange(half, t.options().dtype(torch::kFloat32)) /
+                          static_cast<double>(half));
   auto args = t.reshape({-1, 1}).to(torch::kFloat32) * freqs.unsqueeze(0);  // [B, half]
   auto emb = torch::cat({torch::cos(args), torch::sin(args)}, -1);         // [B, 2*half]
   if (dim % 2) emb = torch::cat({emb, torch::zeros_like(emb.narrow(1, 0, 1))}, -1);
@@ -340,6 +329,15 @@ bool fused_path(const torch::Tensor& x) {
          at::autocast::get_autocast_dtype(at::kCUDA) == at::kBFloat16;
 }
 
+void MOTSelfAttentionImpl::project_qkv_fused(size_t i, const torch::Tensor& x, torch::Tensor& q, torch::Tensor k,
+                                             torch::Tensor v) {
+  const int64_t B = x.size(0), L = x.size(1);
+  auto qkv = to_qkv[i]->forward(x);  // [B, L, 3C] bf16 under autocast
+  qkv = qkv.reshape({B, L, 3, num_heads, -1}).contiguous();
+  q = torch::empty({B, L, num_heads, qkv.size(4)}, qkv.options());
+  fused::split_qkv_rms_norm(qkv, q_rms_norm[i]->gamma, k_rms_norm[i]->gamma, q_rms_norm[i]->scale, q, k, v);
+}
+
 std::vector<torch::Tensor> MOTSelfAttentionImpl::forward_fused(const std::vector<torch::Tensor>& x) {
   const size_t S = x.size();
   const int64_t B = x[0].size(0);
@@ -351,23 +349,17 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward_fused(const std::vector
     if (!is_protected[i]) L_others += x[i].size(1);
   }
   std::vector<torch::Tensor> q(S), k(S), v(S), h(S);
-  torch::Tensor k_all, v_all;
+  const int64_t D = x[0].size(2) / num_heads;
+  auto k_all = torch::empty({B, L_total, num_heads, D}, x[0].options().dtype(torch::kBFloat16));
+  auto v_all = torch::empty_like(k_all);
   int64_t off_other = 0, off_prot = L_others;
   for (size_t i = 0; i < S; ++i) {
     const int64_t L = x[i].size(1);
-    auto qkv = to_qkv[i]->forward(x[i]);  // [B, L, 3C] bf16 under autocast
-    qkv = qkv.reshape({B, L, 3, num_heads, -1}).contiguous();
-    const int64_t D = qkv.size(4);
-    if (!k_all.defined()) {
-      k_all = torch::empty({B, L_total, num_heads, D}, qkv.options());
-      v_all = torch::empty_like(k_all);
-    }
     int64_t& off = is_protected[i] ? off_prot : off_other;
-    q[i] = torch::empty({B, L, num_heads, D}, qkv.options());
     k[i] = k_all.narrow(1, off, L);
     v[i] = v_all.narrow(1, off, L);
     off += L;
-    fused::split_qkv_rms_norm(qkv, q_rms_norm[i]->gamma, k_rms_norm[i]->gamma, q_rms_norm[i]->scale, q[i], k[i], v[i]);
+    project_qkv_fused(i, x[i], q[i], k[i], v[i]);
   }
   // Protected streams attend to themselves; the others to every key (no gradient here to detach).
   std::vector<torch::Tensor> oq;
@@ -461,15 +453,29 @@ MOTBlockImpl::MOTBlockImpl(const FlowModelConfig& c) : share_mod(c.share_mod) {
   }
 }
 
-std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_in, const torch::Tensor& mod,
+std::vector<torch::Tensor> ResidualCarry::apply(const std::vector<torch::Tensor>& x) {
+  if (h.empty()) return x;
+  std::vector<torch::Tensor> out(x.size());
+  for (size_t i = 0; i < x.size(); ++i) out[i] = torch::addcmul(x[i], h[i], gate.unsqueeze(1));
+  h.clear();
+  gate = torch::Tensor();
+  return out;
+}
+
+std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_arg, const torch::Tensor& mod,
                                                  const torch::Tensor& cond,
-                                                 const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv) {
+                                                 const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv,
+                                                 ResidualCarry* carry) {
   // Modulation: six [B, 1, C] chunks (shift/scale/gate for attention and MLP).
   auto m = share_mod ? mod : ada_linear->forward(torch::silu(mod));
   auto chunks = m.chunk(6, 1);
   auto shift_msa = chunks[0].unsqueeze(1), scale_msa = chunks[1].unsqueeze(1), gate_msa = chunks[2].unsqueeze(1);
   auto shift_mlp = chunks[3].unsqueeze(1), scale_mlp = chunks[4].unsqueeze(1), gate_mlp = chunks[5].unsqueeze(1);
-  const size_t S = x_in.size();
+  const size_t S = x_arg.size();
+  // A pending residual from the previous block: kept for the fused LayerNorm below, else applied now.
+  ResidualCarry incoming;
+  if (carry) std::swap(incoming, *carry);
+  const std::vector<torch::Tensor>& x_in = x_arg;
   std::vector<torch::Tensor> x = x_in, h(S);
   // norm(x) * (1 + scale) + shift. When the modulation is one row (the same t for the whole batch,
   // as in sampling) it is a LayerNorm with weight 1 + scale and bias shift: one fused fp32 kernel.
@@ -494,6 +500,85 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     }
     return norm->forward(xi) * (1 + scale) + shift;
   };
+  if (fast) {
+    // Residual update and the next LayerNorm in one kernel when the sublayer output allows it.
+    auto residual_norm = [&](const torch::Tensor& xi, const torch::Tensor& hi, const torch::Tensor& gate,
+                             const torch::Tensor& w, const torch::Tensor& b, double eps) {
+      if (fused::supports_residual_layer_norm_affine(xi, hi)) return fused::residual_layer_norm_affine_bf16(xi, hi, gate, w, b, eps);
+      auto xn = gate.defined() ? torch::addcmul(xi, hi, gate.unsqueeze(1)) : xi + hi;
+      return std::make_pair(xn, fused::layer_norm_affine_bf16(xn, w, b, eps));
+    };
+    const auto gate_a = gate_msa.squeeze(1), gate_m = gate_mlp.squeeze(1);  // [1 or B, C]
+    std::vector<torch::Tensor> mlp_out(S);
+    // Stream i's norm1: with the previous block's pending residual when there is one -> {x, norm1(x)}.
+    auto norm1_of = [&](size_t i) {
+      if (!incoming.h.empty())
+        return residual_norm(x[i], incoming.h[i], incoming.gate, affine_msa.first, affine_msa.second, norm1[i]->eps);
+      return std::make_pair(x[i], fused::layer_norm_affine_bf16(x[i], affine_msa.first, affine_msa.second, norm1[i]->eps));
+    };
+    // Stream i after self attention (ha): gated residual + norm2 -> cross attention -> residual +
+    // modulated norm3 -> MLP; the MLP's gated residual is left to the carry when there is one.
+    auto rest_of = [&](size_t i, const torch::Tensor& xi, const torch::Tensor& ha) {
+      auto [xa, n2] = residual_norm(xi, ha, gate_a, norm2[i]->weight.unsqueeze(0), norm2[i]->bias.unsqueeze(0), norm2[i]->eps);
+      auto c = kv ? cross_attn[i]->attend(n2, (*kv)[i].first, (*kv)[i].second) : cross_attn[i]->forward(n2, cond);
+      auto [xb, n3] = residual_norm(xa, c, torch::Tensor(), affine_mlp.first, affine_mlp.second, norm3[i]->eps);
+      mlp_out[i] = mlp[i]->forward(n3);
+      return carry ? xb : torch::addcmul(xb, mlp_out[i], gate_m.unsqueeze(1));
+    };
+    const int64_t head_dim = x[0].size(2) / self_attn->num_heads;
+    const bool qkv_fused = self_attn->fused_kernels && (head_dim == 64 || head_dim == 128 || head_dim == 256);
+#ifdef SIMU_HAVE_CUDA_KERNELS
+    if (stream_overlap && qkv_fused && S == 2 && self_attn->is_protected[0] != self_attn->is_protected[1]) {
+      // p: the protected stream (shape), on the current stream; o: the other (pose), on a side stream.
+      const size_t p = self_attn->is_protected[0] ? 0 : 1, o = 1 - p;
+      const int64_t B = x[p].size(0), Lp = x[p].size(1), Lo = x[o].size(1), H = self_attn->num_heads;
+      const auto dev = x[p].device().index();
+      const auto main = c10::cuda::getCurrentCUDAStream(dev);
+      const auto side = c10::cuda::getStreamFromPool(false, dev);
+      // The side stream starts after everything issued so far (inputs, modulation).
+      at::cuda::CUDAEvent inputs_ready, shape_kv_ready, other_done;
+      inputs_ready.record(main);
+      inputs_ready.block(side);
+      // Keys/values of both streams, the other's first (the reference's concatenation order).
+      auto k_all = torch::empty({B, Lo + Lp, H, head_dim}, x[p].options().dtype(torch::kBFloat16));
+      auto v_all = torch::empty_like(k_all);
+      // Protected stream: norm1, q/k/v (its keys into k_all), then the other stream may attend.
+      auto [xp, n1p] = norm1_of(p);
+      torch::Tensor qp;
+      self_attn->project_qkv_fused(p, n1p, qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp));
+      shape_kv_ready.record(main);
+      torch::Tensor xo_out;
+      {
+        // Other stream on the side stream: attends to every key once the protected ones are written.
+        const c10::cuda::CUDAStreamGuard on_side(side);
+        auto [xo, n1o] = norm1_of(o);
+        torch::Tensor qo;
+        self_attn->project_qkv_fused(o, n1o, qo, k_all.narrow(1, 0, Lo), v_all.narrow(1, 0, Lo));
+        shape_kv_ready.block(side);
+        auto ho = self_attn->to_out[o]->forward(attention(qo, k_all, v_all).reshape({B, Lo, -1}));
+        xo_out = rest_of(o, xo, ho);
+        other_done.record(side);
+      }
+      // Protected stream attends to itself only.
+      auto hp = self_attn->to_out[p]->forward(attention(qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp)).reshape({B, Lp, -1}));
+      x[p] = rest_of(p, xp, hp);
+      x[o] = xo_out;
+      // Join. Tensors the side stream used stay referenced until here, so their memory is not reused
+      // by work that could run before the side stream is done.
+      other_done.block(main);
+      if (carry) *carry = ResidualCarry{mlp_out, gate_m};
+      return x;
+    }
+#endif
+    // Self attention on the modulated norm1 (all streams together).
+    for (size_t i = 0; i < S; ++i) std::tie(x[i], h[i]) = norm1_of(i);
+    h = self_attn->forward(h);
+    for (size_t i = 0; i < S; ++i) x[i] = rest_of(i, x[i], h[i]);
+    if (carry) *carry = ResidualCarry{mlp_out, gate_m};
+    return x;
+  }
+  // Off the fused path: a pending residual is applied first.
+  x = incoming.apply(x);
   // Self attention on the modulated norm1; gated residual x + h * gate.
   for (size_t i = 0; i < S; ++i) h[i] = modulate(norm1[i], x[i], scale_msa, shift_msa, affine_msa);
   h = self_attn->forward(h);
@@ -574,6 +659,10 @@ void SparseStructureFlowTdfyWrapperImpl::set_fused_kernels(bool on) {
   }
 }
 
+void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap(bool on) {
+  for (auto& block : block_list_) block->stream_overlap = on;
+}
+
 ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond) {
   ConditionCache cache;
   cache.cond = cond;
@@ -627,12 +716,17 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   }
   const auto input_dtype = h.front().scalar_type();
   for (auto& hi : h) hi = hi.to(torch::kFloat32);
-  auto cond32 = cond.to(torch::kFloat32);
+  // The condition once in the dtype its projections use: bf16 under CUDA bf16 autocast (the cast every
+  // to_kv would otherwise repeat, same values), else fp32.
+  const bool bf16_autocast = cond.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
+                             at::autocast::get_autocast_dtype(at::kCUDA) == at::kBFloat16;
+  auto cond32 = cond.to(bf16_autocast ? torch::kBFloat16 : torch::kFloat32);
 
-  // Transformer blocks.
+  // Transformer blocks; each leaves its last residual to the next one's first LayerNorm (fused path).
+  ResidualCarry carry;
   for (size_t b = 0; b < block_list_.size(); ++b) {
     if (!block_wrapper_) {
-      h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr);
+      h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr, &carry);
       continue;
     }
     // Wrapped: inputs = streams + [modulation, condition]; fn owns the block and the cached keys/values.
@@ -646,6 +740,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
     };
     h = block_wrapper_(static_cast<int64_t>(b), *block_list_[b], inputs, fn);
   }
+  h = carry.apply(h);
   for (auto& hi : h) hi = hi.to(input_dtype);
 
   // Split streams back into latents and project out.

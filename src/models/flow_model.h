@@ -170,6 +170,9 @@ class MOTSelfAttentionImpl : public torch::nn::Module {
                        const std::vector<std::string>& protected_modalities);
   // x[i]: [B, L_i, C] for stream_names[i] -> same shapes.
   std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x);
+  // Fast path piece: stream i's qkv projection of x ([B, L, C], bf16 under autocast), split with the
+  // q/k RMS norms into q ([B, L, H, D]) and the given key/value views (fused_ops.h split_qkv_rms_norm).
+  void project_qkv_fused(size_t i, const torch::Tensor& x, torch::Tensor& q, torch::Tensor k, torch::Tensor v);
   std::vector<Linear> to_qkv, to_out;                      // per stream
   std::vector<MultiHeadRMSNorm> q_rms_norm, k_rms_norm;    // per stream
   std::vector<std::string> names;
@@ -192,14 +195,29 @@ struct ConditionCache {
 };
 
 // One MOT block: adaLN-modulated self attention, cross attention, MLP; per-stream weights.
+// The fused path's deferred residual between blocks: a block leaves its last gated residual
+// (x + h * gate, the MLP's) to the next block, whose first LayerNorm kernel applies it on the way
+// (fused_ops.h residual_layer_norm_affine_bf16); the wrapper applies what the last block leaves.
+struct ResidualCarry {
+  std::vector<torch::Tensor> h;  // per stream [B, L_i, C] (bf16); empty: nothing pending
+  torch::Tensor gate;            // [1 or B, C]
+  // x[i] + h[i] * gate for every stream (the plain addcmul), then empty.
+  std::vector<torch::Tensor> apply(const std::vector<torch::Tensor>& x);
+};
+
 class MOTBlockImpl : public torch::nn::Module {
  public:
   explicit MOTBlockImpl(const FlowModelConfig& c);
   // x[i]: [B, L_i, C]; mod: [B or 1, C] (t embedding) or [B or 1, 6C] when share_mod; cond: [B, Lc, Cc].
   // kv: this block's precomputed condition keys/values per stream (ConditionCache), or null.
+  // carry (optional): a pending residual from the previous block is applied first; on the fused path
+  // this block's own last residual is left in it instead of applied (so the result is x minus that
+  // residual; the caller applies carry at the end). Off the fused path the result is complete and
+  // carry comes back empty.
   std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x, const torch::Tensor& mod,
                                      const torch::Tensor& cond,
-                                     const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv = nullptr);
+                                     const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv = nullptr,
+                                     ResidualCarry* carry = nullptr);
   std::vector<LayerNorm32> norm1, norm2, norm3;
   MOTSelfAttention self_attn{nullptr};
   std::vector<CrossAttention> cross_attn;
@@ -208,6 +226,9 @@ class MOTBlockImpl : public torch::nn::Module {
   Linear ada_linear{nullptr};
   bool share_mod;
   bool fused_kernels = true;  // fused LayerNorm + modulation -> bf16 (fused_ops.h) on the inference path
+  // Fused path with one protected stream and one other: the other (the small pose stream) runs on a
+  // second CUDA stream, concurrently with the protected one, joining at the end of the block.
+  bool stream_overlap = true;
 };
 TORCH_MODULE(MOTBlock);
 
@@ -262,6 +283,8 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   // share one arithmetic.
   void set_fused_kernels(bool on);
   bool fused_kernels() const { return fused_kernels_; }
+  // On the fused path, run the non-protected stream on a second CUDA stream (MOTBlockImpl::stream_overlap).
+  void set_stream_overlap(bool on);
 
   TimestepEmbedder t_embedder{nullptr}, d_embedder{nullptr};
   torch::nn::Sequential adaLN_modulation{nullptr};  // share_mod only

@@ -10,26 +10,18 @@ __device__ __forceinline__ float warp_sum(float v) {
   return v;
 }
 
-// One warp per row; each lane keeps VPL float4 of the row in registers (C = 128 * VPL).
+// The LayerNorm + affine of one row held in registers (lane's VPL float4; C = 128 * VPL) by one warp:
+// mean and variance about the mean (two passes over registers, as torch's fp32 layer_norm), then
+// y = (v - mean) * rstd * w + b stored as bf16.
 template <int VPL>
-__global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const float* __restrict__ w,
-                                              const float* __restrict__ b, __nv_bfloat16* __restrict__ y, int64_t rows,
-                                              int64_t rows_per_w, float eps) {
+__device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], int lane, int64_t row,
+                                                        const float* __restrict__ w, const float* __restrict__ b,
+                                                        __nv_bfloat16* __restrict__ y, int64_t rows_per_w, float eps) {
   constexpr int C = 128 * VPL;
-  const int lane = threadIdx.x & 31;
-  const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
-  if (row >= rows) return;
-  const float4* xr = reinterpret_cast<const float4*>(x + row * C);
-  // Load the row and take the mean.
-  float4 v[VPL];
   float s = 0.f;
 #pragma unroll
-  for (int i = 0; i < VPL; ++i) {
-    v[i] = xr[lane + 32 * i];
-    s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
-  }
+  for (int i = 0; i < VPL; ++i) s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
   const float mean = warp_sum(s) * (1.f / C);
-  // Variance about the mean (two passes over registers, as torch's fp32 layer_norm).
   float q = 0.f;
 #pragma unroll
   for (int i = 0; i < VPL; ++i) {
@@ -52,6 +44,56 @@ __global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const
     yr[2 * j] = __floats2bfloat162_rn(o0, o1);
     yr[2 * j + 1] = __floats2bfloat162_rn(o2, o3);
   }
+}
+
+// One warp per row; each lane keeps VPL float4 of the row in registers (C = 128 * VPL).
+template <int VPL>
+__global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const float* __restrict__ w,
+                                              const float* __restrict__ b, __nv_bfloat16* __restrict__ y, int64_t rows,
+                                              int64_t rows_per_w, float eps) {
+  constexpr int C = 128 * VPL;
+  const int lane = threadIdx.x & 31;
+  const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (row >= rows) return;
+  const float4* xr = reinterpret_cast<const float4*>(x + row * C);
+  float4 v[VPL];
+#pragma unroll
+  for (int i = 0; i < VPL; ++i) v[i] = xr[lane + 32 * i];
+  layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
+}
+
+// layer_norm_affine_bf16_kernel with the residual update in front: x_out = x + h * gate (fp32), then
+// the LayerNorm + affine of x_out stored as bf16. One warp per row, VPL float4 per lane.
+template <int VPL>
+__global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__ x, const __nv_bfloat16* __restrict__ h,
+                                                       const float* __restrict__ gate, int64_t rows_per_gate,
+                                                       float* __restrict__ x_out, const float* __restrict__ w,
+                                                       const float* __restrict__ b, __nv_bfloat16* __restrict__ y,
+                                                       int64_t rows, int64_t rows_per_w, float eps) {
+  constexpr int C = 128 * VPL;
+  const int lane = threadIdx.x & 31;
+  const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (row >= rows) return;
+  const float4* xr = reinterpret_cast<const float4*>(x + row * C);
+  const __nv_bfloat162* hr = reinterpret_cast<const __nv_bfloat162*>(h + row * C);
+  const float4* gr = gate ? reinterpret_cast<const float4*>(gate + (row / rows_per_gate) * C) : nullptr;
+  float4* xo = reinterpret_cast<float4*>(x_out + row * C);
+  // Residual update (x + h * gate, as addcmul computes it), written out.
+  float4 v[VPL];
+#pragma unroll
+  for (int i = 0; i < VPL; ++i) {
+    const int j = lane + 32 * i;
+    const float4 a = xr[j];
+    const float2 h01 = __bfloat1622float2(hr[2 * j]), h23 = __bfloat1622float2(hr[2 * j + 1]);
+    if (gr) {
+      const float4 g = gr[j];
+      v[i] = make_float4(a.x + h01.x * g.x, a.y + h01.y * g.y, a.z + h23.x * g.z, a.w + h23.y * g.w);
+    } else {
+      v[i] = make_float4(a.x + h01.x, a.y + h01.y, a.z + h23.x, a.w + h23.y);
+    }
+    xo[j] = v[i];
+  }
+  layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
 }
 
 // One warp per (token, head); each lane handles D / 64 pairs of channels of q, k and v.
@@ -111,6 +153,26 @@ cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* 
     case 1024: layer_norm_affine_bf16_kernel<8><<<grid, block, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps); break;
     default: return cudaErrorInvalidValue;
   }
+  return cudaGetLastError();
+}
+
+cudaError_t residual_layer_norm_affine_bf16(const float* x, const __nv_bfloat16* h, const float* gate,
+                                            int64_t rows_per_gate, float* x_out, const float* w, const float* b,
+                                            __nv_bfloat16* y, int64_t rows, int64_t rows_per_w, int C, float eps,
+                                            cudaStream_t stream) {
+  constexpr int warps = 8;
+  const dim3 grid(static_cast<unsigned>((rows + warps - 1) / warps)), block(32 * warps);
+#define SIMU_RLN(VPL) \
+  residual_layer_norm_affine_bf16_kernel<VPL><<<grid, block, 0, stream>>>(x, h, gate, rows_per_gate, x_out, w, b, y, rows, rows_per_w, eps)
+  switch (C) {
+    case 128: SIMU_RLN(1); break;
+    case 256: SIMU_RLN(2); break;
+    case 512: SIMU_RLN(4); break;
+    case 768: SIMU_RLN(6); break;
+    case 1024: SIMU_RLN(8); break;
+    default: return cudaErrorInvalidValue;
+  }
+#undef SIMU_RLN
   return cudaGetLastError();
 }
 

@@ -14,6 +14,13 @@ namespace simu::models::kernels {
 cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
                                    int64_t rows_per_w, int C, float eps, cudaStream_t stream);
 
+// x_out[r, :] = x[r, :] + h[r, :] * gate[r / rows_per_gate, :] (gate null: + h) in fp32, then
+// y = layer_norm_affine_bf16(x_out, w, b). h: [rows, C] bf16 contiguous; gate: [rows / rows_per_gate, C] fp32.
+cudaError_t residual_layer_norm_affine_bf16(const float* x, const __nv_bfloat16* h, const float* gate,
+                                            int64_t rows_per_gate, float* x_out, const float* w, const float* b,
+                                            __nv_bfloat16* y, int64_t rows, int64_t rows_per_w, int C, float eps,
+                                            cudaStream_t stream);
+
 // From a fused projection qkv [B, L, 3, H, D] (bf16, contiguous) writes, per token and head,
 //   q = bf16(q / max(|q|, 1e-12) * gq[h] * scale), k likewise with gk, v copied,
 // into outputs addressed as out + b*sb + l*sl + h*D + d (strides in elements). D % 64 == 0, D <= 256.

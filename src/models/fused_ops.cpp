@@ -88,6 +88,54 @@ torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor
 #endif
 }
 
+bool supports_residual_layer_norm_affine(const torch::Tensor& x, const torch::Tensor& h) {
+  return supports_layer_norm_affine(x) && h.is_cuda() && h.scalar_type() == torch::kBFloat16 && h.is_contiguous() &&
+         h.sizes() == x.sizes();
+}
+
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_reference(const torch::Tensor& x,
+                                                                                   const torch::Tensor& h,
+                                                                                   const torch::Tensor& gate,
+                                                                                   const torch::Tensor& w,
+                                                                                   const torch::Tensor& b, double eps) {
+  auto x_new = gate.defined() ? torch::addcmul(x, h, gate.unsqueeze(1)) : x + h;  // [B, L, C] float32
+  return {x_new, layer_norm_affine_bf16_reference(x_new, w, b, eps)};
+}
+
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
+                                                                         const torch::Tensor& gate, const torch::Tensor& w,
+                                                                         const torch::Tensor& b, double eps) {
+  const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
+  SIMU_CHECK(w.dim() == 2 && w.size(1) == C && (w.size(0) == 1 || w.size(0) == B) && w.scalar_type() == torch::kFloat32,
+             "residual_layer_norm_affine_bf16: weight must be [1 or {}, {}] float32, got [{}] {}", B, C,
+             fmt::join(w.sizes(), ", "), c10::toString(w.scalar_type()));
+  SIMU_CHECK(!b.defined() || b.sizes() == w.sizes(), "residual_layer_norm_affine_bf16: bias must be shaped like the weight");
+  SIMU_CHECK(!gate.defined() || (gate.dim() == 2 && gate.size(1) == C && (gate.size(0) == 1 || gate.size(0) == B)),
+             "residual_layer_norm_affine_bf16: gate must be [1 or {}, {}], got [{}]", B, C, fmt::join(gate.sizes(), ", "));
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  SIMU_CHECK(supports_residual_layer_norm_affine(x, h),
+             "residual_layer_norm_affine_bf16: unsupported inputs x [{}] {}, h [{}] {} on {}", fmt::join(x.sizes(), ", "),
+             c10::toString(x.scalar_type()), fmt::join(h.sizes(), ", "), c10::toString(h.scalar_type()), x.device().str());
+  auto wc = w.contiguous();
+  auto bc = b.defined() ? b.contiguous() : b;
+  auto gc = gate.defined() ? gate.to(torch::kFloat32).contiguous() : gate;
+  auto x_new = torch::empty_like(x);
+  auto y = torch::empty({B, L, C}, x.options().dtype(torch::kBFloat16));
+  ++g_launches;
+  check_cuda(kernels::residual_layer_norm_affine_bf16(
+                 x.data_ptr<float>(), reinterpret_cast<const __nv_bfloat16*>(h.data_ptr<at::BFloat16>()),
+                 gc.defined() ? gc.data_ptr<float>() : nullptr, gc.defined() && gc.size(0) == B ? L : B * L,
+                 x_new.data_ptr<float>(), wc.data_ptr<float>(), bc.defined() ? bc.data_ptr<float>() : nullptr,
+                 reinterpret_cast<__nv_bfloat16*>(y.data_ptr<at::BFloat16>()), B * L,
+                 w.size(0) == 1 ? B * L : L, static_cast<int>(C), static_cast<float>(eps),
+                 c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
+             "residual_layer_norm_affine_bf16");
+  return {x_new, y};
+#else
+  return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
+#endif
+}
+
 bool supports_split_qkv(const torch::Tensor& qkv) {
   if (!(compiled() && qkv.is_cuda() && qkv.dim() == 5 && qkv.size(2) == 3 && qkv.scalar_type() == torch::kBFloat16 &&
         qkv.is_contiguous()))

@@ -21,6 +21,21 @@ torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor
 torch::Tensor layer_norm_affine_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b,
                                                double eps);
 
+// The residual update in front of a LayerNorm + affine, in one pass:
+//   x_new = x + h * gate  (fp32; as torch::addcmul(x, h, gate); gate undefined: x + h)
+//   y = layer_norm_affine_bf16(x_new, w, b, eps)
+// x: [B, L, C] float32 contiguous; h: [B, L, C] bfloat16 contiguous (a sublayer's output); gate: [G, C]
+// (any float dtype, G = 1 or B) or undefined; w, b as for layer_norm_affine_bf16. Returns {x_new, y}.
+bool supports_residual_layer_norm_affine(const torch::Tensor& x, const torch::Tensor& h);
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
+                                                                         const torch::Tensor& gate, const torch::Tensor& w,
+                                                                         const torch::Tensor& b, double eps);
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_reference(const torch::Tensor& x,
+                                                                                   const torch::Tensor& h,
+                                                                                   const torch::Tensor& gate,
+                                                                                   const torch::Tensor& w,
+                                                                                   const torch::Tensor& b, double eps);
+
 // Splits a fused projection qkv: [B, L, 3, H, D] bfloat16 into q, k, v, with the official multi-head
 // RMS norm on q and k (q / max(|q|, 1e-12) * gamma * scale in fp32, gamma: [H, D] float32).
 // Writes into the given outputs ([B, L, H, D] views, last two dims contiguous, any batch/token strides),

@@ -2,36 +2,26 @@
 
 #include <fmt/ranges.h>
 
+#include <atomic>
 #include <cmath>
 #include <limits>
 
 #include "common/config.h"
 #include "common/error.h"
+#include "models/official_yaml.h"
 #include "common/log.h"
 #include "data/safetensors.h"
 #include "models/weights.h"
 
+#ifdef SIMU_HAVE_CUDA_KERNELS
+#include <ATen/cuda/CUDAGraph.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#endif
+
 namespace simu::models {
 
 namespace {
-
-std::string short_target(const YAML::Node& node) {
-  if (!node || !node.IsMap() || !node["_target_"]) return "";
-  std::string t = node["_target_"].as<std::string>();
-  const auto dot = t.rfind('.');
-  return dot == std::string::npos ? t : t.substr(dot + 1);
-}
-
-template <typename T>
-T get_or(const YAML::Node& node, const std::string& key, const T& fallback, const std::string& file) {
-  if (!node[key] || node[key].IsNull()) return fallback;
-  try {
-    return node[key].as<T>();
-  } catch (const YAML::Exception&) {
-    fail("{}: key '{}': expected {}, got '{}'", file, key, config::type_name<T>(),
-         node[key].IsScalar() ? node[key].Scalar() : std::string("a non-scalar"));
-  }
-}
 
 // interval: [lo, hi] or null (CFG never active: {inf, -inf}).
 std::pair<double, double> read_interval(const YAML::Node& n, const std::string& file) {
@@ -140,6 +130,94 @@ SampleOptions SampleOptions::from(const GeneratorConfig& c) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// CUDA graphs
+
+struct GraphedForward::State {
+  SparseStructureFlowTdfyWrapper backbone{nullptr};
+  torch::Tensor cond;
+  const ConditionCache* cache = nullptr;
+  // Static inputs (the graph reads these addresses) and the outputs it writes.
+  Latents x, y;
+  torch::Tensor t, d;
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  std::unique_ptr<at::cuda::CUDAGraph> graph;
+#endif
+};
+
+GraphedForward::GraphedForward(SparseStructureFlowTdfyWrapper backbone, torch::Tensor cond, const ConditionCache* cache)
+    : s_(std::make_unique<State>()) {
+  s_->backbone = std::move(backbone);
+  s_->cond = std::move(cond);
+  s_->cache = cache;
+}
+
+GraphedForward::~GraphedForward() = default;
+
+namespace {
+std::atomic<int64_t> g_graph_replays{0};
+}  // namespace
+
+int64_t GraphedForward::replay_count() { return g_graph_replays.load(); }
+
+Latents GraphedForward::run(const Latents& x, const torch::Tensor& t, const c10::optional<torch::Tensor>& d) {
+  auto& s = *s_;
+  c10::optional<torch::Tensor> dd;
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  if (s.cond.is_cuda()) {
+    if (!s.graph) {
+      // Static input buffers with the first call's shapes.
+      for (const auto& [k, v] : x) s.x[k] = v.clone();
+      s.t = t.clone();
+      if (d) s.d = d->clone();
+      if (s.d.defined()) dd = s.d;
+      const c10::cuda::CUDAGuard device_guard(s.cond.device());
+      const auto main = c10::cuda::getCurrentCUDAStream();
+      auto side = c10::cuda::getStreamFromPool(false, s.cond.device().index());
+      main.synchronize();
+      {
+        const c10::cuda::CUDAStreamGuard stream_guard(side);
+        // Warm-up: kernel plans, workspaces and the autocast cache's weight copies exist before capture.
+        (void)s.backbone->forward(s.x, s.t, s.cond, dd, s.cache);
+        side.synchronize();
+        auto graph = std::make_unique<at::cuda::CUDAGraph>();
+        graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
+        try {
+          s.y = s.backbone->forward(s.x, s.t, s.cond, dd, s.cache);
+        } catch (...) {
+          try {
+            graph->capture_end();
+          } catch (...) {
+          }
+          throw;
+        }
+        graph->capture_end();
+        s.graph = std::move(graph);
+        side.synchronize();
+      }
+    }
+    // Copy the inputs in (same shapes as captured), replay.
+    for (const auto& [k, v] : x) {
+      const auto it = s.x.find(k);
+      SIMU_CHECK(it != s.x.end() && it->second.sizes() == v.sizes(),
+                 "graphed forward: latent '{}' [{}] does not match the captured shape", k, fmt::join(v.sizes(), ", "));
+      it->second.copy_(v);
+    }
+    SIMU_CHECK(t.sizes() == s.t.sizes() && d.has_value() == s.d.defined() && (!d || d->sizes() == s.d.sizes()),
+               "graphed forward: t/d shapes differ from the captured ones");
+    s.t.copy_(t);
+    if (d) s.d.copy_(*d);
+    s.graph->replay();
+    ++g_graph_replays;
+    // Copies out (latents are small): a later replay overwrites the graph's outputs.
+    Latents out;
+    for (const auto& [k, v] : s.y) out[k] = v.clone();
+    return out;
+  }
+#endif
+  return s.backbone->forward(x, t, s.cond, d, s.cache);
+}
+
+// ---------------------------------------------------------------------------------------------
 // CFG
 
 ClassifierFreeGuidanceImpl::ClassifierFreeGuidanceImpl(const GeneratorConfig& c)
@@ -175,11 +253,26 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
   const bool guided = strength > 0.0 && interval.first <= tf && tf <= interval.second;
   // t (and d) as one value for the whole batch ([1], like the official ShortCut): the modulation is
   // then computed once and broadcast, which lets the blocks fuse it into the LayerNorms.
+  // Backbone forward: through a CUDA graph when the condition allows it, else eager.
+  auto run = [&](std::shared_ptr<GraphedForward>& graph, const Latents& xs, const torch::Tensor& c, const ConditionCache* kv,
+                 const torch::Tensor& t, const c10::optional<torch::Tensor>& d) -> Latents {
+    if (pc.graphs && kv) {
+      try {
+        if (!graph) graph = std::make_shared<GraphedForward>(backbone, c, kv);
+        return graph->run(xs, t, d);
+      } catch (const std::exception& e) {
+        log::warn("sampling: CUDA graph capture failed, continuing with eager launches: {}", e.what());
+        pc.graphs = false;
+        graph.reset();
+      }
+    }
+    return backbone->forward(xs, t, c, d, kv);
+  };
   if (!guided) {
     c10::optional<torch::Tensor> d;
     if (d_scaled) d = torch::full({1}, *d_scaled, opts);
     if (pc.cache && !pc.single_kv) pc.single_kv = backbone->condition_cache(cond);
-    return backbone->forward(x, torch::full({1}, t_scaled, opts), cond, d, pc.single_kv ? &*pc.single_kv : nullptr);
+    return run(pc.single_graph, x, cond, pc.single_kv ? &*pc.single_kv : nullptr, torch::full({1}, t_scaled, opts), d);
   }
   // One batched forward: first half conditional, second half unconditional.
   Latents x2;
@@ -192,7 +285,7 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
       d2 = torch::full({1}, *d_scaled, opts);
   }
   if (pc.cache && !pc.pair_kv) pc.pair_kv = backbone->condition_cache(pc.pair);
-  auto y = backbone->forward(x2, torch::full({1}, t_scaled, opts), pc.pair, d2, pc.pair_kv ? &*pc.pair_kv : nullptr);
+  auto y = run(pc.pair_graph, x2, pc.pair, pc.pair_kv ? &*pc.pair_kv : nullptr, torch::full({1}, t_scaled, opts), d2);
   Latents out;
   for (const auto& [k, v] : y) {
     auto yc = v.narrow(0, 0, B), yu = v.narrow(0, B, B);
@@ -245,6 +338,7 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
   Latents x;
   for (const auto& [k, v] : x0) x[k] = v.to(torch::kFloat32);
   auto pc = reverse_fn->prepare(cond, o.cache_condition);
+  pc.graphs = o.cuda_graphs && o.cache_condition && cond.is_cuda();
   // Velocity at time t (in [0, 1]).
   auto velocity = [&](const Latents& xt, double t) {
     return reverse_fn->forward(xt, tp(t * c.time_scale), pc, d, o.cfg_strength, o.cfg_interval);

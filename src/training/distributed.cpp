@@ -391,6 +391,7 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
   exe[n] = '\0';
   std::vector<pid_t> pids(nproc, -1);
   std::vector<std::string> beats(nproc);
+  const int threads_per_rank = static_cast<int>(std::thread::hardware_concurrency()) / nproc;
   // Start the ranks.
   for (int r = 0; r < nproc; ++r) {
     beats[r] = fmt::format("{}/rank{}", beat_dir, r);
@@ -408,6 +409,10 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
       ::setenv("MASTER_ADDR", "127.0.0.1", 1);
       ::setenv("MASTER_PORT", std::to_string(port).c_str(), 1);
       ::setenv("NCCL_NVLS_ENABLE", "0", 1);
+      // Share the cores between the ranks (torchrun sets 1): N ranks each spinning up an intra-op pool
+      // as wide as the machine starve each other's launch threads.
+      if (!std::getenv("OMP_NUM_THREADS"))
+        ::setenv("OMP_NUM_THREADS", std::to_string(std::max(1, threads_per_rank)).c_str(), 1);
       ::setenv("SIMU_HEARTBEAT_FILE", beats[r].c_str(), 1);
       std::vector<char*> argv;
       argv.push_back(exe);

@@ -145,7 +145,10 @@ std::vector<Pair> MemoryPairSource::next_batch() {
 
 std::map<std::string, double> StepMetrics::scalars() const {
   std::map<std::string, double> m{{"loss", loss},           {"accuracy", accuracy}, {"margin", margin},
-                                  {"grad_norm", grad_norm}, {"lr", lr},             {"pairs_per_s", pairs_per_s}};
+                                  {"grad_norm", grad_norm}, {"lr", lr},             {"pairs_per_s", pairs_per_s},
+                                  {"time/step_s", seconds_step},           {"time/data_wait_s", seconds_data},
+                                  {"time/compute_s", seconds_compute},     {"time/allreduce_s", seconds_allreduce},
+                                  {"time/optimizer_s", seconds_optimizer}};
   for (const auto& [k, v] : per_kind) m[k] = v;
   return m;
 }
@@ -290,8 +293,16 @@ void Trainer::resume(const std::string& dir) {
 }
 
 StepMetrics Trainer::step() {
-  const auto began = std::chrono::steady_clock::now();
+  using clock = std::chrono::steady_clock;
+  auto seconds_since = [](clock::time_point a) { return std::chrono::duration<double>(clock::now() - a).count(); };
+  // Waits for the device so that a phase's wall time includes its GPU work (timing breakdown only).
+  auto settle = [&] {
+    if (device_.is_cuda()) torch::cuda::synchronize();
+  };
+  const auto began = clock::now();
   auto pairs = source_->next_batch();
+  const double seconds_data = seconds_since(began);
+  const auto compute_began = clock::now();
   const int64_t share = static_cast<int64_t>(pairs.size());
   SIMU_CHECK(share == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected", share,
              cfg_.data.global_batch / comm_.world_size());
@@ -317,9 +328,9 @@ StepMetrics Trainer::step() {
     for (int64_t i : group) {
       const Pair& p = pairs[i];
       auto nz = draw_pair_noise(cfg_.train.seed, step_, p.id, p.x_pos.sizes(), cfg_.objective.t_mean, cfg_.objective.t_std);
-      xp.push_back(p.x_pos.to(torch::kFloat32));
-      xn.push_back(p.x_neg.to(torch::kFloat32));
-      cd.push_back(p.cond.to(torch::kFloat32));
+      xp.push_back(p.x_pos);
+      xn.push_back(p.x_neg);
+      cd.push_back(p.cond);
       ts.push_back(nz.t);
       ep.push_back(nz.eps_pos);
       en.push_back(nz.eps_neg);
@@ -327,9 +338,10 @@ StepMetrics Trainer::step() {
       kinds.push_back(p.kind);
     }
     FmdpoInputs in;
-    in.x_pos = torch::stack(xp).to(device_);
-    in.x_neg = torch::stack(xn).to(device_);
-    in.cond = torch::stack(cd).to(device_);
+    // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.
+    in.x_pos = torch::stack(xp).to(device_).to(torch::kFloat32);
+    in.x_neg = torch::stack(xn).to(device_).to(torch::kFloat32);
+    in.cond = torch::stack(cd).to(device_).to(torch::kFloat32);
     in.t = torch::stack(ts).to(device_);
     in.eps_pos = torch::stack(ep).to(device_);
     in.eps_neg = torch::stack(en).to(device_);
@@ -366,11 +378,20 @@ StepMetrics Trainer::step() {
     if (!p.grad().defined()) p.mutable_grad() = torch::zeros_like(p);
     grads.push_back(p.grad());
   }
-  comm_.all_reduce_mean(grads);
+  settle();
   StepMetrics m;
+  m.seconds_data = seconds_data;
+  m.seconds_compute = seconds_since(compute_began);
+  auto phase_began = clock::now();
+  comm_.all_reduce_mean(grads);
+  settle();
+  m.seconds_allreduce = seconds_since(phase_began);
+  phase_began = clock::now();
   m.grad_norm = clip_grad_norm(params, cfg_.optim.clip_grad_norm);
   m.lr = learning_rate(cfg_.optim, step_, cfg_.train.steps);
   opt_->step(m.lr);
+  settle();
+  m.seconds_optimizer = seconds_since(phase_began);
   ++step_;
   heartbeat();
   // Metrics over all ranks.
@@ -389,9 +410,9 @@ StepMetrics Trainer::step() {
     m.per_kind[kn + "/ref_pos"] = sums[3 + 5 * k + 3] / c;
     m.per_kind[kn + "/ref_neg"] = sums[3 + 5 * k + 4] / c;
   }
-  if (device_.is_cuda()) torch::cuda::synchronize();
-  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - began).count();
-  m.pairs_per_s = n / std::max(secs, 1e-9);
+  settle();
+  m.seconds_step = seconds_since(began);
+  m.pairs_per_s = n / std::max(m.seconds_step, 1e-9);
   return m;
 }
 

@@ -137,6 +137,10 @@ struct StepMetrics {
   double grad_norm = 0;      // global norm before clipping
   double lr = 0;
   double pairs_per_s = 0;
+  // Rank 0's wall time of this step and its phases (each phase waits for the device at its end):
+  // waiting for the data stream, forwards + backwards of its micro-batches, the gradient all-reduce
+  // (including waiting for the slowest rank), clipping + AdamW.
+  double seconds_step = 0, seconds_data = 0, seconds_compute = 0, seconds_allreduce = 0, seconds_optimizer = 0;
   // "<kind>/{policy,ref}_{pos,neg}" mean flow-matching losses per kind ("completion", "preservation").
   std::map<std::string, double> per_kind;
   std::map<std::string, double> scalars() const;

@@ -137,6 +137,25 @@ TEST(PairCache, StorageIsChunkedPerPairAndCompressed) {
   EXPECT_EQ(ds["id"].dtype, "string");
 }
 
+TEST(PairCache, SyntheticConditionLengths) {
+  const auto dir = simu::testing::temp_dir("pc_cond_len");
+  // Default: lengths spread over [L/2, L]; cond_len_min = L: every pair has L tokens.
+  make_synthetic_cache(dir + "/v.h5", 12, {8, 2}, {10, 3}, 4, torch::kFloat32);
+  make_synthetic_cache(dir + "/f.h5", 12, {8, 2}, {10, 3}, 4, torch::kFloat32, nullptr, 10);
+  std::set<int64_t> varied, fixed;
+  auto v = PairCacheReader::open(dir + "/v.h5"), f = PairCacheReader::open(dir + "/f.h5");
+  for (int64_t i = 0; i < 12; ++i) {
+    varied.insert(v.read(i).cond.size(0));
+    fixed.insert(f.read(i).cond.size(0));
+  }
+  EXPECT_GT(varied.size(), 1u);
+  EXPECT_GE(*varied.begin(), 5);
+  EXPECT_LE(*varied.rbegin(), 10);
+  EXPECT_EQ(fixed, (std::set<int64_t>{10}));
+  // A minimum above the maximum is refused.
+  EXPECT_THROW(make_synthetic_cache(dir + "/bad.h5", 2, {8, 2}, {10, 3}, 4, torch::kFloat32, nullptr, 11), simu::Error);
+}
+
 TEST(PairCache, SyntheticCacheHasMixedKindsAndDistinctMembers) {
   const auto dir = simu::testing::temp_dir("pc_syn");
   const auto path = dir + "/c.h5";

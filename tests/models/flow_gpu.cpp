@@ -13,6 +13,11 @@ simu::models::Latents prefixed(const std::map<std::string, torch::Tensor>& io, c
     if (k.rfind(p, 0) == 0) out[k.substr(p.size())] = v.to(d);
   return out;
 }
+// The fixture's small generator with its weights, on dev.
+simu::models::Generator small_generator(torch::Device dev) {
+  return simu::models::load_generator(simu::testing::fixture("ss_generator_small.json"),
+                                      simu::testing::fixture("ss_generator_small.safetensors"), dev);
+}
 }  // namespace
 
 TEST(FlowModelGpu, ForwardMatchesCpuReference) {
@@ -44,8 +49,7 @@ TEST(FlowModelGpu, ForwardMatchesCpuReference) {
 TEST(FlowModelGpu, SamplingIsDeterministic) {
   SIMU_REQUIRE_CUDA();
   const torch::Device dev(torch::kCUDA);
-  auto gen = simu::models::load_generator(simu::testing::fixture("ss_generator_small.json"),
-                                          simu::testing::fixture("ss_generator_small.safetensors"), dev);
+  auto gen = small_generator(dev);
   auto io = simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"));
   auto o = simu::models::SampleOptions::from(gen->config());
   auto run = [&] {
@@ -57,4 +61,33 @@ TEST(FlowModelGpu, SamplingIsDeterministic) {
   // The bf16 sample stays near the fp32 CPU sample of the fixture noise.
   auto y = gen->sample(io.at("in.cond").to(dev), prefixed(io, "in.sample.x0.", dev), o);
   EXPECT_TRUE(simu::testing::close(y.at("shape").cpu(), io.at("out.sample_cfg.shape"), 0.15, "bf16 sample shape (CFG 7 amplifies bf16 rounding)"));
+}
+
+TEST(FlowModelGpu, CudaGraphSamplingMatchesEager) {
+  SIMU_REQUIRE_CUDA();
+  const torch::Device dev(torch::kCUDA);
+  auto gen = small_generator(dev);
+  auto io = simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"));
+  auto o = simu::models::SampleOptions::from(gen->config());
+  // Guided and unguided steps both occur (CFG interval) and each batch shape gets its own graph.
+  o.cfg_interval = {0.0, 500.0};
+  for (const std::string solver : {"euler", "rk4"}) {
+    o.solver = solver;
+    auto run = [&](bool graphs) {
+      o.cuda_graphs = graphs;
+      auto g = at::make_generator<at::CPUGeneratorImpl>(11);
+      return gen->sample(io.at("in.cond").to(dev), gen->noise(2, g, dev), o);
+    };
+    const auto eager = run(false);
+    const auto before = simu::models::GraphedForward::replay_count();
+    const auto graphed = run(true);
+    const int64_t evals = o.steps * (solver == "rk4" ? 4 : 1);
+    // Every velocity evaluation is a replay (each batch shape is captured once, after an eager warm-up).
+    EXPECT_EQ(simu::models::GraphedForward::replay_count() - before, evals) << solver;
+    // The same kernels on the same inputs: the same numbers.
+    for (const auto& [k, v] : eager) {
+      const double err = (graphed.at(k) - v).abs().max().item<double>() / std::max(v.abs().max().item<double>(), 1e-30);
+      EXPECT_LE(err, 1e-6) << solver << " " << k;
+    }
+  }
 }

@@ -42,6 +42,35 @@ TEST(FusedOpsGpu, LayerNormAffineMatchesReference) {
   }
 }
 
+TEST(FusedOpsGpu, ResidualLayerNormAffineMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(4);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const int64_t B = 2, L = 517, C = 1024;
+  auto x = torch::randn({B, L, C}, f32) * 3 + 0.5;
+  auto h = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+  for (const int64_t G : {1, 2}) {
+    auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
+    // Gates as the modulation gives them (bf16 under autocast), per batch row or shared; and no gate.
+    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(torch::kBFloat16), torch::Tensor()}) {
+      const auto before = simu::models::fused::launch_count();
+      auto [x_new, y] = simu::models::fused::residual_layer_norm_affine_bf16(x, h, gate, w, b, 1e-6);
+      EXPECT_EQ(simu::models::fused::launch_count(), before + 1);
+      auto [x_ref, y_ref] = simu::models::fused::residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, 1e-6);
+      ASSERT_EQ(x_new.scalar_type(), torch::kFloat32);
+      ASSERT_EQ(y.scalar_type(), torch::kBFloat16);
+      // The fp32 residual: the same two operations (at most a fused multiply-add's rounding apart).
+      EXPECT_LE(rel(x_new, x_ref), 1e-6) << "G " << G << " gated " << gate.defined();
+      // Independent check of the residual itself against fp64 math.
+      auto want64 = x.to(torch::kFloat64) + h.to(torch::kFloat64) * (gate.defined() ? gate.to(torch::kFloat64).unsqueeze(1) : torch::ones({1}, f32.dtype(torch::kFloat64)));
+      EXPECT_LE(rel(x_new.to(torch::kFloat64), want64), 1e-6);
+      EXPECT_LE(rel(y, y_ref), 1.0 / 128);
+      EXPECT_LT((y.to(torch::kFloat32) - y_ref.to(torch::kFloat32)).abs().mean().item<double>(), 1e-3);
+    }
+  }
+}
+
 TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
@@ -122,9 +151,20 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   EXPECT_EQ(simu::models::fused::launch_count(), n0) << "fused kernels ran although switched off";
   gen->backbone()->set_fused_kernels(true);
   auto got = gen->backbone()->forward(x, t, cond, d);
-  // 3 blocks x 2 streams x (3 norms + 1 qkv split + 1 fc1-GELU) launches.
+  // 3 blocks x 2 streams x (3 norms, two of them with the residual in front, + 1 qkv split + 1
+  // fc1-GELU) launches.
   EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5);
   for (const auto& [k, v] : want) EXPECT_LE(rel(got.at(k), v), 2e-2) << k;
+  // The pose stream on a second CUDA stream (the default) or on the same one: the same kernels on
+  // the same inputs, so the same numbers.
+  gen->backbone()->set_stream_overlap(false);
+  auto serial = gen->backbone()->forward(x, t, cond, d);
+  gen->backbone()->set_stream_overlap(true);
+  for (const auto& [k, v] : serial) EXPECT_TRUE(torch::equal(got.at(k), v)) << k;
+  // The condition-cache path (sampling) agrees with the uncached one.
+  auto cache = gen->backbone()->condition_cache(cond);
+  auto cached = gen->backbone()->forward(x, t, cond, d, &cache);
+  for (const auto& [k, v] : want) EXPECT_LE(rel(cached.at(k), v), 2e-2) << k;
   // With gradients recorded the reference path runs (training).
   {
     at::AutoGradMode grad(true);

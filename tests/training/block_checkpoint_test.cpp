@@ -8,6 +8,7 @@
 #include <unordered_set>
 
 #include "data/safetensors.h"
+#include "fmdpo_fixture.h"
 #include "test_util.h"
 #include "training/generator_policy.h"
 
@@ -16,18 +17,7 @@ using namespace simu::training;
 namespace {
 
 // The fixture's FM-DPO inputs.
-FmdpoInputs fixture_inputs() {
-  auto io = simu::data::load_safetensors(simu::testing::fixture("fmdpo_small_io.safetensors"));
-  FmdpoInputs in;
-  in.x_pos = io.at("in.x_pos");
-  in.x_neg = io.at("in.x_neg");
-  in.cond = io.at("in.cond");
-  in.w = io.at("in.w");
-  in.t = io.at("in.t");
-  in.eps_pos = io.at("in.eps_pos");
-  in.eps_neg = io.at("in.eps_neg");
-  return in;
-}
+FmdpoInputs fixture_inputs() { return simu::testing::fmdpo_fixture_inputs(simu::testing::fmdpo_fixture()); }
 
 // Number of checkpointed segments (CheckpointFunction nodes) in the graph behind t.
 int count_segments(const torch::Tensor& t) {

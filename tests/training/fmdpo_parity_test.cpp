@@ -4,6 +4,7 @@
 #include <cstring>
 
 #include "data/safetensors.h"
+#include "fmdpo_fixture.h"
 #include "common/error.h"
 #include "test_util.h"
 #include "training/generator_policy.h"
@@ -17,14 +18,7 @@ TEST(FmdpoParity, MatchesOfficialStep) {
   auto policy = make_generator_policy(simu::testing::fixture("ss_generator_small.json"),
                                       simu::testing::fixture("ss_generator_small.safetensors"), YAML::Node(),
                                       simu::testing::fixture("lora_small"), torch::kCPU);
-  FmdpoInputs in;
-  in.x_pos = io.at("in.x_pos");
-  in.x_neg = io.at("in.x_neg");
-  in.cond = io.at("in.cond");
-  in.w = io.at("in.w");
-  in.t = io.at("in.t");
-  in.eps_pos = io.at("in.eps_pos");
-  in.eps_neg = io.at("in.eps_neg");
+  const FmdpoInputs in = simu::testing::fmdpo_fixture_inputs(io);
   auto terms = fmdpo_terms(*policy, in, io.at("in.beta").item<double>());
   EXPECT_TRUE(simu::testing::close(terms.loss_pos_policy, io.at("out.loss_pos_policy"), 1e-4, "loss_pos_policy"));
   EXPECT_TRUE(simu::testing::close(terms.loss_neg_policy, io.at("out.loss_neg_policy"), 1e-4, "loss_neg_policy"));

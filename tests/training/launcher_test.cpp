@@ -1,6 +1,7 @@
 // The local launcher: a rank that dies or hangs ends the whole job with an error naming it.
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdlib>
 #include <string>
@@ -20,6 +21,13 @@ TEST(LauncherChild, Rank) {
   const int rank = std::atoi(std::getenv("RANK"));
   const std::string m = mode;
   if (m == "ok") ::_exit(0);
+  // "threads": the launcher shares the cores between the ranks through OMP_NUM_THREADS, which sizes
+  // torch's intra-op pool at start-up (this test binary's main then sets its own count).
+  if (m == "threads") {
+    const int want = std::max(1, static_cast<int>(std::thread::hardware_concurrency()) / 2);
+    const char* omp = std::getenv("OMP_NUM_THREADS");
+    ::_exit(omp && std::atoi(omp) == want ? 0 : 4);
+  }
   if (rank == 1 && m == "die") ::_exit(3);
   for (int i = 0; i < 300; ++i) {
     if (rank == 0) heartbeat();
@@ -47,6 +55,16 @@ std::string launch(const char* mode, int hang_s, double& seconds) {
 TEST(Launcher, AllRanksSucceed) {
   double s = 0;
   EXPECT_EQ(launch("ok", 20, s), "");
+}
+
+TEST(Launcher, RanksShareTheCores) {
+  const char* before = std::getenv("OMP_NUM_THREADS");
+  const std::string saved = before ? before : "";
+  ::unsetenv("OMP_NUM_THREADS");
+  double s = 0;
+  // A rank whose OMP_NUM_THREADS is not cores / 2 exits with status 4.
+  EXPECT_EQ(launch("threads", 20, s), "");
+  if (before) ::setenv("OMP_NUM_THREADS", saved.c_str(), 1);
 }
 
 TEST(Launcher, DeadRankEndsJobNamingIt) {

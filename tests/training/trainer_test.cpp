@@ -2,6 +2,7 @@
 // checkpointing, accumulation, 2 ranks == 1 rank, interrupted-and-resumed == uninterrupted, configs.
 #include <filesystem>
 #include <fstream>
+#include <thread>
 #include <future>
 
 #include "common/error.h"
@@ -214,6 +215,36 @@ TEST(Trainer, RunWritesOutputs) {
   for (auto& e : std::filesystem::directory_iterator(out + "/tensorboard"))
     tb |= e.path().filename().string().rfind("events.out.tfevents.", 0) == 0;
   EXPECT_TRUE(tb);
+}
+
+// The step-time split: a data source that takes 60 ms per batch shows up as data wait, and the phases
+// add up to no more than the step.
+TEST(Trainer, StepTimeSplit) {
+  auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 13);
+  struct Slow : PairSource {
+    std::unique_ptr<PairSource> inner;
+    std::vector<Pair> next_batch() override {
+      std::this_thread::sleep_for(std::chrono::milliseconds(60));
+      return inner->next_batch();
+    }
+    DataPosition position() const override { return inner->position(); }
+  };
+  auto slow = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
+    auto s = std::make_unique<Slow>();
+    s->inner = std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
+    return s;
+  };
+  SoloComm comm;
+  ToyPolicy m(C, Cc, R, 7);
+  Trainer tr(toy_config(simu::testing::temp_dir("timing"), 2, 4, 2), m, slow, comm, torch::kCPU);
+  const auto sm = tr.step();
+  EXPECT_GE(sm.seconds_data, 0.055);
+  for (double v : {sm.seconds_compute, sm.seconds_allreduce, sm.seconds_optimizer}) EXPECT_GE(v, 0.0);
+  EXPECT_LE(sm.seconds_data + sm.seconds_compute + sm.seconds_allreduce + sm.seconds_optimizer, sm.seconds_step + 1e-9);
+  EXPECT_NEAR(sm.pairs_per_s, 4 / sm.seconds_step, 1e-6 * sm.pairs_per_s);
+  const auto sc = sm.scalars();
+  for (const char* k : {"time/step_s", "time/data_wait_s", "time/compute_s", "time/allreduce_s", "time/optimizer_s"})
+    EXPECT_TRUE(sc.count(k)) << k;
 }
 
 // Typos, wrong types and impossible batch splits are errors that name the file and the key.
