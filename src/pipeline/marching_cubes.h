@@ -32,11 +32,22 @@ struct TriangleMesh {
 
 struct MarchingCubesOptions {
   double iso = 0.0;  // surface level; inside is value > iso
+  // Slabs of cubes along x processed in parallel (at::parallel_for); 0 = 4 per ATen thread. The mesh
+  // (vertex order, triangle order, values) does not depend on it nor on the thread count.
+  int slabs = 0;
 };
 
 // grid: [X, Y, Z] (or [1, 1, X, Y, Z]) values on any device/dtype (copied to CPU float32).
 // Vertex coordinates are in grid index units: grid[i][j][k] sits at (i, j, k).
+// Parallel over x-slabs of cubes (pass 1: per slab, vertices in order of first use; pass 2: slabs
+// concatenated, crossings shared with the previous slab resolved), so the result is identical to the
+// sequential (x, y, z) cube scan of marching_cubes_reference.
 TriangleMesh marching_cubes(const torch::Tensor& grid, const MarchingCubesOptions& options = {});
+
+// The simple sequential implementation (one cube at a time, x then y then z; vertices numbered in
+// order of first use, triangles in cube order). Kept as the reference the fast path is tested against;
+// ignores options.slabs.
+TriangleMesh marching_cubes_reference(const torch::Tensor& grid, const MarchingCubesOptions& options = {});
 
 // Official Stage-1 voxel frame: index p -> p / resolution - 0.5 (the official `coords / 64 - 0.5`).
 void grid_to_voxel_frame(TriangleMesh& mesh, int64_t resolution);

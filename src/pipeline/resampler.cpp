@@ -1,6 +1,7 @@
 #include "pipeline/resampler.h"
 
 #include <ATen/CPUGeneratorImpl.h>
+#include <ATen/Parallel.h>
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
@@ -133,8 +134,36 @@ void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out) {
   SIMU_CHECK(logits.dim() == 5 && logits.size(0) == 1 && logits.size(1) == 1,
              "mesh_from_logits: expected [R, R, R] or [1, 1, R, R, R], got {}", logits.sizes());
   const int64_t resolution = logits.size(2);
-  // Occupied voxels (official threshold logit > 0), without the batch column.
-  out.coords = models::occupied_coords(logits).slice(1, 1, 4).contiguous();
+  // Occupied voxels (official threshold logit > 0) as (x, y, z) in row-major order, as
+  // models::occupied_coords without the batch column: counted per x-slice in parallel, then filled.
+  {
+    const auto grid = logits[0][0].contiguous();  // [R, R, R]
+    const float* g = grid.data_ptr<float>();
+    const int64_t X = grid.size(0), Y = grid.size(1), Z = grid.size(2);
+    std::vector<int64_t> offset(static_cast<size_t>(X) + 1, 0);
+    at::parallel_for(0, X, 4, [&](int64_t b, int64_t e) {
+      for (int64_t x = b; x < e; ++x) {
+        int64_t n = 0;
+        for (int64_t i = x * Y * Z; i < (x + 1) * Y * Z; ++i) n += g[i] > 0;
+        offset[x + 1] = n;
+      }
+    });
+    for (int64_t x = 0; x < X; ++x) offset[x + 1] += offset[x];
+    out.coords = torch::empty({offset[X], 3}, torch::kInt32);
+    int32_t* c = out.coords.data_ptr<int32_t>();
+    at::parallel_for(0, X, 4, [&](int64_t b, int64_t e) {
+      for (int64_t x = b; x < e; ++x) {
+        int32_t* o = c + 3 * offset[x];
+        for (int64_t y = 0; y < Y; ++y)
+          for (int64_t z = 0; z < Z; ++z)
+            if (g[(x * Y + y) * Z + z] > 0) {
+              *o++ = static_cast<int32_t>(x);
+              *o++ = static_cast<int32_t>(y);
+              *o++ = static_cast<int32_t>(z);
+            }
+      }
+    });
+  }
   if (out.coords.size(0) == 0) {
     out.ok = false;
     out.message = "no occupied voxel (every logit <= 0)";
@@ -244,17 +273,38 @@ ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests,
       po.scene_shift = requests[r].scene_shift;
       const auto pose = models::decode_pose(out.latents, po);
       const auto R = pose.rotation[0].to(torch::kFloat64).contiguous();
+      const auto T = pose.translation[0].to(torch::kFloat64).contiguous();
+      const auto Sc = pose.scale[0].to(torch::kFloat64).contiguous();
+      const auto Q = pose.quaternion[0].to(torch::kFloat64).contiguous();
+      const double* rp = R.data_ptr<double>();
       for (int a = 0; a < 3; ++a) {
-        for (int b = 0; b < 3; ++b) out.rotation(a, b) = R[a][b].item<double>();
-        out.translation(a) = pose.translation[0][a].item<double>();
-        out.scale(a) = pose.scale[0][a].item<double>();
+        for (int b = 0; b < 3; ++b) out.rotation(a, b) = rp[3 * a + b];
+        out.translation(a) = T.data_ptr<double>()[a];
+        out.scale(a) = Sc.data_ptr<double>()[a];
       }
-      for (int a = 0; a < 4; ++a) out.quaternion(a) = pose.quaternion[0][a].item<double>();
-      // Occupancy -> canonical mesh, and the pose carried over to the canonical frame.
+      for (int a = 0; a < 4; ++a) out.quaternion(a) = Q.data_ptr<double>()[a];
+    }
+    // Occupancy -> canonical mesh, and the pose carried over to the canonical frame. With at least as
+    // many rows as threads the rows run in parallel (each single-threaded); otherwise one row at a time,
+    // each marching cubes parallel inside. The meshes are the same either way.
+    const int64_t n_rows = static_cast<int64_t>(rows.size());
+    auto mesh_row = [&](int64_t k) {
+      const int64_t r = members[static_cast<size_t>(k) / static_cast<size_t>(S)], s = k % S;
+      ResampledShape& out = result.objects[r][s];
       mesh_from_logits(logits.slice(0, k, k + 1), out);
       out.scale_canonical = out.scale / out.canonical.factor;
       out.translation_canonical = out.translation + out.rotation * out.scale.cwiseProduct(out.canonical.centre);
-      if (!out.ok) simu::log::warn("resampler: request {} sample {}: {}", r, s, out.message);
+    };
+    if (n_rows >= at::get_num_threads()) {
+      at::parallel_for(0, n_rows, 1, [&](int64_t b, int64_t e) {
+        for (int64_t k = b; k < e; ++k) mesh_row(k);
+      });
+    } else {
+      for (int64_t k = 0; k < n_rows; ++k) mesh_row(k);
+    }
+    for (size_t k = 0; k < rows.size(); ++k) {
+      const int64_t r = members[k / static_cast<size_t>(S)], s = static_cast<int64_t>(k) % S;
+      if (!result.objects[r][s].ok) simu::log::warn("resampler: request {} sample {}: {}", r, s, result.objects[r][s].message);
     }
     result.seconds_mesh += seconds_since(t0);
   }
