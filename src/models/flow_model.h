@@ -226,8 +226,9 @@ class MOTBlockImpl : public torch::nn::Module {
   Linear ada_linear{nullptr};
   bool share_mod;
   bool fused_kernels = true;  // fused LayerNorm + modulation -> bf16 (fused_ops.h) on the inference path
-  // Fused path with one protected stream and one other: the other (the small pose stream) runs on a
-  // second CUDA stream, concurrently with the protected one, joining at the end of the block.
+  // Fused path with one protected stream and one other, without a condition cache: the other (the
+  // small pose stream) runs on a second CUDA stream, concurrently with the protected one, joining at
+  // the end of the block. (With a cache, i.e. in sampling, one stream measured faster.)
   bool stream_overlap = true;
 };
 TORCH_MODULE(MOTBlock);
