@@ -106,15 +106,21 @@ const std::vector<CaseEntry>& case_table() {
   return table;
 }
 
-}  // namespace
-
-TriangleMesh marching_cubes_reference(const torch::Tensor& grid_in, const MarchingCubesOptions& options) {
+// The grid as [X, Y, Z] ([1, 1, X, Y, Z] is accepted too); anything else is an error.
+torch::Tensor grid_3d(const torch::Tensor& grid_in) {
   auto grid = grid_in;
   if (grid.dim() == 5) {
     SIMU_CHECK(grid.size(0) == 1 && grid.size(1) == 1, "marching_cubes: expected [1, 1, X, Y, Z], got {}", grid.sizes());
     grid = grid[0][0];
   }
   SIMU_CHECK(grid.dim() == 3, "marching_cubes: expected a 3-D grid [X, Y, Z], got {}", grid.sizes());
+  return grid;
+}
+
+}  // namespace
+
+TriangleMesh marching_cubes_reference(const torch::Tensor& grid_in, const MarchingCubesOptions& options) {
+  const auto grid = grid_3d(grid_in);
   const double iso = options.iso;
   // Pad with a one-cell border below iso so the surface closes at the grid boundary.
   const int64_t X = grid.size(0) + 2, Y = grid.size(1) + 2, Z = grid.size(2) + 2;
@@ -232,12 +238,7 @@ struct Slab {
 }  // namespace
 
 TriangleMesh marching_cubes(const torch::Tensor& grid_in, const MarchingCubesOptions& options) {
-  auto grid = grid_in;
-  if (grid.dim() == 5) {
-    SIMU_CHECK(grid.size(0) == 1 && grid.size(1) == 1, "marching_cubes: expected [1, 1, X, Y, Z], got {}", grid.sizes());
-    grid = grid[0][0];
-  }
-  SIMU_CHECK(grid.dim() == 3, "marching_cubes: expected a 3-D grid [X, Y, Z], got {}", grid.sizes());
+  const auto grid = grid_3d(grid_in);
   const double iso = options.iso;
   // Pad with a one-cell border below iso so the surface closes at the grid boundary.
   const int64_t X = grid.size(0) + 2, Y = grid.size(1) + 2, Z = grid.size(2) + 2;
