@@ -462,7 +462,7 @@ std::vector<torch::Tensor> ResidualCarry::apply(const std::vector<torch::Tensor>
   return out;
 }
 
-std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_arg, const torch::Tensor& mod,
+std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_in, const torch::Tensor& mod,
                                                  const torch::Tensor& cond,
                                                  const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv,
                                                  ResidualCarry* carry) {
@@ -471,11 +471,10 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   auto chunks = m.chunk(6, 1);
   auto shift_msa = chunks[0].unsqueeze(1), scale_msa = chunks[1].unsqueeze(1), gate_msa = chunks[2].unsqueeze(1);
   auto shift_mlp = chunks[3].unsqueeze(1), scale_mlp = chunks[4].unsqueeze(1), gate_mlp = chunks[5].unsqueeze(1);
-  const size_t S = x_arg.size();
+  const size_t S = x_in.size();
   // A pending residual from the previous block: kept for the fused LayerNorm below, else applied now.
   ResidualCarry incoming;
   if (carry) std::swap(incoming, *carry);
-  const std::vector<torch::Tensor>& x_in = x_arg;
   std::vector<torch::Tensor> x = x_in, h(S);
   // norm(x) * (1 + scale) + shift. When the modulation is one row (the same t for the whole batch,
   // as in sampling) it is a LayerNorm with weight 1 + scale and bias shift: one fused fp32 kernel.
