@@ -126,6 +126,16 @@ torch::Tensor LoraAdapter::delta(const torch::Tensor& x) {
   return autocast ? out : out.to(x.scalar_type());
 }
 
+torch::Tensor LoraAdapter::add_to(const torch::Tensor& y, const torch::Tensor& x) {
+  if (!at::autocast::is_autocast_enabled(x.device().type())) return y + delta(x);
+  auto h = x;  // [..., in]
+  if (dropout > 0 && A->is_training()) h = torch::dropout(h, dropout, /*train=*/true);
+  auto a = torch::linear(h, A->weight);  // [..., r] in the autocast dtype
+  // [rows, out] = y + scale * a B^T, then back to y's shape.
+  auto out = torch::addmm(y.reshape({-1, y.size(-1)}), a.reshape({-1, a.size(-1)}), B->weight.t(), /*beta=*/1, /*alpha=*/scale);
+  return out.view(y.sizes());
+}
+
 torch::Tensor LoraAdapter::delta_weight() const {
   return torch::matmul(B->weight.to(torch::kFloat32), A->weight.to(torch::kFloat32)) * scale;  // [out, in]
 }

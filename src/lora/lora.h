@@ -76,6 +76,9 @@ class LoraAdapter : public models::LinearAdapter {
   LoraAdapter(LoraWeight A, LoraWeight B, double scale, double dropout);
   // x: [..., in] -> [..., out]
   torch::Tensor delta(const torch::Tensor& x) override;
+  // Under autocast: y + scale * (x A^T) B^T as one matrix product accumulating into y (beta 1, alpha
+  // scale; one rounding, no full-size scale and sum passes). Otherwise y + delta(x).
+  torch::Tensor add_to(const torch::Tensor& y, const torch::Tensor& x) override;
   // scale * B @ A in fp32: [out, in]
   torch::Tensor delta_weight() const;
   int64_t rank() const { return A->weight.size(0); }

@@ -270,7 +270,8 @@ FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
 
 torch::Tensor FeedForwardNetImpl::forward(const torch::Tensor& x) {
   // Fast path: GELU in fc1's epilogue (not with an adapter on fc1: its delta must be added first).
-  if (fused_kernels && !(fc1->adapter() && fc1->adapter_enabled()) && fused_path(x) && fused::supports_linear_gelu(x))
+  if (fused_kernels && inference_kernels && !at::GradMode::is_enabled() && !(fc1->adapter() && fc1->adapter_enabled()) &&
+      fused_path(x) && fused::supports_linear_gelu(x))
     return fc2->forward(fused::linear_gelu_tanh_bf16(x, fc1->weight, fc1->bias));
   return fc2->forward(torch::gelu(fc1->forward(x), "tanh"));
 }
@@ -325,7 +326,7 @@ MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, cons
 }
 
 bool fused_path(const torch::Tensor& x) {
-  return fused::compiled() && x.is_cuda() && !at::GradMode::is_enabled() && at::autocast::is_autocast_enabled(at::kCUDA) &&
+  return fused::compiled() && x.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
          at::autocast::get_autocast_dtype(at::kCUDA) == at::kBFloat16;
 }
 
@@ -388,12 +389,20 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch
   const size_t S = x.size();
   // Fast path: fused q/k RMS norm written straight into the attention's key/value layout.
   const int64_t head_dim = x[0].size(-1) / num_heads;  // every stream has the model's channels
-  if (fused_kernels && fused_path(x[0]) && (head_dim == 64 || head_dim == 128 || head_dim == 256)) return forward_fused(x);
-  // Per-stream q, k, v: [B, L_i, H, D], with RMS norm on q and k.
+  if (fused_kernels && inference_kernels && !at::GradMode::is_enabled() && fused_path(x[0]) &&
+      (head_dim == 64 || head_dim == 128 || head_dim == 256))
+    return forward_fused(x);
+  // Per-stream q, k, v: [B, L_i, H, D], with RMS norm on q and k (one differentiable fused kernel each
+  // way on the fused path).
   std::vector<torch::Tensor> q(S), k(S), v(S), h(S);
   for (size_t i = 0; i < S; ++i) {
     const int64_t B = x[i].size(0), L = x[i].size(1);
     auto qkv = to_qkv[i]->forward(x[i]).reshape({B, L, 3, num_heads, -1});
+    if (fused_kernels && fused_path(qkv) && fused::supports_split_qkv(qkv)) {
+      std::tie(q[i], k[i], v[i]) = fused::split_qkv_rms_norm_autograd(qkv, q_rms_norm[i]->gamma, k_rms_norm[i]->gamma,
+                                                                      q_rms_norm[i]->scale);
+      continue;
+    }
     q[i] = q_rms_norm[i]->forward(qkv.select(2, 0));
     k[i] = k_rms_norm[i]->forward(qkv.select(2, 1));
     v[i] = qkv.select(2, 2);
@@ -530,7 +539,8 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     // Only without a condition cache: with cached keys/values (sampling) the forward has less GPU work
     // per launch and the second stream measured slower (H100, 25 CFG steps at 2,800 condition tokens:
     // 752 ms with it, 713 ms without), while the uncached forward gains (30.4 vs 32.8 ms).
-    if (stream_overlap && !kv && qkv_fused && S == 2 && self_attn->is_protected[0] != self_attn->is_protected[1]) {
+    if (stream_overlap && inference_kernels && !at::GradMode::is_enabled() && !kv && qkv_fused && S == 2 &&
+        self_attn->is_protected[0] != self_attn->is_protected[1]) {
       // p: the protected stream (shape), on the current stream; o: the other (pose), on a side stream.
       const size_t p = self_attn->is_protected[0] ? 0 : 1, o = 1 - p;
       const int64_t B = x[p].size(0), Lp = x[p].size(1), Lo = x[o].size(1), H = self_attn->num_heads;
@@ -658,6 +668,15 @@ void SparseStructureFlowTdfyWrapperImpl::set_fused_kernels(bool on) {
     block->fused_kernels = on;
     block->self_attn->fused_kernels = on;
     for (auto& m : block->mlp) m->fused_kernels = on;
+  }
+}
+
+void SparseStructureFlowTdfyWrapperImpl::set_training_kernels(bool on) {
+  training_kernels_ = on;
+  for (auto& block : block_list_) {
+    block->inference_kernels = !on;
+    block->self_attn->inference_kernels = !on;
+    for (auto& m : block->mlp) m->inference_kernels = !on;
   }
 }
 

@@ -143,7 +143,8 @@ class FeedForwardNetImpl : public torch::nn::Module {
   FeedForwardNetImpl(int64_t channels, double mlp_ratio);
   torch::Tensor forward(const torch::Tensor& x);
   Linear fc1{nullptr}, fc2{nullptr};
-  bool fused_kernels = true;  // fc1 + GELU in one matrix product (fused_ops.h) on the inference path  // registered as mlp.0 and mlp.2
+  bool fused_kernels = true;     // fc1 + GELU in one matrix product (fused_ops.h), inference only
+  bool inference_kernels = true;  // false: never the GELU epilogue (it has no backward), see set_training_kernels
 };
 TORCH_MODULE(FeedForwardNet);
 
@@ -178,9 +179,11 @@ class MOTSelfAttentionImpl : public torch::nn::Module {
   std::vector<std::string> names;
   std::vector<bool> is_protected;
   int64_t num_heads;
-  // Fused CUDA kernels for q/k RMS norm and the key/value layout (fused_ops.h) when the inference
-  // conditions hold (see fused_path); the wrapper's set_fused_kernels switches them.
+  // Fused CUDA kernels for q/k RMS norm (fused_ops.h) when fused_path holds; the wrapper's
+  // set_fused_kernels switches them. Without a graph and with inference_kernels, q/k/v are also written
+  // straight into the attention's key/value layout (no backward); otherwise the differentiable split.
   bool fused_kernels = true;
+  bool inference_kernels = true;
 
  private:
   std::vector<torch::Tensor> forward_fused(const std::vector<torch::Tensor>& x);
@@ -225,7 +228,8 @@ class MOTBlockImpl : public torch::nn::Module {
   torch::nn::Sequential adaLN_modulation{nullptr};  // SiLU, Linear(C, 6C); absent when share_mod
   Linear ada_linear{nullptr};
   bool share_mod;
-  bool fused_kernels = true;  // fused LayerNorm + modulation -> bf16 (fused_ops.h) on the inference path
+  bool fused_kernels = true;  // fused LayerNorm + modulation (+ residual) -> bf16 (fused_ops.h) on the fused path
+  bool inference_kernels = true;  // stream_overlap allowed (without a graph); see set_training_kernels
   // Fused path with one protected stream and one other, without a condition cache: the other (the
   // small pose stream) runs on a second CUDA stream, concurrently with the protected one, joining at
   // the end of the block. (With a cache, i.e. in sampling, one stream measured faster.)
@@ -278,12 +282,16 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   // Every transformer block of forward runs through wrapper (empty: blocks run directly).
   void set_block_wrapper(BlockWrapper wrapper) { block_wrapper_ = std::move(wrapper); }
 
-  // Fused CUDA kernels (fused_ops.h) replace the plain ATen ops for the norms, modulation and q/k RMS
-  // norm when fused_path() holds: CUDA, no gradient recording, bf16 autocast. On by default; the same
-  // results up to bf16 rounding order. Training turns them off so that policy and reference forwards
-  // share one arithmetic.
+  // Fused CUDA kernels (fused_ops.h) replace the plain ATen ops for the norms, modulation, residuals and
+  // q/k RMS norm when fused_path() holds: CUDA and bf16 autocast. On by default; the same results up to
+  // bf16 rounding order. With a graph (grad mode) only the kernels that have a backward run; without
+  // one, also the inference-only ones (GELU epilogue, q/k/v into the key/value buffer, second stream).
   void set_fused_kernels(bool on);
   bool fused_kernels() const { return fused_kernels_; }
+  // Training: only the differentiable fused kernels, with or without grad mode, so that a no-grad
+  // forward (FM-DPO's reference pass) computes exactly what the graph forward (the policy) computes.
+  void set_training_kernels(bool on);
+  bool training_kernels() const { return training_kernels_; }
   // On the fused path, run the non-protected stream on a second CUDA stream (MOTBlockImpl::stream_overlap).
   void set_stream_overlap(bool on);
 
@@ -298,11 +306,12 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   std::vector<MOTBlock> block_list_;
   BlockWrapper block_wrapper_;
   bool fused_kernels_ = true;
+  bool training_kernels_ = false;
 };
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 
-// True when the fused inference kernels may replace the reference ops for activations like x: they
-// were compiled in, x is on CUDA, gradients are not recorded and CUDA autocast runs in bf16.
+// True when the fused kernels may replace the reference ops for activations like x: they were compiled
+// in, x is on CUDA and CUDA autocast runs in bf16. (The inference-only ones also need grad mode off.)
 bool fused_path(const torch::Tensor& x);
 
 // Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:

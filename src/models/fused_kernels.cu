@@ -139,6 +139,141 @@ __global__ void split_qkv_rms_norm_kernel(const __nv_bfloat16* __restrict__ qkv,
   for (int i = 0; i < PPL; ++i) dv[lane + 32 * i] = sv[lane + 32 * i];
 }
 
+
+// Backward of the LayerNorm + affine with respect to its input, for rows held by one warp each:
+//   g = gy * w (fp32), xhat = (x - mean) * rstd,
+//   dx = rstd * (g - mean(g) - xhat * mean(g * xhat)) [+ gx_in],
+// and with dh: dh = dx * gate (bf16; gate null: dx), the gradient of the residual's sublayer output.
+// mean and rstd are recomputed from x as in the forward. gy null: no LayerNorm gradient (dx = gx_in).
+template <int VPL>
+__global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, const float* __restrict__ w,
+                                                  int64_t rows_per_w, const __nv_bfloat16* __restrict__ gy,
+                                                  const float* __restrict__ gx_in, const float* __restrict__ gate,
+                                                  int64_t rows_per_gate, float* __restrict__ dx,
+                                                  __nv_bfloat16* __restrict__ dh, int64_t rows, float eps) {
+  constexpr int C = 128 * VPL;
+  const int lane = threadIdx.x & 31;
+  const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (row >= rows) return;
+  float4 v[VPL], g[VPL];
+  // LayerNorm gradient through the affine weight (zero when there is no incoming gradient).
+  if (gy) {
+    const float4* xr = reinterpret_cast<const float4*>(x + row * C);
+    const float4* wv = reinterpret_cast<const float4*>(w + (row / rows_per_w) * C);
+    const __nv_bfloat162* gr = reinterpret_cast<const __nv_bfloat162*>(gy + row * C);
+    float s = 0.f;
+#pragma unroll
+    for (int i = 0; i < VPL; ++i) {
+      const int j = lane + 32 * i;
+      v[i] = xr[j];
+      s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
+      const float4 ww = wv[j];
+      const float2 g01 = __bfloat1622float2(gr[2 * j]), g23 = __bfloat1622float2(gr[2 * j + 1]);
+      g[i] = make_float4(g01.x * ww.x, g01.y * ww.y, g23.x * ww.z, g23.y * ww.w);
+    }
+    const float mean = warp_sum(s) * (1.f / C);
+    float q = 0.f;
+#pragma unroll
+    for (int i = 0; i < VPL; ++i) {
+      const float a = v[i].x - mean, bb = v[i].y - mean, c = v[i].z - mean, d = v[i].w - mean;
+      q += (a * a + bb * bb) + (c * c + d * d);
+    }
+    const float rstd = rsqrtf(warp_sum(q) * (1.f / C) + eps);
+    // xhat in place of x; sums of g and g * xhat.
+    float sg = 0.f, sgx = 0.f;
+#pragma unroll
+    for (int i = 0; i < VPL; ++i) {
+      v[i] = make_float4((v[i].x - mean) * rstd, (v[i].y - mean) * rstd, (v[i].z - mean) * rstd, (v[i].w - mean) * rstd);
+      sg += (g[i].x + g[i].y) + (g[i].z + g[i].w);
+      sgx += (g[i].x * v[i].x + g[i].y * v[i].y) + (g[i].z * v[i].z + g[i].w * v[i].w);
+    }
+    const float mg = warp_sum(sg) * (1.f / C), mgx = warp_sum(sgx) * (1.f / C);
+#pragma unroll
+    for (int i = 0; i < VPL; ++i)
+      g[i] = make_float4(rstd * (g[i].x - mg - v[i].x * mgx), rstd * (g[i].y - mg - v[i].y * mgx),
+                         rstd * (g[i].z - mg - v[i].z * mgx), rstd * (g[i].w - mg - v[i].w * mgx));
+  } else {
+#pragma unroll
+    for (int i = 0; i < VPL; ++i) g[i] = make_float4(0.f, 0.f, 0.f, 0.f);
+  }
+  // Plus the gradient that reaches x directly; store dx (fp32) and dh = dx * gate (bf16).
+  const float4* gi = gx_in ? reinterpret_cast<const float4*>(gx_in + row * C) : nullptr;
+  const float4* gt = gate ? reinterpret_cast<const float4*>(gate + (row / rows_per_gate) * C) : nullptr;
+  float4* dxr = reinterpret_cast<float4*>(dx + row * C);
+  __nv_bfloat162* dhr = dh ? reinterpret_cast<__nv_bfloat162*>(dh + row * C) : nullptr;
+#pragma unroll
+  for (int i = 0; i < VPL; ++i) {
+    const int j = lane + 32 * i;
+    float4 d = g[i];
+    if (gi) {
+      const float4 a = gi[j];
+      d = make_float4(d.x + a.x, d.y + a.y, d.z + a.z, d.w + a.w);
+    }
+    dxr[j] = d;
+    if (dhr) {
+      const float4 m = gt ? gt[j] : make_float4(1.f, 1.f, 1.f, 1.f);
+      dhr[2 * j] = __floats2bfloat162_rn(d.x * m.x, d.y * m.y);
+      dhr[2 * j + 1] = __floats2bfloat162_rn(d.z * m.z, d.w * m.w);
+    }
+  }
+}
+
+// Backward of split_qkv_rms_norm_kernel: one warp per (token, head). For q and k,
+//   u = dy * gamma * scale, n = |x|: dx = u / n - x * (u . x) / n^3 (n > 1e-12; else u / 1e-12);
+// v's gradient is copied. Incoming gradients are read through strides (null: zero).
+template <int PPL>
+__global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restrict__ qkv, const float* __restrict__ gq,
+                                                   const float* __restrict__ gk, float scale, QkvGrad dq, QkvGrad dk,
+                                                   QkvGrad dv, __nv_bfloat16* __restrict__ dqkv, int B, int L, int H) {
+  constexpr int D = 64 * PPL;
+  const int lane = threadIdx.x & 31;
+  const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (item >= static_cast<int64_t>(B) * L * H) return;
+  const int h = static_cast<int>(item % H);
+  const int64_t bl = item / H;
+  const int l = static_cast<int>(bl % L), bi = static_cast<int>(bl / L);
+  const int64_t HD = static_cast<int64_t>(H) * D, off = static_cast<int64_t>(h) * D;
+  const __nv_bfloat162* src = reinterpret_cast<const __nv_bfloat162*>(qkv + bl * 3 * HD + off);
+  __nv_bfloat162* dst = reinterpret_cast<__nv_bfloat162*>(dqkv + bl * 3 * HD + off);
+#pragma unroll
+  for (int part = 0; part < 3; ++part) {
+    const QkvGrad& gsrc = part == 0 ? dq : part == 1 ? dk : dv;
+    __nv_bfloat162* o = dst + part * (HD / 2);
+    const __nv_bfloat162* gp =
+        gsrc.ptr ? reinterpret_cast<const __nv_bfloat162*>(gsrc.ptr + bi * gsrc.sb + l * gsrc.sl + h * gsrc.sh) : nullptr;
+    if (!gp) {
+#pragma unroll
+      for (int i = 0; i < PPL; ++i) o[lane + 32 * i] = __floats2bfloat162_rn(0.f, 0.f);
+      continue;
+    }
+    if (part == 2) {
+#pragma unroll
+      for (int i = 0; i < PPL; ++i) o[lane + 32 * i] = gp[lane + 32 * i];
+      continue;
+    }
+    const __nv_bfloat162* s = src + part * (HD / 2);
+    const float* g = (part == 0 ? gq : gk) + off;
+    float2 xv[PPL], u[PPL];
+    float ss = 0.f, ux = 0.f;
+#pragma unroll
+    for (int i = 0; i < PPL; ++i) {
+      const int j = lane + 32 * i;
+      xv[i] = __bfloat1622float2(s[j]);
+      const float2 dy = __bfloat1622float2(gp[j]);
+      u[i] = make_float2(dy.x * (g[2 * j] * scale), dy.y * (g[2 * j + 1] * scale));
+      ss += xv[i].x * xv[i].x + xv[i].y * xv[i].y;
+      ux += u[i].x * xv[i].x + u[i].y * xv[i].y;
+    }
+    const float n = sqrtf(warp_sum(ss));
+    const float dot = warp_sum(ux);
+    const bool clamped = !(n > 1e-12f);
+    const float r = 1.f / (clamped ? 1e-12f : n);
+    const float c = clamped ? 0.f : dot * r * r * r;
+#pragma unroll
+    for (int i = 0; i < PPL; ++i)
+      o[lane + 32 * i] = __floats2bfloat162_rn(u[i].x * r - xv[i].x * c, u[i].y * r - xv[i].y * c);
+  }
+}
 }  // namespace
 
 cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
@@ -185,6 +320,41 @@ cudaError_t split_qkv_rms_norm(const __nv_bfloat16* qkv, const float* gq, const 
     case 64: split_qkv_rms_norm_kernel<1><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H); break;
     case 128: split_qkv_rms_norm_kernel<2><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H); break;
     case 256: split_qkv_rms_norm_kernel<4><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H); break;
+    default: return cudaErrorInvalidValue;
+  }
+  return cudaGetLastError();
+}
+
+cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const __nv_bfloat16* gy,
+                                       const float* gx_in, const float* gate, int64_t rows_per_gate, float* dx,
+                                       __nv_bfloat16* dh, int64_t rows, int C, float eps, cudaStream_t stream) {
+  constexpr int warps = 8;
+  const dim3 grid(static_cast<unsigned>((rows + warps - 1) / warps)), block(32 * warps);
+#define SIMU_LNB(VPL)                                                                                               \
+  layer_norm_affine_backward_kernel<VPL><<<grid, block, 0, stream>>>(x, w, rows_per_w, gy, gx_in, gate, rows_per_gate, \
+                                                                     dx, dh, rows, eps)
+  switch (C) {
+    case 128: SIMU_LNB(1); break;
+    case 256: SIMU_LNB(2); break;
+    case 512: SIMU_LNB(4); break;
+    case 768: SIMU_LNB(6); break;
+    case 1024: SIMU_LNB(8); break;
+    default: return cudaErrorInvalidValue;
+  }
+#undef SIMU_LNB
+  return cudaGetLastError();
+}
+
+cudaError_t split_qkv_rms_norm_backward(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale,
+                                        QkvGrad dq, QkvGrad dk, QkvGrad dv, __nv_bfloat16* dqkv, int B, int L, int H,
+                                        int D, cudaStream_t stream) {
+  constexpr int warps = 8;
+  const int64_t items = static_cast<int64_t>(B) * L * H;
+  const dim3 grid(static_cast<unsigned>((items + warps - 1) / warps)), block(32 * warps);
+  switch (D) {
+    case 64: split_qkv_rms_norm_backward_kernel<1><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H); break;
+    case 128: split_qkv_rms_norm_backward_kernel<2><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H); break;
+    case 256: split_qkv_rms_norm_backward_kernel<4><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H); break;
     default: return cudaErrorInvalidValue;
   }
   return cudaGetLastError();

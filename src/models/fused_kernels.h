@@ -31,4 +31,22 @@ struct QkvOut {
 cudaError_t split_qkv_rms_norm(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale, QkvOut q,
                                QkvOut k, QkvOut v, int B, int L, int H, int D, cudaStream_t stream);
 
+// Backward of layer_norm_affine_bf16 (and of residual_layer_norm_affine_bf16) with respect to x only:
+//   dx = LN'(x)^T (gy * w[r / rows_per_w]) + gx_in   (fp32; gy null: LayerNorm term 0; gx_in null: 0)
+//   dh = dx * gate[r / rows_per_gate] stored as bf16 (gate null: dx; dh null: not written).
+// x: the LayerNorm's fp32 input [rows, C]; gy: [rows, C] bf16; mean/rstd are recomputed from x.
+cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const __nv_bfloat16* gy,
+                                       const float* gx_in, const float* gate, int64_t rows_per_gate, float* dx,
+                                       __nv_bfloat16* dh, int64_t rows, int C, float eps, cudaStream_t stream);
+
+// Backward of split_qkv_rms_norm: the gradients of q, k, v ([B, L, H, D] bf16 read at
+// ptr + b*sb + l*sl + h*sh + d; ptr null: zero) -> dqkv [B, L, 3, H, D] bf16 contiguous.
+struct QkvGrad {
+  const __nv_bfloat16* ptr;
+  int64_t sb, sl, sh;
+};
+cudaError_t split_qkv_rms_norm_backward(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale,
+                                        QkvGrad dq, QkvGrad dk, QkvGrad dv, __nv_bfloat16* dqkv, int B, int L, int H,
+                                        int D, cudaStream_t stream);
+
 }  // namespace simu::models::kernels

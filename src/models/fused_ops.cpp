@@ -7,6 +7,7 @@
 #include "common/error.h"
 
 #include <ATen/autocast_mode.h>
+#include <torch/autograd.h>
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
 #include <c10/cuda/CUDAStream.h>
@@ -62,7 +63,9 @@ torch::Tensor layer_norm_affine_bf16_reference(const torch::Tensor& x, const tor
   return y.to(torch::kBFloat16);
 }
 
-torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
+namespace {
+// The forward kernel of layer_norm_affine_bf16 (no autograd).
+torch::Tensor layer_norm_affine_launch(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
   const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
   SIMU_CHECK(w.dim() == 2 && w.size(1) == C && (w.size(0) == 1 || w.size(0) == B) && w.scalar_type() == torch::kFloat32,
              "layer_norm_affine_bf16: weight must be [1 or {}, {}] float32, got [{}] {}", B, C, fmt::join(w.sizes(), ", "),
@@ -88,6 +91,71 @@ torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor
 #endif
 }
 
+#ifdef SIMU_HAVE_CUDA_KERNELS
+// dx of LN(x) * w (+ b) given gy (undefined: 0), plus gx_in (undefined: 0); with_dh: also
+// dh = dx * gate as bf16 (the residual's sublayer gradient). x: [B, L, C] fp32; w, gate: [1 or B, C] fp32.
+std::pair<torch::Tensor, torch::Tensor> layer_norm_affine_backward_launch(const torch::Tensor& x, const torch::Tensor& w,
+                                                                          const torch::Tensor& gy, const torch::Tensor& gx_in,
+                                                                          const torch::Tensor& gate, bool with_dh, double eps) {
+  const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
+  auto gyc = gy.defined() ? gy.to(torch::kBFloat16).contiguous() : gy;
+  auto gxc = gx_in.defined() ? gx_in.to(torch::kFloat32).contiguous() : gx_in;
+  auto dx = torch::empty_like(x);
+  auto dh = with_dh ? torch::empty({B, L, C}, x.options().dtype(torch::kBFloat16)) : torch::Tensor();
+  ++g_launches;
+  check_cuda(kernels::layer_norm_affine_backward(
+                 x.data_ptr<float>(), w.data_ptr<float>(), w.size(0) == 1 ? B * L : L,
+                 gyc.defined() ? reinterpret_cast<const __nv_bfloat16*>(gyc.data_ptr<at::BFloat16>()) : nullptr,
+                 gxc.defined() ? gxc.data_ptr<float>() : nullptr, gate.defined() ? gate.data_ptr<float>() : nullptr,
+                 gate.defined() && gate.size(0) == B ? L : B * L, dx.data_ptr<float>(),
+                 with_dh ? reinterpret_cast<__nv_bfloat16*>(dh.data_ptr<at::BFloat16>()) : nullptr, B * L,
+                 static_cast<int>(C), static_cast<float>(eps), c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
+             "layer_norm_affine_backward");
+  return {dx, dh};
+}
+
+// Autograd node of layer_norm_affine_bf16: gradient for x only (w, b are frozen).
+struct LayerNormAffineFn : public torch::autograd::Function<LayerNormAffineFn> {
+  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x, const torch::Tensor& w,
+                               const torch::Tensor& b, double eps) {
+    auto wc = w.contiguous();
+    ctx->save_for_backward({x, wc});
+    ctx->saved_data["eps"] = eps;
+    return layer_norm_affine_launch(x, wc, b, eps);
+  }
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grad) {
+    const auto saved = ctx->get_saved_variables();
+    auto dx = layer_norm_affine_backward_launch(saved[0], saved[1], grad[0], {}, {}, false, ctx->saved_data["eps"].toDouble()).first;
+    return {dx, torch::Tensor(), torch::Tensor(), torch::Tensor()};
+  }
+};
+#endif
+
+// True when a graph is being recorded through x (or h) while some frozen-by-contract input requires
+// a gradient: the fused backward does not produce those, so the caller takes the reference.
+[[maybe_unused]] bool needs_param_grads(std::initializer_list<torch::Tensor> frozen) {
+  if (!at::GradMode::is_enabled()) return false;
+  for (const auto& t : frozen)
+    if (t.defined() && t.requires_grad()) return true;
+  return false;
+}
+[[maybe_unused]] bool records(std::initializer_list<torch::Tensor> inputs) {
+  if (!at::GradMode::is_enabled()) return false;
+  for (const auto& t : inputs)
+    if (t.defined() && t.requires_grad()) return true;
+  return false;
+}
+}  // namespace
+
+torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
+  if (needs_param_grads({w, b})) return layer_norm_affine_bf16_reference(x, w, b, eps);
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  if (records({x})) return LayerNormAffineFn::apply(x, w, b, eps);
+#endif
+  return layer_norm_affine_launch(x, w, b, eps);
+}
+
 bool supports_residual_layer_norm_affine(const torch::Tensor& x, const torch::Tensor& h) {
   return supports_layer_norm_affine(x) && h.is_cuda() && h.scalar_type() == torch::kBFloat16 && h.is_contiguous() &&
          h.sizes() == x.sizes();
@@ -102,9 +170,11 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_referenc
   return {x_new, layer_norm_affine_bf16_reference(x_new, w, b, eps)};
 }
 
-std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
-                                                                         const torch::Tensor& gate, const torch::Tensor& w,
-                                                                         const torch::Tensor& b, double eps) {
+namespace {
+// The forward kernel of residual_layer_norm_affine_bf16 (no autograd).
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_launch(const torch::Tensor& x, const torch::Tensor& h,
+                                                                          const torch::Tensor& gate, const torch::Tensor& w,
+                                                                          const torch::Tensor& b, double eps) {
   const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
   SIMU_CHECK(w.dim() == 2 && w.size(1) == C && (w.size(0) == 1 || w.size(0) == B) && w.scalar_type() == torch::kFloat32,
              "residual_layer_norm_affine_bf16: weight must be [1 or {}, {}] float32, got [{}] {}", B, C,
@@ -134,6 +204,44 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const to
 #else
   return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
 #endif
+}
+
+#ifdef SIMU_HAVE_CUDA_KERNELS
+// Autograd node of residual_layer_norm_affine_bf16: gradients for x and h (gate, w, b are frozen).
+//   d x = g_xnew + LN'(x_new)^T (g_y * w),  d h = d x * gate.
+struct ResidualLayerNormAffineFn : public torch::autograd::Function<ResidualLayerNormAffineFn> {
+  static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x,
+                                                const torch::Tensor& h, const torch::Tensor& gate, const torch::Tensor& w,
+                                                const torch::Tensor& b, double eps) {
+    auto wc = w.contiguous();
+    auto gc = gate.defined() ? gate.to(torch::kFloat32).contiguous() : gate;
+    auto [x_new, y] = residual_layer_norm_affine_launch(x, h, gc, wc, b, eps);
+    ctx->save_for_backward({x_new, wc, gc});
+    ctx->saved_data["eps"] = eps;
+    return {x_new, y};
+  }
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grad) {
+    const auto saved = ctx->get_saved_variables();
+    auto [dx, dh] = layer_norm_affine_backward_launch(saved[0], saved[1], grad[1], grad[0], saved[2], true,
+                                                      ctx->saved_data["eps"].toDouble());
+    return {dx, dh, torch::Tensor(), torch::Tensor(), torch::Tensor(), torch::Tensor()};
+  }
+};
+#endif
+}  // namespace
+
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
+                                                                         const torch::Tensor& gate, const torch::Tensor& w,
+                                                                         const torch::Tensor& b, double eps) {
+  if (needs_param_grads({gate, w, b})) return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  if (records({x, h})) {
+    auto out = ResidualLayerNormAffineFn::apply(x, h, gate, w, b, eps);
+    return {out[0], out[1]};
+  }
+#endif
+  return residual_layer_norm_affine_launch(x, h, gate, w, b, eps);
 }
 
 bool supports_split_qkv(const torch::Tensor& qkv) {
@@ -179,6 +287,75 @@ void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, 
 #else
   split_qkv_rms_norm_reference(qkv, gamma_q, gamma_k, scale, q, k, v);
 #endif
+}
+
+namespace {
+#ifdef SIMU_HAVE_CUDA_KERNELS
+// Autograd node of split_qkv_rms_norm_autograd: the gradient of qkv (the gammas are frozen).
+struct SplitQkvRmsNormFn : public torch::autograd::Function<SplitQkvRmsNormFn> {
+  static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& qkv,
+                                                const torch::Tensor& gamma_q, const torch::Tensor& gamma_k, double scale) {
+    const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
+    auto q = torch::empty({B, L, H, D}, qkv.options()), k = torch::empty_like(q), v = torch::empty_like(q);
+    split_qkv_rms_norm(qkv, gamma_q, gamma_k, scale, q, k, v);
+    ctx->save_for_backward({qkv, gamma_q.to(torch::kFloat32).contiguous(), gamma_k.to(torch::kFloat32).contiguous()});
+    ctx->saved_data["scale"] = scale;
+    return {q, k, v};
+  }
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grad) {
+    const auto saved = ctx->get_saved_variables();
+    const auto& qkv = saved[0];
+    const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
+    // Incoming gradients as strided bf16 views with contiguous channels and 4-byte aligned rows.
+    std::vector<torch::Tensor> keep;
+    auto view = [&](const torch::Tensor& g) {
+      if (!g.defined()) return kernels::QkvGrad{nullptr, 0, 0, 0};
+      auto t = g.to(torch::kBFloat16);
+      const bool ok = t.stride(3) == 1 && t.stride(0) % 2 == 0 && t.stride(1) % 2 == 0 && t.stride(2) % 2 == 0 &&
+                      reinterpret_cast<uintptr_t>(t.data_ptr()) % 4 == 0;
+      if (!ok) t = t.contiguous();
+      keep.push_back(t);
+      return kernels::QkvGrad{reinterpret_cast<const __nv_bfloat16*>(t.data_ptr<at::BFloat16>()), t.stride(0), t.stride(1),
+                              t.stride(2)};
+    };
+    const auto dq = view(grad[0]), dk = view(grad[1]), dv = view(grad[2]);
+    auto dqkv = torch::empty_like(qkv);
+    ++g_launches;
+    check_cuda(kernels::split_qkv_rms_norm_backward(
+                   reinterpret_cast<const __nv_bfloat16*>(qkv.data_ptr<at::BFloat16>()), saved[1].data_ptr<float>(),
+                   saved[2].data_ptr<float>(), static_cast<float>(ctx->saved_data["scale"].toDouble()), dq, dk, dv,
+                   reinterpret_cast<__nv_bfloat16*>(dqkv.data_ptr<at::BFloat16>()), static_cast<int>(B), static_cast<int>(L),
+                   static_cast<int>(H), static_cast<int>(D), c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
+               "split_qkv_rms_norm_backward");
+    return {dqkv, torch::Tensor(), torch::Tensor(), torch::Tensor()};
+  }
+};
+#endif
+}  // namespace
+
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autograd(const torch::Tensor& qkv,
+                                                                                   const torch::Tensor& gamma_q,
+                                                                                   const torch::Tensor& gamma_k,
+                                                                                   double scale) {
+  const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
+  // Reference (differentiable through ATen) when the gammas want gradients or there are no kernels.
+  if (needs_param_grads({gamma_q, gamma_k}) || !compiled()) {
+    auto norm = [&](const torch::Tensor& x, const torch::Tensor& g) {
+      auto inv = at::linalg_vector_norm(x, 2, {-1}, true, torch::kFloat32).clamp_min(1e-12).reciprocal();
+      return (x * inv * (g.to(torch::kFloat32) * scale)).to(qkv.scalar_type());
+    };
+    return {norm(qkv.select(2, 0), gamma_q), norm(qkv.select(2, 1), gamma_k), qkv.select(2, 2)};
+  }
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  if (records({qkv})) {
+    auto out = SplitQkvRmsNormFn::apply(qkv, gamma_q, gamma_k, scale);
+    return {out[0], out[1], out[2]};
+  }
+#endif
+  auto q = torch::empty({B, L, H, D}, qkv.options()), k = torch::empty_like(q), v = torch::empty_like(q);
+  split_qkv_rms_norm(qkv, gamma_q, gamma_k, scale, q, k, v);
+  return {q, k, v};
 }
 
 bool supports_linear_gelu(const torch::Tensor& x) { return compiled() && x.is_cuda() && x.dim() >= 2; }

@@ -1,6 +1,13 @@
-// The flow model's fused inference kernels at tensor level, each next to the plain-ATen reference it
-// must match (tests/models/fused_ops_gpu.cpp compares them). The fused versions run on CUDA only, on
-// shapes the kernels support (see supports_*); callers check and otherwise take the reference.
+// The flow model's fused kernels at tensor level, each next to the plain-ATen reference it must match
+// (tests/models/fused_ops_gpu.cpp compares them, values and gradients). The fused versions run on CUDA
+// only, on shapes the kernels support (see supports_*); callers check and otherwise take the reference.
+//
+// Gradients: layer_norm_affine_bf16, residual_layer_norm_affine_bf16 and split_qkv_rms_norm_autograd
+// are differentiable with respect to their activations (x, h, qkv) through fused backward kernels; the
+// forward kernel is the same with or without a graph. Their weights (w, b, gate, gammas) are the frozen
+// base's and get no gradient: when one of them requires a gradient under grad mode, the function
+// takes its ATen reference instead. split_qkv_rms_norm and linear_gelu_tanh_bf16 have no backward
+// (inference only).
 #pragma once
 
 #include <torch/torch.h>
@@ -49,6 +56,14 @@ void split_qkv_rms_norm_reference(const torch::Tensor& qkv, const torch::Tensor&
 // y = gelu_tanh(x @ w^T + b) with the GELU in the matrix product's epilogue (cuBLASLt), bf16:
 //   x: [..., K] (cast to bf16), w: [N, K], b: [N] (the fp32 parameters; bf16 copies from the autocast
 //   cache when autocast is on) -> [..., N] bfloat16. Reference: linear, then gelu(approximate="tanh").
+// split_qkv_rms_norm into new contiguous q, k, v [B, L, H, D] (same kernel), differentiable with respect to
+// qkv: the backward kernel takes the three gradients (any token/head strides) and writes dqkv in one pass.
+// qkv: [B, L, 3, H, D] bf16 contiguous (supports_split_qkv). Without kernels: the reference, unbound.
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autograd(const torch::Tensor& qkv,
+                                                                                   const torch::Tensor& gamma_q,
+                                                                                   const torch::Tensor& gamma_k,
+                                                                                   double scale);
+
 bool supports_linear_gelu(const torch::Tensor& x);
 torch::Tensor linear_gelu_tanh_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b);
 torch::Tensor linear_gelu_tanh_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b);

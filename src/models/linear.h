@@ -17,6 +17,8 @@ class LinearAdapter {
   virtual ~LinearAdapter() = default;
   // x: [..., in_features] -> [..., out_features]
   virtual torch::Tensor delta(const torch::Tensor& x) = 0;
+  // y + delta(x), y: the Linear's output [..., out]. An adapter may fuse the sum into its last product.
+  virtual torch::Tensor add_to(const torch::Tensor& y, const torch::Tensor& x) { return y + delta(x); }
 };
 
 class LinearImpl : public torch::nn::Module {

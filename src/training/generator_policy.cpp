@@ -23,9 +23,10 @@ class GeneratorPolicy : public PolicyModel {
  public:
   GeneratorPolicy(simu::models::Generator gen, simu::lora::LoraConfig lora)
       : gen_(std::move(gen)), lora_(std::move(lora)) {
-    // Policy (with gradients) and reference (without) forwards must share one arithmetic: no fused
-    // inference kernels in training.
-    gen_->backbone()->set_fused_kernels(false);
+    // Policy (with gradients) and reference (without) forwards must share one arithmetic: only the
+    // fused kernels that have a backward, in both (on CUDA under bf16 autocast; CPU runs the reference ops).
+    gen_->backbone()->set_fused_kernels(true);
+    gen_->backbone()->set_training_kernels(true);
   }
 
   torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled, const torch::Tensor& cond,

@@ -5,6 +5,7 @@
 #include "data/safetensors.h"
 #include "lora/lora.h"
 #include "models/generator.h"
+#include "models/linear.h"
 #include "test_util.h"
 
 namespace {
@@ -48,4 +49,41 @@ TEST(LoraGpu, Bf16AutocastKeepsFp32AdaptersAndMatchesFixture) {
   EXPECT_TRUE(simu::testing::close(fm_loss_cuda(gen, m, "pos"), m.at("out.loss_pos_policy"), 3e-2, "merged bf16"));
   simu::lora::set_lora_enabled(*gen, false);
   EXPECT_TRUE(simu::testing::close(fm_loss_cuda(gen, m, "neg"), m.at("out.loss_neg_ref"), 3e-2, "ref bf16"));
+}
+
+TEST(LoraGpu, FusedSumUnderAutocastMatchesDelta) {
+  SIMU_REQUIRE_CUDA();
+  const torch::Device dev(torch::kCUDA);
+  torch::manual_seed(21);
+  simu::models::Linear lin(256, 768);
+  lin->to(dev);
+  for (auto& p : lin->parameters()) p.set_requires_grad(false);
+  simu::lora::LoraWeight A(16, 256, dev), B(768, 16, dev);
+  {
+    torch::NoGradGuard ng;
+    A->weight.normal_(0, 0.05);
+    B->weight.normal_(0, 0.05);
+  }
+  auto adapter = std::make_shared<simu::lora::LoraAdapter>(A, B, 2.0, 0.0);
+  lin->set_adapter(adapter);
+  auto x = torch::randn({2, 100, 256}, torch::TensorOptions().device(dev)).requires_grad_();
+  auto gy = torch::randn({2, 100, 768}, torch::TensorOptions().device(dev));
+  // add_to (one product accumulating into the base output) vs base + delta, values and gradients.
+  auto grads = [&](bool fused) {
+    simu::models::Bf16Autocast ac(true);
+    auto y = fused ? lin->forward(x) : torch::linear(x, lin->weight, lin->bias) + adapter->delta(x);
+    EXPECT_EQ(y.scalar_type(), torch::kBFloat16);
+    auto g = torch::autograd::grad({y}, {x, A->weight, B->weight}, {gy.to(torch::kBFloat16)});
+    g.push_back(y.detach());
+    return g;
+  };
+  auto got = grads(true), want = grads(false);
+  const char* names[] = {"dx", "dA", "dB", "y"};
+  for (int i = 0; i < 4; ++i)
+    EXPECT_TRUE(simu::testing::close(got[i].to(torch::kFloat32), want[i].to(torch::kFloat32), 2e-2, names[i]));
+  // Independent fp64 value: y = x W^T + b + 2 * (x A^T) B^T.
+  auto x64 = x.detach().to(torch::kFloat64);
+  auto y64 = torch::linear(x64, lin->weight.to(torch::kFloat64), lin->bias.to(torch::kFloat64)) +
+             2.0 * torch::linear(torch::linear(x64, A->weight.to(torch::kFloat64)), B->weight.to(torch::kFloat64));
+  EXPECT_TRUE(simu::testing::close(got[3].to(torch::kFloat64), y64, 1e-2, "y vs fp64"));
 }

@@ -4,6 +4,8 @@
 
 #include <fstream>
 
+#include <fmt/format.h>
+
 #include "models/flow_model.h"
 #include "models/fused_ops.h"
 #include "models/generator.h"
@@ -165,11 +167,212 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   auto cache = gen->backbone()->condition_cache(cond);
   auto cached = gen->backbone()->forward(x, t, cond, d, &cache);
   for (const auto& [k, v] : want) EXPECT_LE(rel(cached.at(k), v), 2e-2) << k;
-  // With gradients recorded the reference path runs (training).
+  // With gradients recorded and a trainable base (every parameter requires a gradient here) the
+  // reference ops run: the fused backward kernels give no weight gradients.
   {
     at::AutoGradMode grad(true);
     const auto n1 = simu::models::fused::launch_count();
     (void)gen->backbone()->forward(x, t, cond, d);
     EXPECT_EQ(simu::models::fused::launch_count(), n1);
   }
+}
+
+namespace {
+// LayerNorm without affine over the last dim, in whatever dtype x has (fp64 for the references).
+torch::Tensor plain_layer_norm(const torch::Tensor& x, double eps) {
+  auto m = x.mean(-1, true);
+  auto v = (x - m).pow(2).mean(-1, true);
+  return (x - m) / (v + eps).sqrt();
+}
+}  // namespace
+
+TEST(FusedOpsGpu, LayerNormAffineGradientMatchesFp64) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(11);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const int64_t B = 2, L = 517, C = 1024;
+  for (const int64_t G : {1, 2}) {
+    auto x = (torch::randn({B, L, C}, f32) * 3 + 0.5).requires_grad_();
+    auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
+    auto gy = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+    const auto n0 = simu::models::fused::launch_count();
+    auto y = simu::models::fused::layer_norm_affine_bf16(x, w, b, 1e-6);
+    y.backward(gy);
+    EXPECT_EQ(simu::models::fused::launch_count(), n0 + 2) << "forward + backward kernel";
+    // fp64 autograd of the same function.
+    auto x64 = x.detach().to(torch::kFloat64).requires_grad_();
+    auto y64 = plain_layer_norm(x64, 1e-6) * w.to(torch::kFloat64).unsqueeze(1) + b.to(torch::kFloat64).unsqueeze(1);
+    y64.backward(gy.to(torch::kFloat64));
+    EXPECT_LE(rel(x.grad(), x64.grad()), 1e-4) << "G " << G;
+  }
+  // A weight that requires a gradient: the reference runs (differentiable in w too).
+  auto x = torch::randn({B, L, C}, f32).requires_grad_();
+  auto w = torch::ones({1, C}, f32).requires_grad_();
+  const auto n0 = simu::models::fused::launch_count();
+  simu::models::fused::layer_norm_affine_bf16(x, w, {}, 1e-6).to(torch::kFloat32).sum().backward();
+  EXPECT_EQ(simu::models::fused::launch_count(), n0);
+  ASSERT_TRUE(w.grad().defined());
+}
+
+TEST(FusedOpsGpu, ResidualLayerNormAffineGradientMatchesFp64) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(12);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const int64_t B = 2, L = 517, C = 1024;
+  for (const int64_t G : {1, 2}) {
+    auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
+    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(torch::kBFloat16), torch::Tensor()}) {
+      // Gradients into both outputs (the residual stream and the normalised bf16 copy), or only y.
+      for (const bool both : {true, false}) {
+        auto x = (torch::randn({B, L, C}, f32) * 3 + 0.5).requires_grad_();
+        auto h = torch::randn({B, L, C}, f32).to(torch::kBFloat16).requires_grad_();
+        auto gx = torch::randn({B, L, C}, f32), gy = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+        const auto n0 = simu::models::fused::launch_count();
+        auto [x_new, y] = simu::models::fused::residual_layer_norm_affine_bf16(x, h, gate, w, b, 1e-6);
+        if (both) torch::autograd::backward({x_new, y}, {gx, gy});
+        else y.backward(gy);
+        EXPECT_EQ(simu::models::fused::launch_count(), n0 + 2);
+        auto x64 = x.detach().to(torch::kFloat64).requires_grad_();
+        auto h64 = h.detach().to(torch::kFloat64).requires_grad_();
+        auto xn64 = gate.defined() ? x64 + h64 * gate.to(torch::kFloat64).unsqueeze(1) : x64 + h64;
+        auto y64 = plain_layer_norm(xn64, 1e-6) * w.to(torch::kFloat64).unsqueeze(1) + b.to(torch::kFloat64).unsqueeze(1);
+        if (both) torch::autograd::backward({xn64, y64}, {gx.to(torch::kFloat64), gy.to(torch::kFloat64)});
+        else y64.backward(gy.to(torch::kFloat64));
+        const std::string what = fmt::format("G {} gated {} both {}", G, gate.defined(), both);
+        EXPECT_LE(rel(x.grad(), x64.grad()), 1e-4) << what;
+        // dh is stored as bf16: one rounding of the fp32 value.
+        EXPECT_LE(rel(h.grad(), h64.grad()), 1.0 / 128) << what;
+        EXPECT_EQ(h.grad().scalar_type(), torch::kBFloat16);
+      }
+    }
+  }
+}
+
+TEST(FusedOpsGpu, SplitQkvRmsNormGradientMatchesFp64) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(13);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const int64_t B = 2, L = 517, H = 16, D = 64;
+  const double scale = 8.0;
+  auto qkv = (torch::randn({B, L, 3, H, D}, f32) * 4).to(torch::kBFloat16).requires_grad_();
+  auto gq = 1 + 0.1 * torch::randn({H, D}, f32), gk = 1 + 0.1 * torch::randn({H, D}, f32);
+  const auto n0 = simu::models::fused::launch_count();
+  auto [q, k, v] = simu::models::fused::split_qkv_rms_norm_autograd(qkv, gq, gk, scale);
+  EXPECT_EQ(simu::models::fused::launch_count(), n0 + 1);
+  // Values: as the reference split.
+  auto rq = torch::empty_like(q), rk = torch::empty_like(k), rv = torch::empty_like(v);
+  simu::models::fused::split_qkv_rms_norm_reference(qkv.detach(), gq, gk, scale, rq, rk, rv);
+  EXPECT_LE(rel(q, rq), 1.0 / 128);
+  EXPECT_LE(rel(k, rk), 1.0 / 128);
+  EXPECT_TRUE(torch::equal(v, rv));
+  // Gradients arriving the way attention hands them back: through [B, H, L, D] permuted views.
+  auto r = [&] { return torch::randn({B, H, L, D}, f32); };
+  auto Rq = r(), Rk = r(), Rv = r();
+  auto loss = (q.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rq).sum() +
+              (k.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rk).sum() + (v.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rv).sum();
+  loss.backward();
+  EXPECT_EQ(simu::models::fused::launch_count(), n0 + 2);
+  // fp64 autograd of F.normalize(x) * gamma * scale, from the same bf16 inputs; incoming gradients
+  // rounded to bf16 as autograd hands them to the bf16 outputs.
+  auto x64 = qkv.detach().to(torch::kFloat64).requires_grad_();
+  auto norm64 = [&](const torch::Tensor& x, const torch::Tensor& g) {
+    return x / x.norm(2, -1, true).clamp_min(1e-12) * (g.to(torch::kFloat64) * scale);
+  };
+  auto b64 = [](const torch::Tensor& t) { return t.to(torch::kBFloat16).to(torch::kFloat64); };
+  auto loss64 = (norm64(x64.select(2, 0), gq).permute({0, 2, 1, 3}) * b64(Rq)).sum() +
+                (norm64(x64.select(2, 1), gk).permute({0, 2, 1, 3}) * b64(Rk)).sum() +
+                (x64.select(2, 2).permute({0, 2, 1, 3}) * b64(Rv)).sum();
+  loss64.backward();
+  for (int part = 0; part < 3; ++part)
+    EXPECT_LE(rel(qkv.grad().select(2, part), x64.grad().select(2, part)), 1.0 / 128) << "part " << part;
+  EXPECT_LT((qkv.grad().to(torch::kFloat64) - x64.grad()).abs().mean().item<double>(),
+            2e-3 * x64.grad().abs().mean().item<double>() + 1e-6);
+  // Only q used: zero gradients for the k and v parts.
+  qkv.mutable_grad() = torch::Tensor();
+  auto [q2, k2, v2] = simu::models::fused::split_qkv_rms_norm_autograd(qkv, gq, gk, scale);
+  (q2.to(torch::kFloat32) * Rq.permute({0, 2, 1, 3})).sum().backward();
+  EXPECT_EQ(qkv.grad().select(2, 1).abs().max().item<double>(), 0.0);
+  EXPECT_EQ(qkv.grad().select(2, 2).abs().max().item<double>(), 0.0);
+  EXPECT_LE(rel(qkv.grad().select(2, 0), x64.grad().select(2, 0)), 1.0 / 128);
+}
+
+TEST(FusedOpsGpu, FlowTrainingKernelsMatchReferenceGradients) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  const torch::Device dev(torch::kCUDA);
+  // The mid-size model of FlowForwardWithFusedKernelsMatchesReference (kernels supported), frozen.
+  std::ifstream in(std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml");
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
+           {"model_channels: 64", "model_channels: 256"}, {"num_blocks: 2", "num_blocks: 3"}, {"resolution: 4", "resolution: 8"}}) {
+    const auto at = text.find(from);
+    ASSERT_NE(at, std::string::npos) << from;
+    text.replace(at, from.size(), to);
+  }
+  const auto path = simu::testing::temp_dir("fused_flow_train") + "/stage1_mid.yaml";
+  std::ofstream(path) << text;
+  auto gen = simu::models::load_generator(path, "", dev);
+  for (auto& p : gen->parameters()) p.set_requires_grad(false);
+  auto backbone = gen->backbone();
+  backbone->set_training_kernels(true);
+  auto rng = at::make_generator<at::CPUGeneratorImpl>(6);
+  auto x0 = gen->noise(2, rng, dev);
+  auto cond = torch::randn({2, 77, gen->config().backbone.cond_channels}, rng).to(dev);
+  // Per-sample t as in training (one modulation row per batch element).
+  auto t = torch::tensor({300.0f, 700.0f}, torch::TensorOptions().device(dev));
+  c10::optional<torch::Tensor> d = torch::zeros({2}, torch::TensorOptions().device(dev));
+  std::map<std::string, torch::Tensor> weights;
+  for (const auto& [k, v] : x0) weights[k] = torch::randn(v.sizes(), rng).to(dev);
+  simu::models::Bf16Autocast ac(true);
+  // Forward + backward of sum(out * weights) with respect to the input latents.
+  auto run = [&](bool fused, int64_t* launches) {
+    backbone->set_fused_kernels(fused);
+    simu::models::Latents x;
+    std::vector<torch::Tensor> leaves;
+    for (const auto& [k, v] : x0) {
+      x[k] = v.clone().requires_grad_();
+      leaves.push_back(x[k]);
+    }
+    const auto n0 = simu::models::fused::launch_count();
+    auto out = backbone->forward(x, t, cond, d);
+    if (launches) *launches = simu::models::fused::launch_count() - n0;
+    torch::Tensor loss = torch::zeros({}, torch::TensorOptions().device(dev));
+    for (const auto& [k, v] : out) loss = loss + (v.to(torch::kFloat32) * weights.at(k)).sum();
+    auto grads = torch::autograd::grad({loss}, leaves);
+    if (launches) *launches = simu::models::fused::launch_count() - n0;
+    std::map<std::string, torch::Tensor> res;
+    size_t i = 0;
+    for (const auto& [k, v] : out) res["out." + k] = v.detach();
+    for (const auto& [k, v] : x0) res["grad." + k] = grads[i++];
+    return res;
+  };
+  auto want = run(false, nullptr);
+  int64_t fwd = 0, total = 0;
+  auto fwd_only = [&] {
+    backbone->set_fused_kernels(true);
+    simu::models::Latents x;
+    for (const auto& [k, v] : x0) x[k] = v.clone().requires_grad_();
+    const auto n0 = simu::models::fused::launch_count();
+    auto out = backbone->forward(x, t, cond, d);
+    fwd = simu::models::fused::launch_count() - n0;
+    return out;
+  };
+  (void)fwd_only();
+  auto got = run(true, &total);
+  // 3 blocks x 2 streams x (3 norms + 1 qkv split), each once forward and once backward.
+  EXPECT_EQ(fwd, 3 * 2 * 4);
+  EXPECT_EQ(total, 2 * 3 * 2 * 4);
+  for (const auto& [k, v] : want) EXPECT_LE(rel(got.at(k), v), 3e-2) << k;
+  // Without a graph (FM-DPO's reference pass) the training kernels compute the same numbers.
+  {
+    torch::NoGradGuard ng;
+    const auto n0 = simu::models::fused::launch_count();
+    auto out = backbone->forward(x0, t, cond, d);
+    EXPECT_EQ(simu::models::fused::launch_count() - n0, 3 * 2 * 4) << "no inference-only kernels in training mode";
+    for (const auto& [k, v] : out) EXPECT_TRUE(torch::equal(v, got.at("out." + k))) << k;
+  }
+  backbone->set_training_kernels(false);
 }
