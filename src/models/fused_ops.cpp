@@ -151,7 +151,8 @@ struct LayerNormAffineFn : public torch::autograd::Function<LayerNormAffineFn> {
 torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
   if (needs_param_grads({w, b})) return layer_norm_affine_bf16_reference(x, w, b, eps);
 #ifdef SIMU_HAVE_CUDA_KERNELS
-  if (records({x})) return LayerNormAffineFn::apply(x, w, b, eps);
+  // (Autograd functions take defined tensors only: a missing bias is a zero one, the same sums.)
+  if (records({x})) return LayerNormAffineFn::apply(x, w, b.defined() ? b : torch::zeros_like(w), eps);
 #endif
   return layer_norm_affine_launch(x, w, b, eps);
 }
@@ -223,7 +224,8 @@ struct ResidualLayerNormAffineFn : public torch::autograd::Function<ResidualLaye
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grad) {
     const auto saved = ctx->get_saved_variables();
-    auto [dx, dh] = layer_norm_affine_backward_launch(saved[0], saved[1], grad[1], grad[0], saved[2], true,
+    auto [dx, dh] = layer_norm_affine_backward_launch(saved[0], saved[1], grad[1], grad[0],
+                                                      saved[2], true,
                                                       ctx->saved_data["eps"].toDouble());
     return {dx, dh, torch::Tensor(), torch::Tensor(), torch::Tensor(), torch::Tensor()};
   }
@@ -237,7 +239,10 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const to
   if (needs_param_grads({gate, w, b})) return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
 #ifdef SIMU_HAVE_CUDA_KERNELS
   if (records({x, h})) {
-    auto out = ResidualLayerNormAffineFn::apply(x, h, gate, w, b, eps);
+    // (Autograd functions take defined tensors only: a missing gate is a gate of ones, x + h * 1 = x + h
+    // exactly, and a missing bias a zero one.)
+    auto out = ResidualLayerNormAffineFn::apply(x, h, gate.defined() ? gate : torch::ones({1, x.size(2)}, x.options()), w,
+                                                b.defined() ? b : torch::zeros_like(w), eps);
     return {out[0], out[1]};
   }
 #endif
