@@ -1,6 +1,8 @@
 // Fused CUDA kernels of the flow model's inference path (see fused_kernels.h for the contracts).
 #include "models/fused_kernels.h"
 
+#include <type_traits>
+
 namespace simu::models::kernels {
 
 namespace {
@@ -10,25 +12,33 @@ __device__ __forceinline__ float warp_sum(float v) {
   return v;
 }
 
-// The LayerNorm + affine of one row held in registers (lane's VPL float4; C = 128 * VPL) by one warp:
-// mean and variance about the mean (two passes over registers, as torch's fp32 layer_norm), then
-// y = (v - mean) * rstd * w + b stored as bf16.
+// Mean and 1/sqrt(variance + eps) of one row held in registers (lane's VPL float4; C = 128 * VPL) by
+// one warp: the variance about the mean, two passes over registers (as torch's fp32 layer_norm).
 template <int VPL>
-__device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], int lane, int64_t row,
-                                                        const float* __restrict__ w, const float* __restrict__ b,
-                                                        __nv_bfloat16* __restrict__ y, int64_t rows_per_w, float eps) {
+__device__ __forceinline__ void row_mean_rstd(const float4 (&v)[VPL], float eps, float& mean, float& rstd) {
   constexpr int C = 128 * VPL;
   float s = 0.f;
 #pragma unroll
   for (int i = 0; i < VPL; ++i) s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
-  const float mean = warp_sum(s) * (1.f / C);
+  mean = warp_sum(s) * (1.f / C);
   float q = 0.f;
 #pragma unroll
   for (int i = 0; i < VPL; ++i) {
     const float a = v[i].x - mean, bb = v[i].y - mean, c = v[i].z - mean, d = v[i].w - mean;
     q += (a * a + bb * bb) + (c * c + d * d);
   }
-  const float rstd = rsqrtf(warp_sum(q) * (1.f / C) + eps);
+  rstd = rsqrtf(warp_sum(q) * (1.f / C) + eps);
+}
+
+// The LayerNorm + affine of one row held in registers by one warp (row_mean_rstd), then
+// y = (v - mean) * rstd * w + b stored as bf16.
+template <int VPL>
+__device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], int lane, int64_t row,
+                                                        const float* __restrict__ w, const float* __restrict__ b,
+                                                        __nv_bfloat16* __restrict__ y, int64_t rows_per_w, float eps) {
+  constexpr int C = 128 * VPL;
+  float mean, rstd;
+  row_mean_rstd<VPL>(v, eps, mean, rstd);
   // Affine (per-row-group weight and bias), store bf16.
   const int64_t wr = row / rows_per_w;
   const float4* wv = reinterpret_cast<const float4*>(w + wr * C);
@@ -161,24 +171,16 @@ __global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, c
     const float4* xr = reinterpret_cast<const float4*>(x + row * C);
     const float4* wv = reinterpret_cast<const float4*>(w + (row / rows_per_w) * C);
     const __nv_bfloat162* gr = reinterpret_cast<const __nv_bfloat162*>(gy + row * C);
-    float s = 0.f;
 #pragma unroll
     for (int i = 0; i < VPL; ++i) {
       const int j = lane + 32 * i;
       v[i] = xr[j];
-      s += (v[i].x + v[i].y) + (v[i].z + v[i].w);
       const float4 ww = wv[j];
       const float2 g01 = __bfloat1622float2(gr[2 * j]), g23 = __bfloat1622float2(gr[2 * j + 1]);
       g[i] = make_float4(g01.x * ww.x, g01.y * ww.y, g23.x * ww.z, g23.y * ww.w);
     }
-    const float mean = warp_sum(s) * (1.f / C);
-    float q = 0.f;
-#pragma unroll
-    for (int i = 0; i < VPL; ++i) {
-      const float a = v[i].x - mean, bb = v[i].y - mean, c = v[i].z - mean, d = v[i].w - mean;
-      q += (a * a + bb * bb) + (c * c + d * d);
-    }
-    const float rstd = rsqrtf(warp_sum(q) * (1.f / C) + eps);
+    float mean, rstd;
+    row_mean_rstd<VPL>(v, eps, mean, rstd);
     // xhat in place of x; sums of g and g * xhat.
     float sg = 0.f, sgx = 0.f;
 #pragma unroll
@@ -276,88 +278,82 @@ __global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restri
 }
 }  // namespace
 
-cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
-                                   int64_t rows_per_w, int C, float eps, cudaStream_t stream) {
-  constexpr int warps = 8;
-  const dim3 grid(static_cast<unsigned>((rows + warps - 1) / warps)), block(32 * warps);
+namespace {
+
+// Launches launch(std::integral_constant<int, V>) for the width the kernels are instantiated for:
+// channels C = 128 * V (V in 1, 2, 4, 6, 8) ...
+template <typename Launch>
+cudaError_t by_channels(int C, Launch&& launch) {
   switch (C) {
-    case 128: layer_norm_affine_bf16_kernel<1><<<grid, block, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps); break;
-    case 256: layer_norm_affine_bf16_kernel<2><<<grid, block, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps); break;
-    case 512: layer_norm_affine_bf16_kernel<4><<<grid, block, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps); break;
-    case 768: layer_norm_affine_bf16_kernel<6><<<grid, block, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps); break;
-    case 1024: layer_norm_affine_bf16_kernel<8><<<grid, block, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps); break;
+    case 128: launch(std::integral_constant<int, 1>{}); break;
+    case 256: launch(std::integral_constant<int, 2>{}); break;
+    case 512: launch(std::integral_constant<int, 4>{}); break;
+    case 768: launch(std::integral_constant<int, 6>{}); break;
+    case 1024: launch(std::integral_constant<int, 8>{}); break;
     default: return cudaErrorInvalidValue;
   }
   return cudaGetLastError();
+}
+// ... or head dim D = 64 * P (P in 1, 2, 4).
+template <typename Launch>
+cudaError_t by_head_dim(int D, Launch&& launch) {
+  switch (D) {
+    case 64: launch(std::integral_constant<int, 1>{}); break;
+    case 128: launch(std::integral_constant<int, 2>{}); break;
+    case 256: launch(std::integral_constant<int, 4>{}); break;
+    default: return cudaErrorInvalidValue;
+  }
+  return cudaGetLastError();
+}
+
+// One warp per item, 8 warps per block.
+constexpr int kWarps = 8;
+dim3 grid_for(int64_t items) { return dim3(static_cast<unsigned>((items + kWarps - 1) / kWarps)); }
+const dim3 kBlock(32 * kWarps);
+
+}  // namespace
+
+cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
+                                   int64_t rows_per_w, int C, float eps, cudaStream_t stream) {
+  return by_channels(C, [&](auto v) {
+    layer_norm_affine_bf16_kernel<decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps);
+  });
 }
 
 cudaError_t residual_layer_norm_affine_bf16(const float* x, const __nv_bfloat16* h, const float* gate,
                                             int64_t rows_per_gate, float* x_out, const float* w, const float* b,
                                             __nv_bfloat16* y, int64_t rows, int64_t rows_per_w, int C, float eps,
                                             cudaStream_t stream) {
-  constexpr int warps = 8;
-  const dim3 grid(static_cast<unsigned>((rows + warps - 1) / warps)), block(32 * warps);
-#define SIMU_RLN(VPL) \
-  residual_layer_norm_affine_bf16_kernel<VPL><<<grid, block, 0, stream>>>(x, h, gate, rows_per_gate, x_out, w, b, y, rows, rows_per_w, eps)
-  switch (C) {
-    case 128: SIMU_RLN(1); break;
-    case 256: SIMU_RLN(2); break;
-    case 512: SIMU_RLN(4); break;
-    case 768: SIMU_RLN(6); break;
-    case 1024: SIMU_RLN(8); break;
-    default: return cudaErrorInvalidValue;
-  }
-#undef SIMU_RLN
-  return cudaGetLastError();
+  return by_channels(C, [&](auto v) {
+    residual_layer_norm_affine_bf16_kernel<decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
+        x, h, gate, rows_per_gate, x_out, w, b, y, rows, rows_per_w, eps);
+  });
 }
 
 cudaError_t split_qkv_rms_norm(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale, QkvOut q,
                                QkvOut k, QkvOut v, int B, int L, int H, int D, cudaStream_t stream) {
-  constexpr int warps = 8;
-  const int64_t items = static_cast<int64_t>(B) * L * H;
-  const dim3 grid(static_cast<unsigned>((items + warps - 1) / warps)), block(32 * warps);
-  switch (D) {
-    case 64: split_qkv_rms_norm_kernel<1><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H); break;
-    case 128: split_qkv_rms_norm_kernel<2><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H); break;
-    case 256: split_qkv_rms_norm_kernel<4><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H); break;
-    default: return cudaErrorInvalidValue;
-  }
-  return cudaGetLastError();
+  return by_head_dim(D, [&](auto p) {
+    split_qkv_rms_norm_kernel<decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
+        qkv, gq, gk, scale, q, k, v, B, L, H);
+  });
 }
 
 cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const __nv_bfloat16* gy,
                                        const float* gx_in, const float* gate, int64_t rows_per_gate, float* dx,
                                        __nv_bfloat16* dh, int64_t rows, int C, float eps, cudaStream_t stream) {
-  constexpr int warps = 8;
-  const dim3 grid(static_cast<unsigned>((rows + warps - 1) / warps)), block(32 * warps);
-#define SIMU_LNB(VPL)                                                                                               \
-  layer_norm_affine_backward_kernel<VPL><<<grid, block, 0, stream>>>(x, w, rows_per_w, gy, gx_in, gate, rows_per_gate, \
-                                                                     dx, dh, rows, eps)
-  switch (C) {
-    case 128: SIMU_LNB(1); break;
-    case 256: SIMU_LNB(2); break;
-    case 512: SIMU_LNB(4); break;
-    case 768: SIMU_LNB(6); break;
-    case 1024: SIMU_LNB(8); break;
-    default: return cudaErrorInvalidValue;
-  }
-#undef SIMU_LNB
-  return cudaGetLastError();
+  return by_channels(C, [&](auto v) {
+    layer_norm_affine_backward_kernel<decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
+        x, w, rows_per_w, gy, gx_in, gate, rows_per_gate, dx, dh, rows, eps);
+  });
 }
 
 cudaError_t split_qkv_rms_norm_backward(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale,
                                         QkvGrad dq, QkvGrad dk, QkvGrad dv, __nv_bfloat16* dqkv, int B, int L, int H,
                                         int D, cudaStream_t stream) {
-  constexpr int warps = 8;
-  const int64_t items = static_cast<int64_t>(B) * L * H;
-  const dim3 grid(static_cast<unsigned>((items + warps - 1) / warps)), block(32 * warps);
-  switch (D) {
-    case 64: split_qkv_rms_norm_backward_kernel<1><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H); break;
-    case 128: split_qkv_rms_norm_backward_kernel<2><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H); break;
-    case 256: split_qkv_rms_norm_backward_kernel<4><<<grid, block, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H); break;
-    default: return cudaErrorInvalidValue;
-  }
-  return cudaGetLastError();
+  return by_head_dim(D, [&](auto p) {
+    split_qkv_rms_norm_backward_kernel<decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
+        qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H);
+  });
 }
 
 }  // namespace simu::models::kernels

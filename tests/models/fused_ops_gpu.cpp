@@ -9,6 +9,7 @@
 #include "models/flow_model.h"
 #include "models/fused_ops.h"
 #include "models/generator.h"
+#include "flow_mid_config.h"
 #include "test_util.h"
 
 namespace {
@@ -128,17 +129,8 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
   const torch::Device dev(torch::kCUDA);
-  // A mid-size model the kernels support (256 channels, 4 heads of 64, 512 shape tokens + pose).
-  std::ifstream in(std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml");
-  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
-           {"model_channels: 64", "model_channels: 256"}, {"num_blocks: 2", "num_blocks: 3"}, {"resolution: 4", "resolution: 8"}}) {
-    const auto at = text.find(from);
-    ASSERT_NE(at, std::string::npos) << from;
-    text.replace(at, from.size(), to);
-  }
-  const auto path = simu::testing::temp_dir("fused_flow") + "/stage1_mid.yaml";
-  std::ofstream(path) << text;
+  // A mid-size model the kernels support (tests/flow_mid_config.h).
+  const auto path = simu::testing::mid_flow_config("fused_flow");
   auto gen = simu::models::load_generator(path, "", dev);
   auto rng = at::make_generator<at::CPUGeneratorImpl>(5);
   auto x = gen->noise(2, rng, dev);
@@ -303,17 +295,8 @@ TEST(FusedOpsGpu, FlowTrainingKernelsMatchReferenceGradients) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
   const torch::Device dev(torch::kCUDA);
-  // The mid-size model of FlowForwardWithFusedKernelsMatchesReference (kernels supported), frozen.
-  std::ifstream in(std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml");
-  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
-           {"model_channels: 64", "model_channels: 256"}, {"num_blocks: 2", "num_blocks: 3"}, {"resolution: 4", "resolution: 8"}}) {
-    const auto at = text.find(from);
-    ASSERT_NE(at, std::string::npos) << from;
-    text.replace(at, from.size(), to);
-  }
-  const auto path = simu::testing::temp_dir("fused_flow_train") + "/stage1_mid.yaml";
-  std::ofstream(path) << text;
+  // A mid-size model the kernels support (tests/flow_mid_config.h).
+  const auto path = simu::testing::mid_flow_config("fused_flow_train");
   auto gen = simu::models::load_generator(path, "", dev);
   for (auto& p : gen->parameters()) p.set_requires_grad(false);
   auto backbone = gen->backbone();

@@ -7,6 +7,7 @@
 
 #include "models/fused_ops.h"
 #include "models/generator.h"
+#include "flow_mid_config.h"
 #include "test_util.h"
 #include "training/fmdpo.h"
 #include "training/generator_policy.h"
@@ -15,17 +16,8 @@ TEST(FmdpoGpu, PolicyAndReferenceShareOneArithmetic) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled()) << "built without nvcc: no fused kernels";
   const torch::Device dev(torch::kCUDA);
-  // A model the kernels support (256 channels, heads of 64): the small recipe, widened.
-  std::ifstream in(std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml");
-  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
-           {"model_channels: 64", "model_channels: 256"}, {"num_blocks: 2", "num_blocks: 3"}, {"resolution: 4", "resolution: 8"}}) {
-    const auto at = text.find(from);
-    ASSERT_NE(at, std::string::npos) << from;
-    text.replace(at, from.size(), to);
-  }
-  const auto path = simu::testing::temp_dir("fmdpo_gpu") + "/stage1_mid.yaml";
-  std::ofstream(path) << text;
+  // A mid-size model the kernels support (tests/flow_mid_config.h).
+  const auto path = simu::testing::mid_flow_config("fmdpo_gpu");
   torch::manual_seed(3);
   auto policy = simu::training::make_generator_policy(path, "", YAML::Node(), "", dev);
   // Shape latents of the model ([B, 512, 8]) and a condition, for 2 pairs.
