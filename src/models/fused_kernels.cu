@@ -106,6 +106,22 @@ __global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__
   layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
 }
 
+// The (batch, token, head) item of this warp over B x L x H items (bl = batch * L + token); false past
+// the end.
+struct TokenHead {
+  int bi, l, h;
+  int64_t bl;
+};
+__device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, TokenHead& th) {
+  const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (item >= static_cast<int64_t>(B) * L * H) return false;
+  th.h = static_cast<int>(item % H);
+  th.bl = item / H;
+  th.l = static_cast<int>(th.bl % L);
+  th.bi = static_cast<int>(th.bl / L);
+  return true;
+}
+
 // One warp per (token, head); each lane handles D / 64 pairs of channels of q, k and v.
 template <int PPL>
 __global__ void split_qkv_rms_norm_kernel(const __nv_bfloat16* __restrict__ qkv, const float* __restrict__ gq,
@@ -113,11 +129,10 @@ __global__ void split_qkv_rms_norm_kernel(const __nv_bfloat16* __restrict__ qkv,
                                           int B, int L, int H) {
   constexpr int D = 64 * PPL;
   const int lane = threadIdx.x & 31;
-  const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
-  if (item >= static_cast<int64_t>(B) * L * H) return;
-  const int h = static_cast<int>(item % H);
-  const int64_t bl = item / H;
-  const int l = static_cast<int>(bl % L), bi = static_cast<int>(bl / L);
+  TokenHead th;
+  if (!token_head_of_warp(B, L, H, th)) return;
+  const int h = th.h, l = th.l, bi = th.bi;
+  const int64_t bl = th.bl;
   const int64_t HD = static_cast<int64_t>(H) * D;
   const __nv_bfloat162* src = reinterpret_cast<const __nv_bfloat162*>(qkv + bl * 3 * HD + static_cast<int64_t>(h) * D);
   const int64_t off = static_cast<int64_t>(h) * D;
@@ -229,11 +244,10 @@ __global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restri
                                                    QkvGrad dv, __nv_bfloat16* __restrict__ dqkv, int B, int L, int H) {
   constexpr int D = 64 * PPL;
   const int lane = threadIdx.x & 31;
-  const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
-  if (item >= static_cast<int64_t>(B) * L * H) return;
-  const int h = static_cast<int>(item % H);
-  const int64_t bl = item / H;
-  const int l = static_cast<int>(bl % L), bi = static_cast<int>(bl / L);
+  TokenHead th;
+  if (!token_head_of_warp(B, L, H, th)) return;
+  const int h = th.h, l = th.l, bi = th.bi;
+  const int64_t bl = th.bl;
   const int64_t HD = static_cast<int64_t>(H) * D, off = static_cast<int64_t>(h) * D;
   const __nv_bfloat162* src = reinterpret_cast<const __nv_bfloat162*>(qkv + bl * 3 * HD + off);
   __nv_bfloat162* dst = reinterpret_cast<__nv_bfloat162*>(dqkv + bl * 3 * HD + off);
