@@ -40,12 +40,29 @@ double learning_rate(const OptimConfig& cfg, int64_t step, int64_t total_steps) 
   return floor + (cfg.lr - floor) * 0.5 * (1.0 + std::cos(M_PI * p));
 }
 
+namespace {
+// The defined gradients of params.
+std::vector<torch::Tensor> defined_grads(const std::vector<torch::Tensor>& params) {
+  std::vector<torch::Tensor> out;
+  for (const auto& p : params)
+    if (p.grad().defined()) out.push_back(p.grad());
+  return out;
+}
+}  // namespace
+
 double global_grad_norm(const std::vector<torch::Tensor>& params) {
-  // Sum of squared per-tensor norms, in float64.
+  const auto grads = defined_grads(params);
+  if (grads.empty()) return 0.0;
+  // CUDA: per-tensor norms in one multi-tensor launch, their float64 sum of squares on the device,
+  // one host sync.
+  if (grads.front().is_cuda()) {
+    auto norms = torch::stack(at::_foreach_norm(grads, 2)).to(torch::kFloat64);  // [N]
+    return norms.pow(2).sum().sqrt().item<double>();
+  }
+  // CPU: sum of squared per-tensor norms, in float64.
   double sq = 0.0;
-  for (const auto& p : params) {
-    if (!p.grad().defined()) continue;
-    const double n = p.grad().detach().to(torch::kFloat64).norm().item<double>();
+  for (const auto& g : grads) {
+    const double n = g.detach().to(torch::kFloat64).norm().item<double>();
     sq += n * n;
   }
   return std::sqrt(sq);
@@ -58,8 +75,8 @@ double clip_grad_norm(const std::vector<torch::Tensor>& params, double max_norm)
     const double coef = max_norm / (norm + 1e-6);
     if (coef < 1.0) {
       torch::NoGradGuard ng;
-      for (const auto& p : params)
-        if (p.grad().defined()) p.grad().mul_(coef);
+      auto grads = defined_grads(params);
+      at::_foreach_mul_(grads, coef);  // every gradient times coef (one multi-tensor launch on CUDA)
     }
   }
   return norm;
@@ -73,6 +90,12 @@ AdamW::AdamW(std::vector<std::pair<std::string, torch::Tensor>> params, const Op
                   .eps(cfg.eps)
                   .weight_decay(cfg.weight_decay);
   opt_ = std::make_unique<torch::optim::AdamW>(tensors(), opts);
+  cfg_ = cfg;
+  fused_ = params_.front().second.is_cuda();
+  for (const auto& [name, p] : params_)
+    SIMU_CHECK(p.is_cuda() == fused_ && (!fused_ || p.scalar_type() == torch::kFloat32),
+               "AdamW: parameter {} must be {} like the first one{}", name, fused_ ? "on CUDA" : "on the CPU",
+               fused_ ? " and float32 (the fused CUDA update)" : "");
 }
 
 std::vector<torch::Tensor> AdamW::tensors() const {
@@ -82,14 +105,52 @@ std::vector<torch::Tensor> AdamW::tensors() const {
 }
 
 void AdamW::step(double lr) {
-  for (auto& group : opt_->param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
-  opt_->step();
+  if (!fused_) {
+    for (auto& group : opt_->param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
+    opt_->step();
+    return;
+  }
+  // The parameters that have a gradient (torch.optim.AdamW skips the others), with their state,
+  // created at their first step: zero moments, step 0.
+  std::vector<torch::Tensor> p, g, m, v, st;
+  for (size_t i = 0; i < params_.size(); ++i) {
+    const auto& t = params_[i].second;
+    if (!t.grad().defined()) continue;
+    auto& s = fused_state_[i];
+    if (!s.exp_avg.defined()) {
+      s.exp_avg = torch::zeros_like(t);
+      s.exp_avg_sq = torch::zeros_like(t);
+      s.step = torch::zeros({}, t.options());
+    }
+    p.push_back(t);
+    g.push_back(t.grad());
+    m.push_back(s.exp_avg);
+    v.push_back(s.exp_avg_sq);
+    st.push_back(s.step);
+  }
+  if (p.empty()) return;
+  // torch.optim.AdamW(fused=True): steps + 1, then the fused multi-tensor update of every parameter.
+  torch::NoGradGuard ng;
+  at::_foreach_add_(st, 1);
+  at::_fused_adamw_(p, g, m, v, /*max_exp_avg_sqs=*/{}, st, lr, cfg_.betas.at(0), cfg_.betas.at(1), cfg_.weight_decay,
+                    cfg_.eps, /*amsgrad=*/false, /*maximize=*/false);
 }
 
 void AdamW::zero_grad() { opt_->zero_grad(/*set_to_none=*/true); }
 
 std::map<std::string, torch::Tensor> AdamW::state_dict() const {
   std::map<std::string, torch::Tensor> out;
+  if (fused_) {
+    for (size_t i = 0; i < params_.size(); ++i) {
+      const auto it = fused_state_.find(i);
+      if (it == fused_state_.end() || !it->second.exp_avg.defined()) continue;  // no step taken yet
+      const auto& name = params_[i].first;
+      out[name + ".exp_avg"] = it->second.exp_avg.detach().to(torch::kCPU).clone();
+      out[name + ".exp_avg_sq"] = it->second.exp_avg_sq.detach().to(torch::kCPU).clone();
+      out[name + ".step"] = torch::tensor(static_cast<int64_t>(std::llround(it->second.step.item<double>())), torch::kInt64);
+    }
+    return out;
+  }
   auto& state = opt_->state();
   for (const auto& [name, p] : params_) {
     auto it = state.find(p.unsafeGetTensorImpl());
@@ -106,7 +167,9 @@ void AdamW::load_state_dict(const std::map<std::string, torch::Tensor>& state, c
   std::vector<std::string> problems;
   auto& st = opt_->state();
   st.clear();
-  for (const auto& [name, p] : params_) {
+  fused_state_.clear();
+  for (size_t i = 0; i < params_.size(); ++i) {
+    const auto& [name, p] = params_[i];
     auto a = state.find(name + ".exp_avg"), b = state.find(name + ".exp_avg_sq"), s = state.find(name + ".step");
     if (a == state.end() && b == state.end() && s == state.end()) continue;  // saved before the first step
     if (a == state.end() || b == state.end() || s == state.end()) {
@@ -116,6 +179,13 @@ void AdamW::load_state_dict(const std::map<std::string, torch::Tensor>& state, c
     if (a->second.sizes() != p.sizes() || b->second.sizes() != p.sizes()) {
       problems.push_back(fmt::format("{}: state shape {} vs parameter {}", name, fmt::join(a->second.sizes(), "x"),
                                      fmt::join(p.sizes(), "x")));
+      continue;
+    }
+    if (fused_) {
+      auto& fs = fused_state_[i];
+      fs.exp_avg = a->second.to(p.device(), p.scalar_type()).clone();
+      fs.exp_avg_sq = b->second.to(p.device(), p.scalar_type()).clone();
+      fs.step = torch::full({}, static_cast<double>(s->second.item<int64_t>()), p.options());
       continue;
     }
     auto ps = std::make_unique<torch::optim::AdamWParamState>();

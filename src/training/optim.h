@@ -32,13 +32,20 @@ struct OptimConfig {
 // lr*min_lr_ratio at the last step.
 double learning_rate(const OptimConfig& cfg, int64_t step, int64_t total_steps);
 
-// Global L2 norm over all defined gradients (float64 accumulation), like torch's clip_grad_norm_.
+// Global L2 norm over all defined gradients, like torch's clip_grad_norm_: per-tensor norms in float64
+// on the CPU; on CUDA per-tensor float32 norms in one multi-tensor launch, summed in float64 on the
+// device, one host sync.
 double global_grad_norm(const std::vector<torch::Tensor>& params);
 // Scales gradients by min(1, max_norm / (norm + 1e-6)) when max_norm > 0 (PyTorch's rule).
 // Returns the norm before clipping.
 double clip_grad_norm(const std::vector<torch::Tensor>& params, double max_norm);
 
 // AdamW on named parameters (decoupled weight decay, PyTorch's torch.optim.AdamW update).
+// CPU parameters: torch::optim::AdamW (the fixture-checked reference). CUDA parameters (float32): the
+// fused multi-tensor kernel of torch.optim.AdamW(fused=True) (at::_fused_adamw_), a handful of launches
+// per step instead of ~10 per tensor; the same update up to float rounding (test_training_gpu checks
+// it against the reference). The path follows the first parameter's device; all must share it.
+// Both keep the same state_dict layout, so a checkpoint resumes on either.
 class AdamW {
  public:
   AdamW(std::vector<std::pair<std::string, torch::Tensor>> params, const OptimConfig& cfg);
@@ -54,7 +61,15 @@ class AdamW {
 
  private:
   std::vector<std::pair<std::string, torch::Tensor>> params_;
-  std::unique_ptr<torch::optim::AdamW> opt_;
+  std::unique_ptr<torch::optim::AdamW> opt_;  // CPU path
+  // CUDA path: moments and step count (a float32 device scalar, as the fused kernel takes it) per
+  // parameter index, made at the parameter's first step.
+  struct FusedState {
+    torch::Tensor exp_avg, exp_avg_sq, step;
+  };
+  std::map<size_t, FusedState> fused_state_;
+  OptimConfig cfg_;
+  bool fused_ = false;
 };
 
 }  // namespace simu::training

@@ -321,6 +321,8 @@ StepMetrics Trainer::step() {
     for (int64_t i = m0; i < std::min(share, m0 + micro); ++i) by_len[pairs[i].cond.size(0)].push_back(i);
     for (auto& [len, idx] : by_len) groups.push_back(idx);
   }
+  std::vector<torch::Tensor> metric_terms;
+  std::vector<int> metric_kinds;
   for (const auto& group : groups) {
     // One forward: stack pairs, draw their noise.
     std::vector<torch::Tensor> xp, xn, cd, ts, ep, en, ws;
@@ -354,21 +356,26 @@ StepMetrics Trainer::step() {
     // Rank-local mean over its share; the all-reduce averages the ranks -> global mean.
     auto weighted = in.w * terms.per_pair;  // [m]
     (weighted.sum() / static_cast<double>(share)).backward();
-    // Metrics.
-    auto cpu = [](const torch::Tensor& t) { return t.detach().to(torch::kCPU, torch::kFloat64); };
-    auto wpp = cpu(weighted), dth = cpu(terms.d_theta), dre = cpu(terms.d_ref);
-    auto lpp = cpu(terms.loss_pos_policy), lnp = cpu(terms.loss_neg_policy);
-    auto lpr = cpu(terms.loss_pos_ref), lnr = cpu(terms.loss_neg_ref);
-    for (int64_t b = 0; b < static_cast<int64_t>(kinds.size()); ++b) {
-      sums[0] += wpp[b].item<double>();
-      sums[1] += dth[b].item<double>() < dre[b].item<double>() ? 1.0 : 0.0;
-      sums[2] += -beta / 2.0 * (dth[b].item<double>() - dre[b].item<double>());
-      const int k = std::clamp(kinds[b], 0, 1);
+    // Per-pair metric terms stay on the device until the last micro-batch (no host sync in between):
+    // rows weighted loss, d_theta, d_ref, policy +/-, reference +/-; one column per pair.
+    metric_terms.push_back(torch::stack({weighted, terms.d_theta, terms.d_ref, terms.loss_pos_policy, terms.loss_neg_policy,
+                                         terms.loss_pos_ref, terms.loss_neg_ref})
+                               .detach()
+                               .to(torch::kFloat32));  // [7, m]
+    metric_kinds.insert(metric_kinds.end(), kinds.begin(), kinds.end());
+  }
+  // Metrics: one copy to the host, then sums in float64 pair by pair (in micro-batch order).
+  if (!metric_terms.empty()) {
+    auto host = torch::cat(metric_terms, 1).to(torch::kCPU, torch::kFloat64).contiguous();  // [7, pairs]
+    const int64_t n_pairs = host.size(1);
+    auto a = host.accessor<double, 2>();
+    for (int64_t b = 0; b < n_pairs; ++b) {
+      sums[0] += a[0][b];
+      sums[1] += a[1][b] < a[2][b] ? 1.0 : 0.0;
+      sums[2] += -beta / 2.0 * (a[1][b] - a[2][b]);
+      const int k = std::clamp(metric_kinds[b], 0, 1);
       sums[3 + 5 * k + 0] += 1.0;
-      sums[3 + 5 * k + 1] += lpp[b].item<double>();
-      sums[3 + 5 * k + 2] += lnp[b].item<double>();
-      sums[3 + 5 * k + 3] += lpr[b].item<double>();
-      sums[3 + 5 * k + 4] += lnr[b].item<double>();
+      for (int j = 0; j < 4; ++j) sums[3 + 5 * k + 1 + j] += a[3 + j][b];
     }
   }
   // Average gradients over ranks, clip, step.
