@@ -49,7 +49,7 @@ TEST(AdamWGpu, FusedUpdateMatchesReference) {
     oc.step(lr);
     og.step(lr);
   }
-  // The updates (parameter minus start) agree to float rounding; so do the moments.
+  // The updates (parameter minus start) agree to float rounding; so do the moments (see below).
   for (size_t i = 0; i < cpu.size(); ++i) {
     const auto& name = cpu[i].first;
     EXPECT_LE(rel(gpu[i].second.detach().cpu() - start[i], cpu[i].second.detach() - start[i]), 1e-4) << name;
@@ -59,7 +59,9 @@ TEST(AdamWGpu, FusedUpdateMatchesReference) {
   for (const auto& [k, v] : sc) {
     ASSERT_TRUE(sg.count(k)) << k;
     if (k.size() > 5 && k.substr(k.size() - 5) == ".step") EXPECT_EQ(sg.at(k).item<int64_t>(), v.item<int64_t>()) << k;
-    else EXPECT_LE(rel(sg.at(k), v), 1e-5) << k;
+    // The fused kernel forms 1 - beta2 in float32 (0.0009999871 for 0.999, 1.3e-5 from the double the
+    // reference uses): the second moments differ by that factor, as torch.optim.AdamW(fused=True) does.
+    else EXPECT_LE(rel(sg.at(k), v), 3e-5) << k;
   }
 }
 
