@@ -89,6 +89,11 @@ int main(int argc, char** argv) {
         "'.*blocks\\.\\d+\\.(self_attn\\.(to_qkv|to_out)\\.shape|cross_attn\\.shape\\.(to_q|to_kv|to_out))$'}");
     torch::manual_seed(0);
     auto policy = make_generator_policy(generator, "", lora, "", device);
+    // Every setting starts from these adapters (training on a GPU is not bit-reproducible: e.g. the
+    // attention backward accumulates in a run-dependent order, so ranks that trained alone first would
+    // no longer hold identical adapters for the multi-rank setting).
+    std::vector<torch::Tensor> initial_adapters;
+    for (auto& [name, p] : policy->adapter_parameters()) initial_adapters.push_back(p.detach().clone());
     const auto gcfg = simu::models::GeneratorConfig::from_official_file(generator);
     const auto& fc = gcfg.backbone;
     int64_t T = 0;
@@ -122,6 +127,11 @@ int main(int argc, char** argv) {
         cfg.train.activation_checkpointing = checkpointing;
         cfg.train.device = "cuda";
         cfg.run.progress = false;
+        {
+          torch::NoGradGuard ng;
+          auto params = policy->adapter_parameters();
+          for (size_t i = 0; i < params.size(); ++i) params[i].second.copy_(initial_adapters[i]);
+        }
         Trainer tr(cfg, *policy, source, *comm, device);
         for (int s = 0; s < warmup; ++s) tr.step();
         together->barrier();
