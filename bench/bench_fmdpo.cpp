@@ -89,9 +89,8 @@ int main(int argc, char** argv) {
         "'.*blocks\\.\\d+\\.(self_attn\\.(to_qkv|to_out)\\.shape|cross_attn\\.shape\\.(to_q|to_kv|to_out))$'}");
     torch::manual_seed(0);
     auto policy = make_generator_policy(generator, "", lora, "", device);
-    // Every setting starts from these adapters (training on a GPU is not bit-reproducible: e.g. the
-    // attention backward accumulates in a run-dependent order, so ranks that trained alone first would
-    // no longer hold identical adapters for the multi-rank setting).
+    // Every setting starts from these adapters: GPU training is not bit-reproducible across GPUs, so
+    // ranks that trained alone first no longer hold identical adapters for the multi-rank setting.
     std::vector<torch::Tensor> initial_adapters;
     for (auto& [name, p] : policy->adapter_parameters()) initial_adapters.push_back(p.detach().clone());
     const auto gcfg = simu::models::GeneratorConfig::from_official_file(generator);
