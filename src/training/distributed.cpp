@@ -13,7 +13,6 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include <ATen/ops/_foreach_copy.h>
 #include <torch/csrc/distributed/c10d/ProcessGroupNCCL.hpp>
 // Gloo process group: needs the gloo headers (Debian libgloo-dev; the symbols are in libtorch_cpu).
 // CMake defines USE_C10D_GLOO for this library when it finds them.
@@ -54,17 +53,15 @@ torch::Tensor flatten(const std::vector<torch::Tensor>& ts) {
   for (const auto& t : ts) flat.push_back(t.reshape({-1}));
   return torch::cat(flat);
 }
-// Copies a flat buffer back into the tensors (one multi-tensor copy on CUDA; per-tensor copy_ on CPU).
+// Copies a flat buffer back into the tensors.
 void unflatten(const torch::Tensor& buf, std::vector<torch::Tensor>& ts) {
-  std::vector<torch::Tensor> parts;
   int64_t off = 0;
-  for (const auto& t : ts) {
+  torch::NoGradGuard ng;
+  for (auto& t : ts) {
     const int64_t n = t.numel();
-    parts.push_back(buf.narrow(0, off, n).view(t.sizes()));
+    t.copy_(buf.narrow(0, off, n).view(t.sizes()));
     off += n;
   }
-  torch::NoGradGuard ng;
-  at::_foreach_copy_(ts, parts);
 }
 
 // Store-based collectives: each rank posts its bytes under a round key; all read in rank order.
@@ -189,8 +186,7 @@ class NcclCommunicator : public StoreCommunicator {
     auto work = pg_->allreduce(buf, o);
     // The NCCL watchdog aborts the process when the collective exceeds opts->timeout.
     work->wait();
-    buf[0].div_(world_size());
-    unflatten(buf[0].to(tensors[0].scalar_type()), tensors);
+    unflatten((buf[0] / world_size()).to(tensors[0].scalar_type()), tensors);
   }
   std::string backend() const override { return "nccl"; }
 

@@ -321,12 +321,6 @@ StepMetrics Trainer::step() {
     for (int64_t i = m0; i < std::min(share, m0 + micro); ++i) by_len[pairs[i].cond.size(0)].push_back(i);
     for (auto& [len, idx] : by_len) groups.push_back(idx);
   }
-  // Host batch -> device: on CUDA through pinned memory, asynchronously (a pageable copy waits for the
-  // device to finish the previous micro-batch: a host sync per micro-batch); on CPU as before.
-  auto upload = [&](const torch::Tensor& host) {
-    if (!device_.is_cuda()) return host.to(device_);
-    return host.pin_memory().to(torch::TensorOptions().device(device_), /*non_blocking=*/true);
-  };
   std::vector<torch::Tensor> metric_terms;
   std::vector<int> metric_kinds;
   for (const auto& group : groups) {
@@ -347,13 +341,13 @@ StepMetrics Trainer::step() {
     }
     FmdpoInputs in;
     // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.
-    in.x_pos = upload(torch::stack(xp)).to(torch::kFloat32);
-    in.x_neg = upload(torch::stack(xn)).to(torch::kFloat32);
-    in.cond = upload(torch::stack(cd)).to(torch::kFloat32);
-    in.t = upload(torch::stack(ts));
-    in.eps_pos = upload(torch::stack(ep));
-    in.eps_neg = upload(torch::stack(en));
-    in.w = upload(torch::stack(ws));
+    in.x_pos = torch::stack(xp).to(device_).to(torch::kFloat32);
+    in.x_neg = torch::stack(xn).to(device_).to(torch::kFloat32);
+    in.cond = torch::stack(cd).to(device_).to(torch::kFloat32);
+    in.t = torch::stack(ts).to(device_);
+    in.eps_pos = torch::stack(ep).to(device_);
+    in.eps_neg = torch::stack(en).to(device_);
+    in.w = torch::stack(ws).to(device_);
     FmdpoTerms terms;
     {
       AutocastScope ac(bf16);
