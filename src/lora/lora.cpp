@@ -117,20 +117,22 @@ void LoraWeightImpl::to(torch::Device device, bool non_blocking) {
 LoraAdapter::LoraAdapter(LoraWeight a, LoraWeight b, double s, double p)
     : A(std::move(a)), B(std::move(b)), scale(s), dropout(p) {}
 
+torch::Tensor LoraAdapter::down(const torch::Tensor& x) {
+  auto h = x;  // [..., in]
+  if (dropout > 0 && A->is_training()) h = torch::dropout(h, dropout, /*train=*/true);
+  return torch::linear(h, A->weight);  // [..., r]
+}
+
 torch::Tensor LoraAdapter::delta(const torch::Tensor& x) {
   // Under autocast torch::linear casts to the autocast dtype itself; otherwise compute in fp32.
   const bool autocast = at::autocast::is_autocast_enabled(x.device().type());
-  auto h = autocast ? x : x.to(torch::kFloat32);  // [..., in]
-  if (dropout > 0 && A->is_training()) h = torch::dropout(h, dropout, /*train=*/true);
-  auto out = torch::linear(torch::linear(h, A->weight), B->weight) * scale;  // [..., out]
+  auto out = torch::linear(down(autocast ? x : x.to(torch::kFloat32)), B->weight) * scale;  // [..., out]
   return autocast ? out : out.to(x.scalar_type());
 }
 
 torch::Tensor LoraAdapter::add_to(const torch::Tensor& y, const torch::Tensor& x) {
   if (!at::autocast::is_autocast_enabled(x.device().type())) return y + delta(x);
-  auto h = x;  // [..., in]
-  if (dropout > 0 && A->is_training()) h = torch::dropout(h, dropout, /*train=*/true);
-  auto a = torch::linear(h, A->weight);  // [..., r] in the autocast dtype
+  auto a = down(x);  // [..., r] in the autocast dtype
   // [rows, out] = y + scale * a B^T, then back to y's shape.
   auto out = torch::addmm(y.reshape({-1, y.size(-1)}), a.reshape({-1, a.size(-1)}), B->weight.t(), /*beta=*/1, /*alpha=*/scale);
   return out.view(y.sizes());

@@ -79,6 +79,8 @@ class LoraAdapter : public models::LinearAdapter {
   // Under autocast: y + scale * (x A^T) B^T as one matrix product accumulating into y (beta 1, alpha
   // scale; one rounding, no full-size scale and sum passes). Otherwise y + delta(x).
   torch::Tensor add_to(const torch::Tensor& y, const torch::Tensor& x) override;
+  // The rank-r projection A(dropout(x)) (dropout only in training mode): [..., in] -> [..., r].
+  torch::Tensor down(const torch::Tensor& x);
   // scale * B @ A in fp32: [out, in]
   torch::Tensor delta_weight() const;
   int64_t rank() const { return A->weight.size(0); }

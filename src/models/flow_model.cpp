@@ -31,6 +31,10 @@ void register_dict(torch::nn::Module& owner, const std::string& name, const std:
   owner.register_module(name, torch::nn::ModuleDict(items));
 }
 
+// The kernels without a backward (GELU epilogue, q/k/v into the key/value buffer, second stream): only
+// where allowed (not in training mode) and when no graph is recorded.
+bool inference_only_ok(bool inference_kernels) { return inference_kernels && !at::GradMode::is_enabled(); }
+
 // SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend).
 torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
   auto out = at::scaled_dot_product_attention(q.permute({0, 2, 1, 3}), k.permute({0, 2, 1, 3}),
@@ -253,12 +257,8 @@ MultiHeadRMSNormImpl::MultiHeadRMSNormImpl(int64_t dim, int64_t heads) : scale(s
 
 torch::Tensor MultiHeadRMSNormImpl::forward(const torch::Tensor& x) {
   // Official: (F.normalize(x, dim=-1) * gamma * scale).to(x.dtype), i.e. x / max(|x|, 1e-12) in
-  // float32 (under autocast the norm runs in fp32). Written as two full-size passes instead of four:
-  // x * (1 / max(|x|, eps)) then * (gamma * scale).
-  auto inv = at::linalg_vector_norm(x, 2, {-1}, /*keepdim=*/true, torch::kFloat32).clamp_min(1e-12).reciprocal();
-  auto y = x * inv;                 // [B, L, H, D] float32
-  y.mul_(gamma.to(torch::kFloat32) * scale);
-  return y.to(x.scalar_type());
+  // float32 (under autocast the norm runs in fp32): x * (1 / max(|x|, eps)) then * (gamma * scale).
+  return fused::multi_head_rms_norm_reference(x, gamma, scale);  // [B, L, H, D]
 }
 
 FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
@@ -270,7 +270,7 @@ FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
 
 torch::Tensor FeedForwardNetImpl::forward(const torch::Tensor& x) {
   // Fast path: GELU in fc1's epilogue (not with an adapter on fc1: its delta must be added first).
-  if (fused_kernels && inference_kernels && !at::GradMode::is_enabled() && !(fc1->adapter() && fc1->adapter_enabled()) &&
+  if (fused_kernels && inference_only_ok(inference_kernels) && !(fc1->adapter() && fc1->adapter_enabled()) &&
       fused_path(x) && fused::supports_linear_gelu(x))
     return fc2->forward(fused::linear_gelu_tanh_bf16(x, fc1->weight, fc1->bias));
   return fc2->forward(torch::gelu(fc1->forward(x), "tanh"));
@@ -389,7 +389,7 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch
   const size_t S = x.size();
   // Fast path: fused q/k RMS norm written straight into the attention's key/value layout.
   const int64_t head_dim = x[0].size(-1) / num_heads;  // every stream has the model's channels
-  if (fused_kernels && inference_kernels && !at::GradMode::is_enabled() && fused_path(x[0]) &&
+  if (fused_kernels && inference_only_ok(inference_kernels) && fused_path(x[0]) &&
       (head_dim == 64 || head_dim == 128 || head_dim == 256))
     return forward_fused(x);
   // Per-stream q, k, v: [B, L_i, H, D], with RMS norm on q and k (one differentiable fused kernel each
@@ -539,7 +539,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     // Only without a condition cache: with cached keys/values (sampling) the forward has less GPU work
     // per launch and the second stream measured slower (H100, 25 CFG steps at 2,800 condition tokens:
     // 752 ms with it, 713 ms without), while the uncached forward gains (30.4 vs 32.8 ms).
-    if (stream_overlap && inference_kernels && !at::GradMode::is_enabled() && !kv && qkv_fused && S == 2 &&
+    if (stream_overlap && inference_only_ok(inference_kernels) && !kv && qkv_fused && S == 2 &&
         self_attn->is_protected[0] != self_attn->is_protected[1]) {
       // p: the protected stream (shape), on the current stream; o: the other (pose), on a side stream.
       const size_t p = self_attn->is_protected[0] ? 0 : 1, o = 1 - p;

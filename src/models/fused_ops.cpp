@@ -132,27 +132,22 @@ struct LayerNormAffineFn : public torch::autograd::Function<LayerNormAffineFn> {
 };
 #endif
 
-// True when a graph is being recorded through x (or h) while some frozen-by-contract input requires
-// a gradient: the fused backward does not produce those, so the caller takes the reference.
-[[maybe_unused]] bool needs_param_grads(std::initializer_list<torch::Tensor> frozen) {
+// True when grad mode records a graph through one of the tensors (one requires a gradient). Asked of
+// the activations (take the autograd node) and of the frozen-by-contract weights (the fused backward
+// gives them no gradient: take the reference).
+bool graph_through(std::initializer_list<torch::Tensor> tensors) {
   if (!at::GradMode::is_enabled()) return false;
-  for (const auto& t : frozen)
-    if (t.defined() && t.requires_grad()) return true;
-  return false;
-}
-[[maybe_unused]] bool records(std::initializer_list<torch::Tensor> inputs) {
-  if (!at::GradMode::is_enabled()) return false;
-  for (const auto& t : inputs)
+  for (const auto& t : tensors)
     if (t.defined() && t.requires_grad()) return true;
   return false;
 }
 }  // namespace
 
 torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
-  if (needs_param_grads({w, b})) return layer_norm_affine_bf16_reference(x, w, b, eps);
+  if (graph_through({w, b})) return layer_norm_affine_bf16_reference(x, w, b, eps);
 #ifdef SIMU_HAVE_CUDA_KERNELS
   // (Autograd functions take defined tensors only: a missing bias is a zero one, the same sums.)
-  if (records({x})) return LayerNormAffineFn::apply(x, w, b.defined() ? b : torch::zeros_like(w), eps);
+  if (graph_through({x})) return LayerNormAffineFn::apply(x, w, b.defined() ? b : torch::zeros_like(w), eps);
 #endif
   return layer_norm_affine_launch(x, w, b, eps);
 }
@@ -236,9 +231,9 @@ struct ResidualLayerNormAffineFn : public torch::autograd::Function<ResidualLaye
 std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
                                                                          const torch::Tensor& gate, const torch::Tensor& w,
                                                                          const torch::Tensor& b, double eps) {
-  if (needs_param_grads({gate, w, b})) return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
+  if (graph_through({gate, w, b})) return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
 #ifdef SIMU_HAVE_CUDA_KERNELS
-  if (records({x, h})) {
+  if (graph_through({x, h})) {
     // (Autograd functions take defined tensors only: a missing gate is a gate of ones, x + h * 1 = x + h
     // exactly, and a missing bias a zero one.)
     auto out = ResidualLayerNormAffineFn::apply(x, h, gate.defined() ? gate : torch::ones({1, x.size(2)}, x.options()), w,
@@ -247,6 +242,13 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const to
   }
 #endif
   return residual_layer_norm_affine_launch(x, h, gate, w, b, eps);
+}
+
+torch::Tensor multi_head_rms_norm_reference(const torch::Tensor& x, const torch::Tensor& gamma, double scale) {
+  auto inv = at::linalg_vector_norm(x, 2, {-1}, /*keepdim=*/true, torch::kFloat32).clamp_min(1e-12).reciprocal();
+  auto y = x * inv;  // [..., H, D] float32
+  y.mul_(gamma.to(torch::kFloat32) * scale);
+  return y.to(x.scalar_type());
 }
 
 bool supports_split_qkv(const torch::Tensor& qkv) {
@@ -259,12 +261,8 @@ bool supports_split_qkv(const torch::Tensor& qkv) {
 
 void split_qkv_rms_norm_reference(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k,
                                   double scale, torch::Tensor q, torch::Tensor k, torch::Tensor v) {
-  auto norm = [&](const torch::Tensor& x, const torch::Tensor& g) {
-    auto inv = at::linalg_vector_norm(x, 2, {-1}, true, torch::kFloat32).clamp_min(1e-12).reciprocal();
-    return (x * inv * (g.to(torch::kFloat32) * scale)).to(torch::kBFloat16);
-  };
-  q.copy_(norm(qkv.select(2, 0), gamma_q));
-  k.copy_(norm(qkv.select(2, 1), gamma_k));
+  q.copy_(multi_head_rms_norm_reference(qkv.select(2, 0), gamma_q, scale));
+  k.copy_(multi_head_rms_norm_reference(qkv.select(2, 1), gamma_k, scale));
   v.copy_(qkv.select(2, 2));
 }
 
@@ -295,14 +293,21 @@ void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, 
 }
 
 namespace {
+// split_qkv_rms_norm into new contiguous q, k, v [B, L, H, D].
+std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_into_new(const torch::Tensor& qkv, const torch::Tensor& gamma_q,
+                                                                      const torch::Tensor& gamma_k, double scale) {
+  auto q = torch::empty({qkv.size(0), qkv.size(1), qkv.size(3), qkv.size(4)}, qkv.options());
+  auto k = torch::empty_like(q), v = torch::empty_like(q);
+  split_qkv_rms_norm(qkv, gamma_q, gamma_k, scale, q, k, v);
+  return {q, k, v};
+}
+
 #ifdef SIMU_HAVE_CUDA_KERNELS
 // Autograd node of split_qkv_rms_norm_autograd: the gradient of qkv (the gammas are frozen).
 struct SplitQkvRmsNormFn : public torch::autograd::Function<SplitQkvRmsNormFn> {
   static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& qkv,
                                                 const torch::Tensor& gamma_q, const torch::Tensor& gamma_k, double scale) {
-    const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
-    auto q = torch::empty({B, L, H, D}, qkv.options()), k = torch::empty_like(q), v = torch::empty_like(q);
-    split_qkv_rms_norm(qkv, gamma_q, gamma_k, scale, q, k, v);
+    auto [q, k, v] = split_into_new(qkv, gamma_q, gamma_k, scale);
     ctx->save_for_backward({qkv, gamma_q.to(torch::kFloat32).contiguous(), gamma_k.to(torch::kFloat32).contiguous()});
     ctx->saved_data["scale"] = scale;
     return {q, k, v};
@@ -343,24 +348,17 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autog
                                                                                    const torch::Tensor& gamma_q,
                                                                                    const torch::Tensor& gamma_k,
                                                                                    double scale) {
-  const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
   // Reference (differentiable through ATen) when the gammas want gradients or there are no kernels.
-  if (needs_param_grads({gamma_q, gamma_k}) || !compiled()) {
-    auto norm = [&](const torch::Tensor& x, const torch::Tensor& g) {
-      auto inv = at::linalg_vector_norm(x, 2, {-1}, true, torch::kFloat32).clamp_min(1e-12).reciprocal();
-      return (x * inv * (g.to(torch::kFloat32) * scale)).to(qkv.scalar_type());
-    };
-    return {norm(qkv.select(2, 0), gamma_q), norm(qkv.select(2, 1), gamma_k), qkv.select(2, 2)};
-  }
+  if (graph_through({gamma_q, gamma_k}) || !compiled())
+    return {multi_head_rms_norm_reference(qkv.select(2, 0), gamma_q, scale),
+            multi_head_rms_norm_reference(qkv.select(2, 1), gamma_k, scale), qkv.select(2, 2)};
 #ifdef SIMU_HAVE_CUDA_KERNELS
-  if (records({qkv})) {
+  if (graph_through({qkv})) {
     auto out = SplitQkvRmsNormFn::apply(qkv, gamma_q, gamma_k, scale);
     return {out[0], out[1], out[2]};
   }
 #endif
-  auto q = torch::empty({B, L, H, D}, qkv.options()), k = torch::empty_like(q), v = torch::empty_like(q);
-  split_qkv_rms_norm(qkv, gamma_q, gamma_k, scale, q, k, v);
-  return {q, k, v};
+  return split_into_new(qkv, gamma_q, gamma_k, scale);
 }
 
 bool supports_linear_gelu(const torch::Tensor& x) { return compiled() && x.is_cuda() && x.dim() >= 2; }

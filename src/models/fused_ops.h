@@ -43,6 +43,10 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_referenc
                                                                                    const torch::Tensor& w,
                                                                                    const torch::Tensor& b, double eps);
 
+// The official multi-head RMS norm in plain ATen, differentiable: x / max(|x|, 1e-12) * gamma * scale
+// over the last dim in fp32, back to x's dtype. x: [..., H, D]; gamma: [H, D].
+torch::Tensor multi_head_rms_norm_reference(const torch::Tensor& x, const torch::Tensor& gamma, double scale);
+
 // Splits a fused projection qkv: [B, L, 3, H, D] bfloat16 into q, k, v, with the official multi-head
 // RMS norm on q and k (q / max(|q|, 1e-12) * gamma * scale in fp32, gamma: [H, D] float32).
 // Writes into the given outputs ([B, L, H, D] views, last two dims contiguous, any batch/token strides),

@@ -89,9 +89,9 @@ AdamW::AdamW(std::vector<std::pair<std::string, torch::Tensor>> params, const Op
                   .betas({cfg.betas.at(0), cfg.betas.at(1)})
                   .eps(cfg.eps)
                   .weight_decay(cfg.weight_decay);
-  opt_ = std::make_unique<torch::optim::AdamW>(tensors(), opts);
   cfg_ = cfg;
   fused_ = params_.front().second.is_cuda();
+  if (!fused_) opt_ = std::make_unique<torch::optim::AdamW>(tensors(), opts);
   for (const auto& [name, p] : params_)
     SIMU_CHECK(p.is_cuda() == fused_ && (!fused_ || p.scalar_type() == torch::kFloat32),
                "AdamW: parameter {} must be {} like the first one{}", name, fused_ ? "on CUDA" : "on the CPU",
@@ -136,7 +136,9 @@ void AdamW::step(double lr) {
                     cfg_.eps, /*amsgrad=*/false, /*maximize=*/false);
 }
 
-void AdamW::zero_grad() { opt_->zero_grad(/*set_to_none=*/true); }
+void AdamW::zero_grad() {
+  for (auto& [name, p] : params_) p.mutable_grad().reset();  // set to none, as zero_grad(set_to_none=True)
+}
 
 std::map<std::string, torch::Tensor> AdamW::state_dict() const {
   std::map<std::string, torch::Tensor> out;
@@ -165,8 +167,7 @@ std::map<std::string, torch::Tensor> AdamW::state_dict() const {
 
 void AdamW::load_state_dict(const std::map<std::string, torch::Tensor>& state, const std::string& source) {
   std::vector<std::string> problems;
-  auto& st = opt_->state();
-  st.clear();
+  if (opt_) opt_->state().clear();
   fused_state_.clear();
   for (size_t i = 0; i < params_.size(); ++i) {
     const auto& [name, p] = params_[i];
@@ -192,7 +193,7 @@ void AdamW::load_state_dict(const std::map<std::string, torch::Tensor>& state, c
     ps->step(s->second.item<int64_t>());
     ps->exp_avg(a->second.to(p.device(), p.scalar_type()).clone());
     ps->exp_avg_sq(b->second.to(p.device(), p.scalar_type()).clone());
-    st[p.unsafeGetTensorImpl()] = std::move(ps);
+    opt_->state()[p.unsafeGetTensorImpl()] = std::move(ps);
   }
   if (!problems.empty()) fail("{}: optimizer state does not match the adapters:\n  {}", source, fmt::join(problems, "\n  "));
 }

@@ -61,7 +61,7 @@ class AdamW {
 
  private:
   std::vector<std::pair<std::string, torch::Tensor>> params_;
-  std::unique_ptr<torch::optim::AdamW> opt_;  // CPU path
+  std::unique_ptr<torch::optim::AdamW> opt_;  // CPU path only
   // CUDA path: moments and step count (a float32 device scalar, as the fused kernel takes it) per
   // parameter index, made at the parameter's first step.
   struct FusedState {
