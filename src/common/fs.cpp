@@ -1,6 +1,7 @@
 #include "common/fs.h"
 
 #include <fcntl.h>
+#include <stdio.h>  // renameat2, RENAME_EXCHANGE (glibc >= 2.28)
 #include <ftw.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -44,6 +45,15 @@ void remove_tree(const std::string& path) {
 void atomic_rename(const std::string& src, const std::string& dst) {
   if (::rename(src.c_str(), dst.c_str()) != 0) fail("cannot rename '{}' to '{}': {}", src, dst, std::strerror(errno));
   fsync_dir(std::filesystem::path(dst).parent_path().string());
+}
+
+bool atomic_exchange(const std::string& a, const std::string& b) {
+  if (::renameat2(AT_FDCWD, a.c_str(), AT_FDCWD, b.c_str(), RENAME_EXCHANGE) != 0) {
+    if (errno == EINVAL || errno == ENOSYS || errno == ENOTSUP) return false;
+    fail("cannot exchange '{}' and '{}': {}", a, b, std::strerror(errno));
+  }
+  fsync_dir(std::filesystem::path(b).parent_path().string());
+  return true;
 }
 
 void atomic_write(const std::string& path, std::string_view bytes) {

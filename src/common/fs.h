@@ -15,6 +15,10 @@ std::string read_file(const std::string& path);
 void fsync_dir(const std::string& dir);
 // Renames src to dst atomically and fsyncs dst's directory.
 void atomic_rename(const std::string& src, const std::string& dst);
+// Swaps two existing paths of one filesystem in one atomic step (renameat2 RENAME_EXCHANGE) and
+// fsyncs their directory. Returns false, changing nothing, where the kernel or the filesystem cannot
+// (EINVAL, ENOSYS, ENOTSUP); other failures throw simu::Error naming both paths.
+bool atomic_exchange(const std::string& a, const std::string& b);
 // Removes a file or a directory tree, not following symbolic links; a missing path is no error.
 // Throws simu::Error naming the first entry that cannot be removed. Use this instead of
 // std::filesystem::remove_all: libtorch.so exports its own copy of that function, which crashes on

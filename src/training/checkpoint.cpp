@@ -1,10 +1,12 @@
 #include "training/checkpoint.h"
 
+#include <signal.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <regex>
 #include <thread>
@@ -21,20 +23,32 @@ namespace stdfs = std::filesystem;
 namespace {
 
 const std::regex kStepDir(R"(step_(\d+))");
+// A complete step directory moved aside by a replacing writer: .tmp-old-step_<N>-<pid>.
+const std::regex kMovedAside(R"(\.tmp-old-(step_(\d+))-\d+)");
 
-// Test hook: SIMU_CHECKPOINT_STALL_MS makes the writer pause between files (kill-during-write test).
-void maybe_stall() {
+// Test hooks between the writer's phases: SIMU_CHECKPOINT_STALL_MS pauses there, and
+// SIMU_CHECKPOINT_KILL_AT=<phase> kills the process with SIGKILL there (kill-during-write tests).
+void write_point(const char* phase) {
   if (const char* ms = std::getenv("SIMU_CHECKPOINT_STALL_MS"))
     std::this_thread::sleep_for(std::chrono::milliseconds(std::atoi(ms)));
+  if (const char* at = std::getenv("SIMU_CHECKPOINT_KILL_AT"); at && std::strcmp(at, phase) == 0) ::raise(SIGKILL);
 }
 
 }  // namespace
 
 std::string save_checkpoint(const std::string& root, const CheckpointData& data, int keep_last) {
   stdfs::create_directories(root);
-  // Stale temporaries of killed writers.
-  for (const auto& e : stdfs::directory_iterator(root))
-    if (e.is_directory() && e.path().filename().string().rfind(".tmp-", 0) == 0) fs::remove_tree(e.path());
+  // Temporaries of killed writers: a step moved aside for a replacement that never landed goes back
+  // into place; everything else is deleted.
+  for (const auto& e : stdfs::directory_iterator(root)) {
+    const std::string n = e.path().filename().string();
+    if (!e.is_directory() || n.rfind(".tmp-", 0) != 0) continue;
+    std::smatch m;
+    if (std::regex_match(n, m, kMovedAside) && !stdfs::exists(root + "/" + m[1].str()))
+      simu::fs::atomic_rename(e.path().string(), root + "/" + m[1].str());
+    else
+      fs::remove_tree(e.path().string());
+  }
 
   const std::string name = fmt::format("step_{:08d}", data.step);
   const std::string tmp = fmt::format("{}/.tmp-{}-{}", root, name, ::getpid());
@@ -42,27 +56,42 @@ std::string save_checkpoint(const std::string& root, const CheckpointData& data,
   stdfs::create_directories(tmp);
   // Each file is itself written atomically and fsynced.
   simu::data::save_safetensors(tmp + "/adapter.safetensors", data.adapter, {{"format", "pt"}});
-  maybe_stall();
+  write_point("adapter");
   simu::data::save_safetensors(tmp + "/optimizer.safetensors", data.optimizer, {{"format", "pt"}});
-  maybe_stall();
+  write_point("optimizer");
   nlohmann::json state = data.state;
   state["step"] = data.step;
   simu::fs::atomic_write(tmp + "/train_state.json", state.dump(2) + "\n");
   simu::fs::fsync_dir(tmp);
-  maybe_stall();
-  // Into place: an existing directory of the same step is moved aside first.
+  write_point("state");
+  // Into place. An existing directory of the same step is swapped with the new one in one atomic
+  // step where the filesystem can; otherwise it is moved aside to .tmp-old-<name>-<pid> first, which
+  // list_checkpoints still reads and the next writer moves back if the new one never landed.
   if (stdfs::exists(dst)) {
-    const std::string old = fmt::format("{}/.tmp-old-{}-{}", root, name, ::getpid());
-    simu::fs::atomic_rename(dst, old);
-    simu::fs::atomic_rename(tmp, dst);
-    fs::remove_tree(old);
+    const char* exchange = std::getenv("SIMU_CHECKPOINT_RENAME_EXCHANGE");  // test hook: "0" forces the fallback
+    if (!(exchange && std::strcmp(exchange, "0") == 0) && simu::fs::atomic_exchange(tmp, dst)) {
+      write_point("replace");
+      fs::remove_tree(tmp);  // now the old directory
+    } else {
+      const std::string old = fmt::format("{}/.tmp-old-{}-{}", root, name, ::getpid());
+      simu::fs::atomic_rename(dst, old);
+      write_point("replace");
+      simu::fs::atomic_rename(tmp, dst);
+      fs::remove_tree(old);
+    }
   } else {
     simu::fs::atomic_rename(tmp, dst);
   }
-  // Keep the last N.
+  // Keep the last N: each older checkpoint is first renamed out of sight (atomic), then deleted, so a
+  // kill during the deletion never leaves a visible step directory with some of its files gone.
   if (keep_last > 0) {
     auto all = list_checkpoints(root);
-    for (size_t i = 0; i + keep_last < all.size(); ++i) fs::remove_tree(all[i]);
+    for (size_t i = 0; i + keep_last < all.size(); ++i) {
+      const std::string gone = fmt::format("{}/.tmp-del-{}-{}", root, stdfs::path(all[i]).filename().string(), ::getpid());
+      simu::fs::atomic_rename(all[i], gone);
+      write_point("prune");
+      fs::remove_tree(gone);
+    }
     simu::fs::fsync_dir(root);
   }
   return dst;
@@ -91,12 +120,17 @@ CheckpointData load_checkpoint(const std::string& dir) {
 std::vector<std::string> list_checkpoints(const std::string& root) {
   std::vector<std::pair<int64_t, std::string>> found;
   if (!stdfs::is_directory(root)) return {};
+  std::vector<std::pair<int64_t, std::string>> aside;
   for (const auto& e : stdfs::directory_iterator(root)) {
     std::smatch m;
     const std::string n = e.path().filename().string();
-    if (e.is_directory() && std::regex_match(n, m, kStepDir) && stdfs::exists(e.path() / "train_state.json"))
-      found.emplace_back(std::stoll(m[1]), e.path().string());
+    if (!e.is_directory() || !stdfs::exists(e.path() / "train_state.json")) continue;
+    if (std::regex_match(n, m, kStepDir)) found.emplace_back(std::stoll(m[1]), e.path().string());
+    else if (std::regex_match(n, m, kMovedAside)) aside.emplace_back(std::stoll(m[2]), e.path().string());
   }
+  // A step moved aside by a writer killed before its replacement landed stands in for it.
+  for (auto& a : aside)
+    if (std::none_of(found.begin(), found.end(), [&](const auto& f) { return f.first == a.first; })) found.push_back(a);
   std::sort(found.begin(), found.end());
   std::vector<std::string> out;
   for (auto& f : found) out.push_back(f.second);

@@ -69,6 +69,62 @@ TEST(CheckpointChild, WriteForever) {
   for (int64_t s = std::atoll(std::getenv("SIMU_TEST_CKPT_START"));; ++s) save_checkpoint(root, sample(s, 1 << 16), 2);
 }
 
+// kill -9 at each phase of a write (the writer raises SIGKILL there): what is visible afterwards
+// loads and holds what was written for its step, an interrupted prune or replacement leaves no
+// half-deleted step and loses no step, and the next writer clears the temporaries.
+TEST(Checkpoint, KillAtEveryWritePhaseLeavesCheckpointsLoadable) {
+  struct Case {
+    const char* phase;
+    int64_t start;   // first step the child writes (1 exists already: the replace branch)
+    int64_t newest;  // newest visible step after the kill
+    bool exchange;   // replace by an atomic swap (false: the move-aside fallback)
+  };
+  for (const Case c : {Case{"adapter", 2, 1, true}, Case{"optimizer", 2, 1, true}, Case{"state", 2, 1, true},
+                       Case{"replace", 1, 1, true}, Case{"replace", 1, 1, false}, Case{"prune", 2, 2, true}}) {
+    SCOPED_TRACE(std::string(c.phase) + (c.exchange ? "" : " (move-aside fallback)"));
+    const std::string root =
+        simu::testing::temp_dir(std::string("ckpt_phase_") + c.phase + (c.exchange ? "" : "_fallback"));
+    save_checkpoint(root, sample(0, 64), 2);
+    save_checkpoint(root, sample(1, 64), 2);
+    const pid_t pid = ::fork();
+    ASSERT_GE(pid, 0);
+    if (pid == 0) {
+      ::setenv("SIMU_TEST_CKPT_ROOT", root.c_str(), 1);
+      ::setenv("SIMU_TEST_CKPT_START", std::to_string(c.start).c_str(), 1);
+      ::setenv("SIMU_CHECKPOINT_KILL_AT", c.phase, 1);
+      if (!c.exchange) ::setenv("SIMU_CHECKPOINT_RENAME_EXCHANGE", "0", 1);
+      ::execl("/proc/self/exe", "test_training", "--gtest_filter=CheckpointChild.WriteForever", nullptr);
+      ::_exit(127);
+    }
+    // The child must die at the phase within 30 s; otherwise the phase was never reached.
+    int status = 0;
+    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+    while (::waitpid(pid, &status, WNOHANG) == 0) {
+      if (std::chrono::steady_clock::now() > until) {
+        ::kill(pid, SIGKILL);
+        ::waitpid(pid, &status, 0);
+        FAIL() << "the writer never reached phase " << c.phase;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    ASSERT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL) << "status " << status;
+    auto all = list_checkpoints(root);
+    ASSERT_FALSE(all.empty());
+    EXPECT_EQ(load_checkpoint(all.back()).step, c.newest);
+    for (const auto& dir : all) {
+      auto d = load_checkpoint(dir);
+      EXPECT_EQ(d.adapter.at("base_model.model.x.lora_A.weight")[0][0].item<float>(), static_cast<float>(d.step)) << dir;
+      EXPECT_EQ(d.optimizer.at("base_model.model.x.lora_A.weight.exp_avg")[5][1].item<float>(), 0.5f * d.step) << dir;
+    }
+    // The next writer puts a moved-aside step back in place and clears every temporary.
+    save_checkpoint(root, sample(1000, 4), 0);
+    EXPECT_TRUE(std::filesystem::is_directory(root + "/step_00000001")) << "step 1 lost";
+    EXPECT_EQ(load_checkpoint(root + "/step_00000001").step, 1);
+    for (const auto& e : std::filesystem::directory_iterator(root))
+      EXPECT_NE(e.path().filename().string().rfind(".tmp-", 0), 0u) << e.path();
+  }
+}
+
 // kill -9 at several moments during writes (the writer pauses 20 ms between its files): every
 // visible checkpoint loads and holds what was written for its step.
 TEST(Checkpoint, KillDuringWriteLeavesPreviousLoadable) {
