@@ -4,6 +4,7 @@
 #include <fstream>
 #include <thread>
 #include <future>
+#include <map>
 
 #include "common/error.h"
 #include "common/fs.h"
@@ -87,6 +88,52 @@ TEST(Fmdpo, TermsMatchIndependentMath) {
   }
   EXPECT_NEAR(terms.loss.item<double>(), loss, 1e-6);
   EXPECT_FALSE(terms.loss_pos_ref.requires_grad());
+}
+
+// draw_pair_noise: t is logit-normal with the configured mean and std, the two noises are standard
+// normal and independent of each other and of t, and a draw depends on (seed, step, pair) alone.
+TEST(Fmdpo, PairNoiseIsLogitNormalSeparateAndReproducible) {
+  const int64_t n = 4000;
+  for (const auto& [mean, std] : {std::pair{0.0, 1.0}, std::pair{0.5, 2.0}}) {
+    std::vector<double> logit, t;
+    torch::Tensor eps_p = torch::empty({n, 3, 2}), eps_n = torch::empty({n, 3, 2});
+    for (int64_t i = 0; i < n; ++i) {
+      auto nz = draw_pair_noise(11, 3, i, {3, 2}, mean, std);
+      const double ti = nz.t.item<double>();
+      ASSERT_GT(ti, 0.0);
+      ASSERT_LT(ti, 1.0);
+      t.push_back(ti);
+      logit.push_back(std::log(ti / (1 - ti)));
+      eps_p[i] = nz.eps_pos;
+      eps_n[i] = nz.eps_neg;
+    }
+    auto lg = torch::tensor(logit, torch::kFloat64);
+    // Standard errors: std/sqrt(n) = 0.016 (x std) for the mean, about 0.011 (x std) for the std.
+    EXPECT_NEAR(lg.mean().item<double>(), mean, 0.06 * std) << "mean " << mean;
+    EXPECT_NEAR(lg.std().item<double>(), std, 0.05 * std) << "std " << std;
+    for (auto* e : {&eps_p, &eps_n}) {
+      EXPECT_NEAR(e->mean().item<double>(), 0.0, 0.03);
+      EXPECT_NEAR(e->std().item<double>(), 1.0, 0.03);
+    }
+    // Correlations over 24,000 element pairs: |r| < 0.03 is 4.6 standard errors.
+    auto corr = [](const torch::Tensor& a, const torch::Tensor& b) {
+      auto x = a.flatten().to(torch::kFloat64), y = b.flatten().to(torch::kFloat64);
+      x = x - x.mean();
+      y = y - y.mean();
+      return ((x * y).sum() / (x.norm() * y.norm())).item<double>();
+    };
+    EXPECT_LT(std::abs(corr(eps_p, eps_n)), 0.03) << "eps+ and eps- are not independent";
+    auto tt = torch::tensor(t, torch::kFloat64).view({n, 1, 1}).expand({n, 3, 2});
+    EXPECT_LT(std::abs(corr(eps_p, tt)), 0.03) << "eps+ depends on t";
+  }
+  // Same (seed, step, pair) -> same draw; any of the three changed -> another draw.
+  auto a = draw_pair_noise(11, 3, 5, {4, 2}, 0, 1);
+  auto b = draw_pair_noise(11, 3, 5, {4, 2}, 0, 1);
+  EXPECT_TRUE(torch::equal(a.t, b.t) && torch::equal(a.eps_pos, b.eps_pos) && torch::equal(a.eps_neg, b.eps_neg));
+  EXPECT_FALSE(torch::equal(a.eps_pos, a.eps_neg));
+  for (const auto& c : {draw_pair_noise(12, 3, 5, {4, 2}, 0, 1), draw_pair_noise(11, 4, 5, {4, 2}, 0, 1),
+                        draw_pair_noise(11, 3, 6, {4, 2}, 0, 1)})
+    EXPECT_FALSE(torch::equal(a.eps_pos, c.eps_pos));
 }
 
 // Recomputing the policy forward in backward gives the same gradients.
@@ -192,6 +239,63 @@ TEST(Trainer, ResumeIsBitExact) {
   }
 }
 
+// One step's logged metrics against a float64 evaluation of every pair before the step, written out
+// from the definitions: loss = mean(w per_pair), accuracy = share of pairs with d_theta < d_ref,
+// margin = mean of -beta/2 (d_theta - d_ref), and per kind the mean policy / reference flow-matching
+// losses of each member (kind 0 "completion", weight 1.0; kind 1 "preservation", weight 0.1).
+TEST(Trainer, StepMetricsMatchIndependentMath) {
+  auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 14);
+  auto cfg = toy_config(simu::testing::temp_dir("metrics_math"), 1, 8, 4);  // one batch = all 8 pairs
+  ToyPolicy m(C, Cc, R, 9);
+  const double beta = cfg.objective.beta;
+  double loss = 0, correct = 0, margin = 0;
+  std::map<std::string, double> per_kind;
+  std::map<int, double> count;
+  for (const auto& p : *pairs) {
+    auto nz = draw_pair_noise(cfg.train.seed, 0, p.id, p.x_pos.sizes(), 0.0, 1.0);
+    const double t = nz.t.item<double>();
+    auto L = [&](const torch::Tensor& x, const torch::Tensor& e, bool adapters) {
+      torch::NoGradGuard ng;
+      m.enabled = adapters;
+      auto pred = m.predict_shape(((1 - t) * e + t * x).unsqueeze(0), torch::tensor({t * 1000}).to(torch::kFloat32),
+                                  p.cond.unsqueeze(0), torch::zeros({1}));
+      m.enabled = true;
+      return (pred[0].to(torch::kFloat64) - (x - e).to(torch::kFloat64)).pow(2).mean().item<double>();
+    };
+    const double pp = L(p.x_pos, nz.eps_pos, true), pn = L(p.x_neg, nz.eps_neg, true);
+    const double rp = L(p.x_pos, nz.eps_pos, false), rn = L(p.x_neg, nz.eps_neg, false);
+    const double z = -beta / 2 * ((pp - pn) - (rp - rn));
+    const double w = p.kind == 0 ? 1.0 : 0.1;
+    loss += w * std::log1p(std::exp(-z)) / 8;
+    correct += (pp - pn) < (rp - rn) ? 1.0 / 8 : 0.0;
+    margin += z / 8;
+    const std::string kn = p.kind == 0 ? "completion" : "preservation";
+    per_kind[kn + "/policy_pos"] += pp;
+    per_kind[kn + "/policy_neg"] += pn;
+    per_kind[kn + "/ref_pos"] += rp;
+    per_kind[kn + "/ref_neg"] += rn;
+    count[p.kind] += 1;
+  }
+  SoloComm comm;
+  Trainer tr(cfg, m, memory_source(pairs), comm, torch::kCPU);
+  const auto sm = tr.step();
+  EXPECT_NEAR(sm.loss, loss, 1e-5 * loss);
+  EXPECT_NEAR(sm.accuracy, correct, 1e-12);
+  EXPECT_NEAR(sm.margin, margin, 1e-5 * std::max(1.0, std::abs(margin)));
+  ASSERT_EQ(sm.per_kind.size(), 8u);
+  for (const auto& [k, v] : per_kind) {
+    const double want = v / count[k.rfind("completion", 0) == 0 ? 0 : 1];
+    ASSERT_TRUE(sm.per_kind.count(k)) << k;
+    EXPECT_NEAR(sm.per_kind.at(k), want, 1e-5 * want) << k;
+  }
+  // The same values reach the logged scalars under their documented names.
+  const auto sc = sm.scalars();
+  for (const char* k : {"loss", "accuracy", "margin", "grad_norm", "lr", "pairs_per_s", "completion/policy_pos",
+                        "preservation/ref_neg"})
+    EXPECT_TRUE(sc.count(k)) << k;
+  EXPECT_EQ(sc.at("accuracy"), sm.accuracy);
+}
+
 // run(): metrics lines, TensorBoard file, checkpoints, exported adapter (rank 0 output layout).
 TEST(Trainer, RunWritesOutputs) {
   auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 12);
@@ -277,8 +381,52 @@ TEST(TrainConfig, BadConfigsAreClearErrors) {
 }
 
 #if __has_include("data/pair_cache.h")
+#include <set>
+
 #include "data/pair_cache.h"
+#include "lora/lora.h"
+#include "models/generator.h"
 #include "training/generator_policy.h"
+
+// configs/lora64.yaml holds the paper's recipe (Sec. 3.4 and the supplementary fine-tuning details),
+// and its target pattern wraps exactly the 120 shape-branch attention projections of the real
+// 24-block model (built here at 64 channels: the module names do not depend on the width).
+TEST(TrainConfig, Lora64IsThePapersRecipe) {
+  const std::string file = simu::testing::source_dir() + "/configs/lora64.yaml";
+  auto cfg = TrainConfig::load(file);
+  simu::config::Reader lr(cfg.lora, file, "lora");
+  auto lc = simu::lora::LoraConfig::from(lr);
+  EXPECT_EQ(lc.r, 64);
+  EXPECT_EQ(lc.alpha, 128.0);
+  EXPECT_EQ(lc.dropout, 0.0);
+  EXPECT_FALSE(lc.use_rslora);
+  EXPECT_EQ(cfg.objective.beta, 500.0);
+  EXPECT_EQ(cfg.objective.weight_of(0), 1.0);
+  EXPECT_EQ(cfg.objective.weight_of(1), 0.1);
+  EXPECT_EQ(cfg.objective.t_mean, 0.0);
+  EXPECT_EQ(cfg.objective.t_std, 1.0);
+  EXPECT_EQ(cfg.optim.lr, 1e-5);
+  EXPECT_EQ(cfg.optim.warmup_steps, 300);
+  EXPECT_EQ(cfg.optim.weight_decay, 0.01);
+  EXPECT_EQ(cfg.optim.clip_grad_norm, 1.0);
+  EXPECT_EQ(cfg.train.precision, "bf16");
+  EXPECT_EQ(cfg.train.steps, 1500);
+  EXPECT_EQ(cfg.data.global_batch, 16);
+  EXPECT_FALSE(cfg.model.config.empty());
+  EXPECT_FALSE(cfg.model.weights.empty());
+  EXPECT_FALSE(cfg.data.cache.empty());
+  const std::string b = "module.generator.backbone.reverse_fn.backbone.";
+  auto gen = simu::models::load_generator(simu::testing::source_dir() + "/configs/stage1_real.yaml", "", torch::kCPU,
+                                          {b + "model_channels=64", b + "cond_channels=64"});
+  auto report = simu::lora::inject_lora(*gen, lc);
+  std::set<std::string> want;
+  for (int i = 0; i < 24; ++i)
+    for (const char* proj : {"self_attn.to_qkv.shape", "self_attn.to_out.shape", "cross_attn.shape.to_q",
+                             "cross_attn.shape.to_kv", "cross_attn.shape.to_out"})
+      want.insert(fmt::format("reverse_fn.backbone.blocks.{}.{}", i, proj));
+  EXPECT_EQ(report.layers, 120);
+  EXPECT_EQ(std::set<std::string>(report.paths.begin(), report.paths.end()), want);
+}
 
 // The HDF5 cache as the trainer's source: this rank's share with record indices as ids, training
 // steps over pairs whose condition lengths differ, and clear errors for a missing or truncated cache.
