@@ -2,10 +2,15 @@
 // weights) and LoRA r 64 on the 120 shape-branch projections, synthetic pairs in memory.
 //
 // For each micro-batch m (accumulation 1): step time, pairs/s, MFU, peak memory.
-// MFU = useful FLOPs per step / (step time x world x peak FLOP/s), useful FLOPs per pair =
+// MFU = model FLOPs per step / (step time x world x peak FLOP/s), model FLOPs per pair =
 //   policy forward+backward on both members (3 x F each) + reference forward on both (1 x F each)
 //   = 8 F, with F = models::flow_forward_flops(config, 1, cond_len) (matrix products, 2 per MAC).
-// Peak FLOP/s: --peak-tflops (default 989.4 = H100/H200 SXM dense bf16).
+// That is the usual convention (backward = 2 x forward). With the base frozen the step needs less:
+// "needed" counts what it must compute (needed_pair_flops below): no weight gradients of the base,
+// no gradient into the condition, only the shape stream backpropagated, the LoRA products, and no
+// recomputation. Its utilisation is the lower, conservative figure.
+// Peak FLOP/s: --peak-tflops (default 989.4 = H100/H200 SXM dense bf16; scripts/gpu_bench.sh passes
+// the machine's measured bf16 matmul rate instead).
 // With --nproc-per-node 2 every rank first measures alone (world 1, no all-reduce), then all ranks
 // train together; scaling efficiency = pairs/s together / sum of pairs/s alone.
 #include <cstdlib>
@@ -35,8 +40,37 @@ namespace {
 struct Row {
   int64_t micro = 0;
   int world = 1;
-  double step_s = 0, pairs_s = 0, mfu = 0, peak_gib = 0;
+  double step_s = 0, pairs_s = 0, mfu = 0, needed_util = 0, peak_gib = 0;
 };
+
+#ifdef SIMU_BENCH_HAVE_MODELS
+// Matrix-product FLOPs (2 per multiply-add) one FM-DPO pair needs with the base frozen and LoRA of
+// rank r on the shape stream's five attention projections (self qkv/out, cross q/kv/out), both
+// members: 2 x [policy forward (F + LoRA) + policy backward + reference forward (F)].
+// Policy backward, shape stream only (the protected stream attends to itself, so nothing else reaches
+// the scored output; the timestep and the condition take no gradient): the input gradient of every
+// linear layer it passes through except the condition's key/value projection, 2x the attention
+// products (dP = dO V^T, dV = P^T dO, dQ = dS K, dK = dS^T Q; flash recomputation not counted), and
+// the LoRA products: gradients of A and B, and of the LoRA input where that input takes a gradient.
+double needed_pair_flops(const simu::models::FlowModelConfig& c, double T, double Lc, double r, double F) {
+  const double C = static_cast<double>(c.model_channels), Cc = static_cast<double>(c.cond_channels);
+  const double hidden = std::floor(C * c.mlp_ratio), out = static_cast<double>(c.out_channels);
+  // LoRA forward of one projection over n tokens: x A^T (in -> r), then B (r -> out).
+  auto lora_fwd = [&](double n, double in, double o) { return 2 * n * (in * r + r * o); };
+  // Its backward: dB, d(xA^T), dA, plus dx when the input takes a gradient.
+  auto lora_bwd = [&](double n, double in, double o, bool dx) { return 2 * n * (r * o + o * r + in * r + (dx ? r * in : 0)); };
+  const double lora_f = lora_fwd(T, C, 3 * C) + 3 * lora_fwd(T, C, C) + lora_fwd(Lc, Cc, 2 * C);
+  const double lora_b = lora_bwd(T, C, 3 * C, true) + 3 * lora_bwd(T, C, C, true) + lora_bwd(Lc, Cc, 2 * C, false);
+  double block_bwd = 0;
+  block_bwd += 2 * T * C * 3 * C + 2 * T * C * C;  // self qkv + out, input gradients
+  block_bwd += 2 * (2 * 2 * T * T * C);            // self attention over its own T keys
+  block_bwd += 2 * 2 * T * C * C;                  // cross q + out (kv reads the condition: none)
+  block_bwd += 2 * (2 * 2 * T * Lc * C);           // cross attention over Lc keys
+  block_bwd += 2 * 2 * T * C * hidden;             // MLP fc1 + fc2
+  const double policy_bwd = c.num_blocks * (block_bwd + lora_b) + 2 * T * C * out;  // + output layer
+  return 2 * ((F + c.num_blocks * lora_f) + policy_bwd + F);
+}
+#endif
 
 }  // namespace
 
@@ -99,6 +133,7 @@ int main(int argc, char** argv) {
     for (const auto& s : fc.latents)
       if (s.name == "shape") T = s.tokens();
     const double fwd_flops = simu::models::flow_forward_flops(fc, 1, cond_len);
+    const double needed_flops = needed_pair_flops(fc, static_cast<double>(T), static_cast<double>(cond_len), 64, fwd_flops);
     // Synthetic pairs: enough for every setting.
     const int64_t n_pairs = 4 * 8 * std::max<int>(nproc, env.world_size);
     auto pairs = std::make_shared<std::vector<Pair>>();
@@ -147,6 +182,7 @@ int main(int argc, char** argv) {
         r.step_s = secs;
         r.pairs_s = cfg.data.global_batch / secs;
         r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * peak_tflops * 1e12);
+        r.needed_util = needed_flops * cfg.data.global_batch / (secs * r.world * peak_tflops * 1e12);
         r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
         rows.push_back(r);
         if (profile && m == micros.front() && comm == solo.get() && env.rank == 0) {
@@ -166,14 +202,17 @@ int main(int argc, char** argv) {
                  generator, fc.num_blocks, fc.model_channels, T, cond_len, checkpointing ? ", activation checkpointing" : "");
       fmt::print("forward FLOPs per member F = {:.3f} TFLOP; per pair 8F (policy fwd+bwd 3F x2, reference fwd 1F x2); peak {} TFLOP/s\n",
                  fwd_flops / 1e12, peak_tflops);
-      fmt::print("{:>5} {:>5} {:>10} {:>9} {:>7} {:>10} {:>8}\n", "micro", "world", "step [ms]", "pairs/s", "MFU", "peak GiB",
-                 "scaling");
+      fmt::print("needed FLOPs per pair with the base frozen = {:.3f} TFLOP = {:.2f}F (no base weight gradients, shape stream "
+                 "backward only, LoRA products counted)\n",
+                 needed_flops / 1e12, needed_flops / fwd_flops);
+      fmt::print("{:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8}\n", "micro", "world", "step [ms]", "pairs/s", "MFU",
+                 "needed", "peak GiB", "scaling");
       for (size_t i = 0; i < rows.size(); ++i) {
         const auto& r = rows[i];
         std::string scaling = "-";
         if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
-        fmt::print("{:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>10.2f} {:>8}\n", r.micro, r.world, r.step_s * 1e3, r.pairs_s,
-                   100 * r.mfu, r.peak_gib, scaling);
+        fmt::print("{:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8}\n", r.micro, r.world, r.step_s * 1e3,
+                   r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling);
       }
     }
     return 0;
