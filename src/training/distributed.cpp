@@ -283,6 +283,29 @@ class SoloCommunicator : public Communicator {
 
 }  // namespace
 
+std::string first_slurm_host(const std::string& nodelist) {
+  // The first entry ends at the first comma outside brackets.
+  size_t end = 0;
+  int depth = 0;
+  for (; end < nodelist.size(); ++end) {
+    if (nodelist[end] == '[') ++depth;
+    else if (nodelist[end] == ']') --depth;
+    else if (nodelist[end] == ',' && depth == 0) break;
+  }
+  const std::string first = nodelist.substr(0, end);
+  SIMU_CHECK(!first.empty(), "Slurm node list '{}': no host in it (set MASTER_ADDR)", nodelist);
+  const size_t open = first.find('[');
+  if (open == std::string::npos) return first;
+  const size_t close = first.find(']', open);
+  SIMU_CHECK(close != std::string::npos, "Slurm node list '{}': '[' without ']' (set MASTER_ADDR)", nodelist);
+  // Within the brackets, the first range or number: "03-05,07" -> "03" (zero padding kept).
+  const std::string inside = first.substr(open + 1, close - open - 1);
+  const std::string lead = inside.substr(0, inside.find_first_of(",-"));
+  SIMU_CHECK(!lead.empty(), "Slurm node list '{}': empty brackets (set MASTER_ADDR)", nodelist);
+  const std::string rest = first.substr(close + 1);  // may hold another bracket: "a[1-2]b[3-4]"
+  return first.substr(0, open) + lead + (rest.empty() ? "" : first_slurm_host(rest));
+}
+
 DistEnv DistEnv::from_environment() {
   DistEnv e;
   if (std::getenv("RANK") || std::getenv("WORLD_SIZE")) {
@@ -294,7 +317,15 @@ DistEnv DistEnv::from_environment() {
     e.world_size = env_int("SLURM_NTASKS", 1);
     e.local_rank = env_int("SLURM_LOCALID", 0);
   }
-  if (const char* a = std::getenv("MASTER_ADDR"); a && *a) e.master_addr = a;
+  if (const char* a = std::getenv("MASTER_ADDR"); a && *a) {
+    e.master_addr = a;
+  } else if (std::getenv("SLURM_PROCID") && !std::getenv("RANK")) {
+    for (const char* k : {"SLURM_STEP_NODELIST", "SLURM_JOB_NODELIST", "SLURM_NODELIST"})
+      if (const char* l = std::getenv(k); l && *l) {
+        e.master_addr = first_slurm_host(l);
+        break;
+      }
+  }
   e.master_port = env_int("MASTER_PORT", e.master_port);
   SIMU_CHECK(e.world_size >= 1 && e.rank >= 0 && e.rank < e.world_size,
              "distributed environment: RANK {} is not in [0, WORLD_SIZE={})", e.rank, e.world_size);

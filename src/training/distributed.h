@@ -26,9 +26,15 @@ struct DistEnv {
   std::string master_addr = "127.0.0.1";
   int master_port = 29500;
   // RANK/LOCAL_RANK/WORLD_SIZE/MASTER_ADDR/MASTER_PORT (torchrun), else SLURM_PROCID/SLURM_LOCALID/
-  // SLURM_NTASKS (+ MASTER_ADDR/MASTER_PORT or the defaults), else a single process.
+  // SLURM_NTASKS, else a single process. MASTER_ADDR, when unset under Slurm, is the first host of
+  // SLURM_STEP_NODELIST (or SLURM_JOB_NODELIST, SLURM_NODELIST): the node of rank 0 under srun's
+  // default block distribution. MASTER_PORT defaults to 29500.
   static DistEnv from_environment();
 };
+
+// First host of a Slurm host list ("gpu[03-05,07],cpu1" -> "gpu03"; "a-[2-4]-ib" -> "a-2-ib";
+// "n1,n2" -> "n1"). Throws simu::Error naming the list when it is empty or its brackets do not close.
+std::string first_slurm_host(const std::string& nodelist);
 
 // Collectives among the ranks of a job (a no-op for world size 1).
 class Communicator {

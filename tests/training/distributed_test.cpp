@@ -98,6 +98,29 @@ TEST(Distributed, EnvFromTorchrunAndSlurm) {
     ::unsetenv(k);
 }
 
+// Under Slurm without MASTER_ADDR the rendezvous host is the first node of the step's node list.
+TEST(Distributed, SlurmMasterAddrIsTheFirstNode) {
+  EXPECT_EQ(first_slurm_host("gpu[03-05,07],cpu1"), "gpu03");
+  EXPECT_EQ(first_slurm_host("a-[2-4]-ib"), "a-2-ib");
+  EXPECT_EQ(first_slurm_host("n1,n2"), "n1");
+  EXPECT_EQ(first_slurm_host("node7"), "node7");
+  EXPECT_EQ(first_slurm_host("r[1-2]n[08-09]"), "r1n08");
+  EXPECT_THROW(first_slurm_host(""), simu::Error);
+  EXPECT_THROW(first_slurm_host("gpu[1-4"), simu::Error);
+  for (const char* k : {"RANK", "WORLD_SIZE", "MASTER_ADDR", "SLURM_STEP_NODELIST", "SLURM_JOB_NODELIST", "SLURM_NODELIST"})
+    ::unsetenv(k);
+  ::setenv("SLURM_PROCID", "0", 1);
+  ::setenv("SLURM_NTASKS", "4", 1);
+  ::setenv("SLURM_JOB_NODELIST", "big[10-11]", 1);
+  EXPECT_EQ(DistEnv::from_environment().master_addr, "big10");
+  ::setenv("SLURM_STEP_NODELIST", "step[2-3]", 1);  // the step's own nodes win over the job's
+  EXPECT_EQ(DistEnv::from_environment().master_addr, "step2");
+  ::setenv("MASTER_ADDR", "10.0.0.9", 1);  // an explicit address wins
+  EXPECT_EQ(DistEnv::from_environment().master_addr, "10.0.0.9");
+  for (const char* k : {"MASTER_ADDR", "SLURM_STEP_NODELIST", "SLURM_JOB_NODELIST", "SLURM_PROCID", "SLURM_NTASKS"})
+    ::unsetenv(k);
+}
+
 namespace {
 // Rank `rank` of a 2-rank CPU job on loopback port: the communicator create() would use on CPU.
 std::unique_ptr<Communicator> cpu_rank(int rank, int port, std::chrono::milliseconds timeout) {

@@ -1,7 +1,10 @@
-// TensorBoard event files (CRC32C, framing, read back by TensorBoard itself) and metrics lines.
+// TensorBoard event files (CRC32C, framing, read back by TensorBoard itself), metrics lines, progress.
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
 
 #include "common/fs.h"
 #include "common/error.h"
@@ -53,4 +56,34 @@ TEST(Metrics, ResumeTruncatesLaterLines) {
   }
   EXPECT_EQ(simu::fs::read_file(path), "{\"loss\":0.5,\"step\":1}\n{\"loss\":1.0,\"step\":2}\n{\"loss\":9.0,\"step\":3}\n");
   EXPECT_EQ(format_duration(3725), "1h02m05s");
+}
+
+// The progress display: on a terminal one redrawn line (carriage return, bar, step/total, loss,
+// accuracy, lr, pairs/s, ETA); elsewhere a plain line every `every` steps and at the last one.
+TEST(Progress, BarOnATerminalPlainLinesOtherwise) {
+  testing::internal::CaptureStderr();
+  {
+    simu::training::Progress bar(10, 0, /*tty=*/true);
+    bar.update(5, 0.6931, 0.75, 1e-5, 12.5);
+    bar.finish();
+  }
+  const std::string tty = testing::internal::GetCapturedStderr();
+  EXPECT_EQ(tty.rfind("\r[###############...............] 5/10 loss 0.6931 acc 0.750 lr 1.00e-05 12.5 pairs/s ETA ", 0), 0u)
+      << tty;
+  EXPECT_EQ(tty.back(), '\n');
+  testing::internal::CaptureStderr();
+  {
+    simu::training::Progress plain(5, 0, /*tty=*/false, /*every=*/2);
+    for (int s = 1; s <= 5; ++s) plain.update(s, 0.5, 1.0, 2e-5, 3.0);
+    plain.finish();
+  }
+  const std::string lines = testing::internal::GetCapturedStderr();
+  EXPECT_EQ(lines.find('\r'), std::string::npos) << lines;
+  std::vector<std::string> got;
+  std::istringstream in(lines);
+  for (std::string l; std::getline(in, l);) got.push_back(l.substr(0, l.find(" loss")));
+  EXPECT_EQ(got, (std::vector<std::string>{"step 2/5", "step 4/5", "step 5/5"})) << lines;
+  EXPECT_NE(lines.find("loss 0.5000 acc 1.000 lr 2.00e-05 3.0 pairs/s ETA "), std::string::npos) << lines;
+  EXPECT_EQ(simu::training::format_duration(3723), "1h02m03s");
+  EXPECT_EQ(simu::training::format_duration(123), "2m03s");
 }
