@@ -85,6 +85,10 @@ TensorBoardWriter::TensorBoardWriter(const std::string& dir) {
   char host[256] = "localhost";
   ::gethostname(host, sizeof(host) - 1);
   path_ = fmt::format("{}/events.out.tfevents.{}.{}.{}", dir, static_cast<long long>(std::time(nullptr)), host, ::getpid());
+  // Another writer of this process in the same second: a suffix keeps both files (and their order).
+  for (int i = 1; std::filesystem::exists(path_); ++i)
+    path_ = fmt::format("{}/events.out.tfevents.{}.{}.{}.{}", dir, static_cast<long long>(std::time(nullptr)), host,
+                        ::getpid(), i);
   file_ = std::fopen(path_.c_str(), "wb");
   if (!file_) fail("{}: cannot create TensorBoard event file: {}", path_, std::strerror(errno));
   // First record: the file version.
@@ -110,6 +114,17 @@ void TensorBoardWriter::add_scalars(int64_t step, const std::map<std::string, do
     put_bytes(ev, 5, summary);
     write_record(ev);
   }
+  std::fflush(file_);
+}
+
+void TensorBoardWriter::session_start(int64_t step) {
+  // SessionLog{status = START (1)} as Event field 7 (session_log; 6 is the deprecated log_message).
+  std::string log;
+  put_key(log, 1, 0);
+  put_varint(log, 1);
+  std::string ev = event_head(step);
+  put_bytes(ev, 7, log);
+  write_record(ev);
   std::fflush(file_);
 }
 

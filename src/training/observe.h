@@ -27,6 +27,10 @@ class TensorBoardWriter {
   TensorBoardWriter& operator=(const TensorBoardWriter&) = delete;
   // Appends scalars (one Event each) at step; flushes after each call.
   void add_scalars(int64_t step, const std::map<std::string, double>& scalars);
+  // Appends a SessionLog START event at step (Event field 7, status START): TensorBoard then drops the
+  // points of earlier files at steps >= step (what a killed run logged after its last checkpoint).
+  // A resumed run writes it at its first new step.
+  void session_start(int64_t step);
   const std::string& path() const { return path_; }
 
  private:

@@ -433,6 +433,7 @@ void Trainer::run() {
     std::filesystem::create_directories(out);
     metrics = std::make_unique<MetricsWriter>(out + "/metrics.jsonl", step_ > 0 ? step_ : -1);
     tb = std::make_unique<TensorBoardWriter>(out + "/tensorboard");
+    if (step_ > 0) tb->session_start(step_ + 1);  // a resumed run: hide what was logged after the checkpoint
     if (cfg_.run.progress)
       progress = std::make_unique<Progress>(cfg_.train.steps, step_, Progress::stderr_is_tty(), cfg_.run.log_every);
     simu::log::info("FM-DPO: {} steps from step {}, global batch {} = micro {} x accumulation {} x world {}",

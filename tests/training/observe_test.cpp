@@ -42,6 +42,32 @@ TEST(TensorBoard, ReadBackByTensorBoard) {
   EXPECT_EQ(simu::fs::read_file(out), "accuracy 1 0.25\naccuracy 2 0.75\nloss 1 0.5\nloss 2 0.375\n");
 }
 
+// A resumed run's event file starts with a SessionLog START at its first new step: TensorBoard shows
+// the points the killed run logged after its checkpoint (steps 5, 6) no more, only the new ones.
+TEST(TensorBoard, ResumedRunReplacesStepsAfterTheCheckpoint) {
+  const std::string dir = simu::testing::temp_dir("tb_resume");
+  {
+    TensorBoardWriter killed(dir);
+    for (int s = 1; s <= 6; ++s) killed.add_scalars(s, {{"loss", s}});
+  }
+  {
+    TensorBoardWriter resumed(dir);
+    resumed.session_start(5);
+    for (int s = 5; s <= 6; ++s) resumed.add_scalars(s, {{"loss", 10 * s}});
+  }
+  const std::string py = SIMU_PYTHON;
+  if (std::system((py + " -c 'import tensorboard' >/dev/null 2>&1").c_str()) != 0)
+    GTEST_SKIP() << py << " has no tensorboard module";
+  const std::string script = dir + "/read.py";
+  std::ofstream(script) << "import sys\n"
+                           "from tensorboard.backend.event_processing.event_accumulator import EventAccumulator\n"
+                           "ea = EventAccumulator(sys.argv[1]); ea.Reload()\n"
+                           "print(' '.join('%d:%g' % (e.step, e.value) for e in ea.Scalars('loss')))\n";
+  const std::string out = dir + "/out.txt";
+  ASSERT_EQ(std::system((py + " " + script + " " + dir + " > " + out + " 2>/dev/null").c_str()), 0);
+  EXPECT_EQ(simu::fs::read_file(out), "1:1 2:2 3:3 4:4 5:50 6:60\n");
+}
+
 // A resumed run drops metric lines past its checkpoint step and appends.
 TEST(Metrics, ResumeTruncatesLaterLines) {
   const std::string dir = simu::testing::temp_dir("metrics");
