@@ -20,6 +20,23 @@ TEST(TensorBoard, Crc32cKnownValues) {
   EXPECT_EQ(crc32c(zeros.data(), zeros.size()), 0x8A9136AAu);
 }
 
+namespace {
+// Runs `body` (Python; `ea` is a loaded EventAccumulator of dir) under SIMU_PYTHON and returns what it
+// printed; "" with *skip set when that Python has no tensorboard module.
+std::string read_with_tensorboard(const std::string& dir, const std::string& body, bool* skip) {
+  const std::string py = SIMU_PYTHON;
+  *skip = std::system((py + " -c 'import tensorboard' >/dev/null 2>&1").c_str()) != 0;
+  if (*skip) return "";
+  const std::string script = dir + "/read.py", out = dir + "/out.txt";
+  std::ofstream(script) << "import sys\n"
+                           "from tensorboard.backend.event_processing.event_accumulator import EventAccumulator\n"
+                           "ea = EventAccumulator(sys.argv[1]); ea.Reload()\n"
+                        << body;
+  EXPECT_EQ(std::system((py + " " + script + " " + dir + " > " + out + " 2>/dev/null").c_str()), 0) << script;
+  return simu::fs::read_file(out);
+}
+}  // namespace
+
 // The file opens in TensorBoard's EventAccumulator with the scalars we wrote.
 TEST(TensorBoard, ReadBackByTensorBoard) {
   const std::string dir = simu::testing::temp_dir("tb");
@@ -28,18 +45,13 @@ TEST(TensorBoard, ReadBackByTensorBoard) {
     w.add_scalars(1, {{"loss", 0.5}, {"accuracy", 0.25}});
     w.add_scalars(2, {{"loss", 0.375}, {"accuracy", 0.75}});
   }
-  const std::string py = SIMU_PYTHON;
-  if (std::system((py + " -c 'import tensorboard' >/dev/null 2>&1").c_str()) != 0)
-    GTEST_SKIP() << py << " has no tensorboard module";
-  const std::string script = dir + "/read.py";
-  std::ofstream(script) << "import sys\n"
-                           "from tensorboard.backend.event_processing.event_accumulator import EventAccumulator\n"
-                           "ea = EventAccumulator(sys.argv[1]); ea.Reload()\n"
-                           "for tag in sorted(ea.Tags()['scalars']):\n"
-                           "    for e in ea.Scalars(tag): print(tag, e.step, repr(e.value))\n";
-  const std::string out = dir + "/out.txt";
-  ASSERT_EQ(std::system((py + " " + script + " " + dir + " > " + out + " 2>/dev/null").c_str()), 0);
-  EXPECT_EQ(simu::fs::read_file(out), "accuracy 1 0.25\naccuracy 2 0.75\nloss 1 0.5\nloss 2 0.375\n");
+  bool skip = false;
+  const std::string got = read_with_tensorboard(dir,
+                                                "for tag in sorted(ea.Tags()['scalars']):\n"
+                                                "    for e in ea.Scalars(tag): print(tag, e.step, repr(e.value))\n",
+                                                &skip);
+  if (skip) GTEST_SKIP() << SIMU_PYTHON << " has no tensorboard module";
+  EXPECT_EQ(got, "accuracy 1 0.25\naccuracy 2 0.75\nloss 1 0.5\nloss 2 0.375\n");
 }
 
 // A resumed run's event file starts with a SessionLog START at its first new step: TensorBoard shows
@@ -55,17 +67,11 @@ TEST(TensorBoard, ResumedRunReplacesStepsAfterTheCheckpoint) {
     resumed.session_start(5);
     for (int s = 5; s <= 6; ++s) resumed.add_scalars(s, {{"loss", 10 * s}});
   }
-  const std::string py = SIMU_PYTHON;
-  if (std::system((py + " -c 'import tensorboard' >/dev/null 2>&1").c_str()) != 0)
-    GTEST_SKIP() << py << " has no tensorboard module";
-  const std::string script = dir + "/read.py";
-  std::ofstream(script) << "import sys\n"
-                           "from tensorboard.backend.event_processing.event_accumulator import EventAccumulator\n"
-                           "ea = EventAccumulator(sys.argv[1]); ea.Reload()\n"
-                           "print(' '.join('%d:%g' % (e.step, e.value) for e in ea.Scalars('loss')))\n";
-  const std::string out = dir + "/out.txt";
-  ASSERT_EQ(std::system((py + " " + script + " " + dir + " > " + out + " 2>/dev/null").c_str()), 0);
-  EXPECT_EQ(simu::fs::read_file(out), "1:1 2:2 3:3 4:4 5:50 6:60\n");
+  bool skip = false;
+  const std::string got =
+      read_with_tensorboard(dir, "print(' '.join('%d:%g' % (e.step, e.value) for e in ea.Scalars('loss')))\n", &skip);
+  if (skip) GTEST_SKIP() << SIMU_PYTHON << " has no tensorboard module";
+  EXPECT_EQ(got, "1:1 2:2 3:3 4:4 5:50 6:60\n");
 }
 
 // A resumed run drops metric lines past its checkpoint step and appends.

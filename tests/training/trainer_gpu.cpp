@@ -14,16 +14,6 @@ using namespace simu::training;
 
 namespace {
 
-class SoloComm : public Communicator {
- public:
-  int rank() const override { return 0; }
-  int world_size() const override { return 1; }
-  std::string backend() const override { return "single"; }
-  void all_reduce_mean(std::vector<torch::Tensor>&) override {}
-  std::vector<double> all_reduce_sum(const std::vector<double>& v) override { return v; }
-  void barrier() override {}
-};
-
 // Cosine of two flattened tensor lists.
 double cosine(const std::vector<torch::Tensor>& a, const std::vector<torch::Tensor>& b) {
   double dot = 0, na = 0, nb = 0;
@@ -72,8 +62,8 @@ TEST(TrainerGpu, Bf16StepsKeepFp32AdaptersAndFollowFp32Cpu) {
     auto policy = make_generator_policy(cfg, dev);
     Run r;
     for (auto& [name, p] : policy->adapter_parameters()) r.start.push_back(p.detach().to(torch::kCPU).clone());
-    SoloComm comm;
-    Trainer tr(cfg, *policy, source, comm, dev);
+    auto comm = Communicator::create(DistEnv{}, dev, std::chrono::seconds(60));  // a world of one
+    Trainer tr(cfg, *policy, source, *comm, dev);
     for (int s = 0; s < steps; ++s) r.metrics.push_back(tr.step());
     for (auto& [name, p] : policy->adapter_parameters()) {
       // Adapters stay fp32 master weights on the training device (autocast computes in bf16).
