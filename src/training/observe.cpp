@@ -84,11 +84,11 @@ TensorBoardWriter::TensorBoardWriter(const std::string& dir) {
   std::filesystem::create_directories(dir);
   char host[256] = "localhost";
   ::gethostname(host, sizeof(host) - 1);
-  path_ = fmt::format("{}/events.out.tfevents.{}.{}.{}", dir, static_cast<long long>(std::time(nullptr)), host, ::getpid());
+  const std::string base =
+      fmt::format("{}/events.out.tfevents.{}.{}.{}", dir, static_cast<long long>(std::time(nullptr)), host, ::getpid());
   // Another writer of this process in the same second: a suffix keeps both files (and their order).
-  for (int i = 1; std::filesystem::exists(path_); ++i)
-    path_ = fmt::format("{}/events.out.tfevents.{}.{}.{}.{}", dir, static_cast<long long>(std::time(nullptr)), host,
-                        ::getpid(), i);
+  path_ = base;
+  for (int i = 1; std::filesystem::exists(path_); ++i) path_ = fmt::format("{}.{}", base, i);
   file_ = std::fopen(path_.c_str(), "wb");
   if (!file_) fail("{}: cannot create TensorBoard event file: {}", path_, std::strerror(errno));
   // First record: the file version.
