@@ -3,7 +3,8 @@
 #   .carry/prefix/usr/...  Debian packages unpacked (MuJoCo 2.2.2 + qhull, assimp, GoogleTest, the gloo
 #                          headers of libgloo-dev for c10d ProcessGroupGloo; never linked) and
 #                          the runtime libraries they need; CoACD's C library from its PyPI wheel
-#   .carry/shared/         a copy of ../shared/fixtures (the device gets only the repository)
+#   .carry/shared/         the fixtures the GPU tests read, from ../shared/fixtures (the device gets only the
+#                          repository); the 55 MB preprocess_released_* fixtures are CPU-only and stay here
 # The GPU machine has LibTorch (its PyTorch 2.11.0+cu130), CUDA, Eigen, HDF5 1.10, yaml-cpp, CLI11,
 # nlohmann-json. OpenCV is NOT carried: Debian's imgcodecs pulls GDAL (~180 MB of libraries), over the
 # device's 64 MiB transfer limit; the GPU build sets SIMU_WITH_OPENCV=OFF (image-file tests skip there).
@@ -28,6 +29,10 @@ if [ -n "$coacd_lib" ]; then
   cp -f "$(dirname "$coacd_lib")"/../coacd.libs/*.so* "$CARRY/prefix/usr/lib/coacd/" 2>/dev/null || true  # its vendored libgomp
 fi
 # Fixtures.
-rm -rf "$CARRY/shared" && mkdir -p "$CARRY/shared" && cp -r "$SHARED/fixtures" "$CARRY/shared/"
+rm -rf "$CARRY/shared" && mkdir -p "$CARRY/shared/fixtures"
+for f in "$SHARED"/fixtures/*; do
+  case "$(basename "$f")" in preprocess_released_*) continue;; esac  # CPU tests only (64 MiB transfer limit)
+  cp -r "$f" "$CARRY/shared/fixtures/"
+done
 rm -rf "$CARRY/prefix/usr/share/doc" "$CARRY/prefix/usr/share/man"
 du -sh "$CARRY/prefix" "$CARRY/shared"
