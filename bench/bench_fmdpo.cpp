@@ -79,7 +79,7 @@ int main(int argc, char** argv) {
   std::string generator = "configs/stage1_real.yaml";
   std::vector<int64_t> micros = {1, 2, 4};
   int steps = 10, warmup = 3, nproc = 0;
-  int64_t cond_len = 2800;
+  int64_t cond_len = 7528;  // the released embedder's tokens per object (4 x 1,370 + 2 x 1,024)
   double peak_tflops = 989.4;
   bool checkpointing = false, profile = false;
   app.add_option("--generator", generator, "generator config (official layout)");

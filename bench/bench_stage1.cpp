@@ -1,6 +1,7 @@
 // bench_stage1: speed of the Stage-1 flow model (real size, random weights, bf16 autocast) on CUDA.
 // Measures one forward at batch 2 (the CFG pair) and a full CFG sampling (25 steps by default) at
-// condition lengths 2800 and 7500: median milliseconds, achieved TFLOP/s (analytic matmul FLOPs, see
+// condition lengths 7528 (the released embedder: 4 x 1,370 + 2 x 1,024 tokens per object, the headline)
+// and 2800: median milliseconds, achieved TFLOP/s (analytic matmul FLOPs, see
 // simu::models::flow_forward_flops) and peak allocated memory; plus the plain bf16 matmul rate of the
 // device for reference. On a machine without CUDA it says so (or runs tiny with --device cpu --small).
 #include <ATen/CPUGeneratorImpl.h>
@@ -53,7 +54,7 @@ double peak_gib(const torch::Device& d) {
 int main(int argc, char** argv) {
   CLI::App app{"Benchmark the Stage-1 flow model: forward at batch 2 and full CFG sampling (bf16, random weights)"};
   std::string config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_real.yaml", device = "cuda";
-  std::vector<int64_t> cond_lens = {2800, 7500};
+  std::vector<int64_t> cond_lens = {7528, 2800};  // released embedder first
   int steps = 25, iters = 5, sample_iters = 3, warmup = 2;
   double cfg = 7.0;
   bool small = false, fp32 = false, profile = false, one_stream = false;

@@ -27,6 +27,9 @@ run() { local name="$1"; shift; echo "== $name: $*"; "$@" 2>&1 | tee "$O/$name.t
 case "$what" in all|stage1) run stage1 "$B/bench_stage1";; esac
 case "$what" in all|embedder) run embedder "$B/bench_embedder" --batch 1 8;; esac
 case "$what" in all|resample) run resample "$B/bench_resample" --batches 1 8;; esac
-case "$what" in all|fmdpo) run fmdpo "$B/bench_fmdpo" --micro "${MICRO:-1,2,4}" --peak-tflops "$peak" ${FMDPO_ARGS:-};; esac
-case "$what" in fmdpo2) run fmdpo2 "$B/bench_fmdpo" --micro "${MICRO:-1,2,4}" --peak-tflops "$peak" --nproc-per-node 2 ${FMDPO_ARGS:-};; esac
+# FM-DPO at the released embedder's 7,528 condition tokens (headline) and at 2,800 (COND_LENS overrides).
+for L in ${COND_LENS:-7528 2800}; do
+  case "$what" in all|fmdpo) run "fmdpo_c$L" "$B/bench_fmdpo" --micro "${MICRO:-1,2,4}" --peak-tflops "$peak" --cond-len "$L" ${FMDPO_ARGS:-};; esac
+  case "$what" in fmdpo2) run "fmdpo2_c$L" "$B/bench_fmdpo" --micro "${MICRO:-1,2,4}" --peak-tflops "$peak" --nproc-per-node 2 --cond-len "$L" ${FMDPO_ARGS:-};; esac
+done
 exit 0
