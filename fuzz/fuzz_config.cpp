@@ -17,6 +17,7 @@ namespace {
 void walk(simu::config::Reader& r, int depth) {
   for (const auto& key : r.keys()) {
     const YAML::Node v = r.node()[key];
+    if (!v.IsDefined()) continue;  // a key with no scalar name (null, list, mapping as a key)
     try {
       if (v.IsMap() && depth < 8) {
         auto c = r.child(key);

@@ -502,7 +502,7 @@ void open_cache(CacheHandles& h, const std::string& path, bool writable) {
     for (const auto& [shape, what] : {std::pair<const std::vector<int64_t>*, const char*>{&info.latent_shape, "latent_shape"},
                                       {&info.cond_shape, "cond_shape"}}) {
       unsigned __int128 bytes = 4;
-      for (auto d : *shape) bytes *= static_cast<uint64_t>(d);
+      for (auto d : *shape) bytes = std::min<unsigned __int128>(bytes * static_cast<uint64_t>(d), UINT64_MAX);
       if (bytes > limit)
         fail_hint("the file is damaged or not written by this toolkit; rebuild it",
                   "pair cache '{}': attribute {} [{}] needs {} bytes per record, more than a file of {} bytes can hold",

@@ -47,6 +47,15 @@ int env_int(const char* name, int fallback) {
   return static_cast<int>(x);
 }
 
+// An exception's text without a C++ backtrace (c10::Error carries one) and on one line.
+std::string short_what(const std::exception& e) {
+  std::string msg;
+  if (const auto* ce = dynamic_cast<const c10::Error*>(&e)) msg = ce->what_without_backtrace();
+  else msg = e.what();
+  if (const auto nl = msg.find('\n'); nl != std::string::npos) msg = msg.substr(0, nl);
+  return msg;
+}
+
 // Flattens tensors into one contiguous buffer (same dtype/device as the first).
 torch::Tensor flatten(const std::vector<torch::Tensor>& ts) {
   std::vector<torch::Tensor> flat;
@@ -135,14 +144,6 @@ class StoreCommunicator : public Communicator {
     }
     if (missing.empty()) return fmt::format("{}: every other rank reached it (a peer's connection broke)", when);
     return fmt::format("{} waiting for rank(s) {} (dead or hung)", when, fmt::join(missing, ", "));
-  }
-  // An exception's text without a C++ backtrace (c10::Error carries one) and on one line.
-  static std::string short_what(const std::exception& e) {
-    std::string msg;
-    if (const auto* ce = dynamic_cast<const c10::Error*>(&e)) msg = ce->what_without_backtrace();
-    else msg = e.what();
-    if (const auto nl = msg.find('\n'); nl != std::string::npos) msg = msg.substr(0, nl);
-    return msg;
   }
 
   c10::intrusive_ptr<c10d::Store> store_;
@@ -238,7 +239,7 @@ class GlooCommunicator : public StoreCommunicator {
     } catch (const std::exception& e) {
       fail_hint("check that every rank started and can reach the others (GLOO_SOCKET_IFNAME selects the interface)",
                 "rank {}: Gloo process group setup failed (world size {}, timeout {} s): {}", rank, world,
-                timeout.count() / 1000.0, e.what());
+                timeout.count() / 1000.0, short_what(e));
     }
   }
   std::string backend() const override { return "gloo"; }
@@ -370,7 +371,7 @@ c10::intrusive_ptr<c10d::Store> connect_store(const DistEnv& env, std::chrono::m
   } catch (const std::exception& e) {
     fail_hint("check MASTER_ADDR/MASTER_PORT and that every rank started",
               "rank {}: rendezvous at {}:{} failed (world size {}, timeout {} s): {}", env.rank, env.master_addr,
-              env.master_port, env.world_size, timeout.count() / 1000.0, e.what());
+              env.master_port, env.world_size, timeout.count() / 1000.0, short_what(e));
   }
 }
 

@@ -730,14 +730,24 @@ TEST(PairsTool, MakeInspectValidate) {
   EXPECT_FALSE(std::filesystem::exists(dir + "/x.h5"));
   // kill -9 in the middle of a long write: no file at the path, the previous cache (if any) intact.
   const auto before = simu::fs::read_file(f);
-  std::system(("timeout -s KILL 2 " + exe + " make --out " + f +
+  // An existing --out is refused without --overwrite (and left as it was).
+  EXPECT_NE(run("make --out " + f + " --n 2 --tokens 4 --channels 2 --cond-len 2 --cond-channels 2"), 0);
+  EXPECT_NE(simu::fs::read_file(dir + "/out.txt").find("already exists"), std::string::npos);
+  EXPECT_EQ(simu::fs::read_file(f), before);
+  std::system(("timeout -s KILL 2 " + exe + " make --overwrite --out " + f +
                " --n 100000000 --tokens 64 --channels 8 --cond-len 4 --cond-channels 4 >/dev/null 2>&1").c_str());
   EXPECT_EQ(simu::fs::read_file(f), before);
-  int stray = 0;
-  for (const auto& e : std::filesystem::directory_iterator(dir))
-    if (e.path().filename().string().rfind("p.h5.tmp-", 0) == 0) ++stray, std::filesystem::remove(e.path());
-  EXPECT_LE(stray, 1);
+  auto strays = [&] {
+    int n = 0;
+    for (const auto& e : std::filesystem::directory_iterator(dir))
+      if (e.path().filename().string().rfind("p.h5.tmp-", 0) == 0) ++n;
+    return n;
+  };
+  EXPECT_LE(strays(), 1);
   EXPECT_EQ(run("validate " + f), 0);
+  // The next writer removes the killed writer's temporary file.
+  EXPECT_EQ(run("make --overwrite --out " + f + " --n 2 --tokens 4 --channels 2 --cond-len 2 --cond-channels 2"), 0);
+  EXPECT_EQ(strays(), 0);
 }
 
 }  // namespace
