@@ -59,7 +59,7 @@ trap 'rm -rf "$TMP"' EXIT
 export SIMU_FUZZ_TMP="$TMP"
 # libhdf5 1.10 loops forever on some corrupt heaps; the pair cache reader stops its reading process
 # after this many silent seconds (a clean error), well before libFuzzer's own -timeout.
-export SIMU_HDF5_TIMEOUT_S="${SIMU_HDF5_TIMEOUT_S:-5}"
+export SIMU_HDF5_TIMEOUT_S="${SIMU_HDF5_TIMEOUT_S:-2}"
 status=0
 for t in "${TARGETS[@]}"; do
   exe="$BUILD/$t"

@@ -162,7 +162,7 @@ TEST(PeftConfigJson, ErrorsNameFileKeyAndExpectation) {
       {R"({"peft_type": "LORA", "r": 4, "lora_alpha": 8, "target_modules": "x", "lora_dropout": "0.1"})", "key 'lora_dropout'"},
       {R"({"peft_type": "IA3", "r": 4, "lora_alpha": 8, "target_modules": "x"})", "key 'peft_type'"},
       {R"([1, 2])", "expected a JSON object"},
-      {"{\"peft_type\": \"LO\xff\"}", "invalid UTF-8 at line 1, column 17"},
+      {"{\"peft_type\": \"LO\xff\"}", "invalid UTF-8 at line 1, column 18"},
       {std::string(1000, '[') + std::string(1000, ']'), "nested deeper than"},
   };
   for (const auto& [text, want] : cases) {
