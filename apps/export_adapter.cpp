@@ -6,6 +6,7 @@
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/error.h"
+#include "common/fs.h"
 #include "common/log.h"
 #include "lora/adapter_source.h"
 #include "lora/lora.h"
@@ -15,10 +16,11 @@ int main(int argc, char** argv) {
   CLI::App app{"Export a LoRA adapter (training checkpoint or PEFT dir) to a PEFT directory, or merge it into "
                "the base generator weights (--merge)"};
   std::string source, out, model_config, weights, run_config, description;
-  bool merge = false;
+  bool merge = false, overwrite = false;
   app.add_option("source", source, "training checkpoint dir (adapter.safetensors + train_state.json) or PEFT dir")
       ->required();
   app.add_option("out", out, "output: PEFT directory, or with --merge a .safetensors file")->required();
+  app.add_flag("--overwrite", overwrite, "replace an existing output (it is replaced whole, only once the new one is complete)");
   app.add_flag("--merge", merge, "write a full generator checkpoint with the adapters merged in");
   app.add_option("--model-config", model_config,
                  "generator config (official ss_generator.yaml/json or configs/stage1_*.yaml); required with "
@@ -31,6 +33,11 @@ int main(int argc, char** argv) {
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
+    SIMU_CHECK(common.sets.empty() || !run_config.empty(),
+               "--set applies to the run config: pass --config run.yaml with it (got --set {})", common.sets.front());
+    SIMU_CHECK(merge || weights.empty(), "--weights is only used with --merge (got --weights {})", weights);
+    simu::fs::remove_stale_temps(out);
+    simu::fs::check_overwrite(out, overwrite, merge ? "output file" : "output directory");
     // LoRA config fallback from the run config (its lora: section).
     std::optional<simu::lora::LoraConfig> fallback;
     if (!run_config.empty()) {
@@ -38,6 +45,9 @@ int main(int argc, char** argv) {
       simu::config::Reader reader(root, run_config);
       auto lora_reader = reader.child("lora");
       fallback = simu::lora::LoraConfig::from(lora_reader);
+      // Only the lora: section is read here; a --set elsewhere would be silently ignored.
+      for (const auto& s : common.sets)
+        SIMU_CHECK(s.rfind("lora.", 0) == 0, "--set {}: export_adapter reads only the lora: section of {}", s, run_config);
     }
     const auto src = simu::lora::read_adapter_source(source, fallback);
     simu::log::info("{}: {} adapter tensors ({}), r={}, alpha={}", source, src.tensors.size(), src.kind, src.cfg.r,

@@ -5,6 +5,7 @@
 
 #include "common/cli.h"
 #include "common/error.h"
+#include "common/fs.h"
 #include "common/progress.h"
 #include "data/pair_cache.h"
 
@@ -30,7 +31,9 @@ int main(int argc, char** argv) {
   int64_t n = 0, tokens = 4096, channels = 8, cond_len = 64, cond_len_min = 0, cond_channels = 1024;
   std::string dtype = "f16";
   uint64_t seed = 0;
+  bool overwrite = false;
   make->add_option("--out", out, "output file (.h5); written atomically")->required();
+  make->add_flag("--overwrite", overwrite, "replace an existing --out file");
   make->add_option("--n", n, "number of pairs")->required()->check(CLI::PositiveNumber);
   make->add_option("--tokens", tokens, "latent tokens T")->capture_default_str()->check(CLI::PositiveNumber);
   make->add_option("--channels", channels, "latent channels C")->capture_default_str()->check(CLI::PositiveNumber);
@@ -59,8 +62,11 @@ int main(int argc, char** argv) {
 
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
+    SIMU_CHECK(common.sets.empty(), "--set {}: pairs reads no config file, so nothing would take the value",
+               common.sets.empty() ? std::string() : common.sets.front());
     using namespace simu::data;
     if (*make) {
+      simu::fs::check_overwrite(out, overwrite, "--out");
       simu::Progress progress{"make"};
       make_synthetic_cache(out, n, {tokens, channels}, {cond_len, cond_channels}, seed, parse_dtype(dtype),
                            std::ref(progress), cond_len_min);

@@ -18,8 +18,10 @@ int main(int argc, char** argv) {
   CLI::App app{"FM-DPO fine-tuning of the shape branch's LoRA adapters on cached latent preference pairs"};
   std::string config_path, resume;
   int nproc = 0;
+  bool overwrite = false;
   app.add_option("--config", config_path, "training config (YAML), e.g. configs/lora64.yaml")->required();
   app.add_option("--resume", resume, "continue from 'latest' (newest under run.out_dir/checkpoints) or a checkpoint dir");
+  app.add_flag("--overwrite", overwrite, "start afresh in a run.out_dir that holds an earlier run (its outputs are removed)");
   app.add_option("--nproc-per-node", nproc, "start this many local ranks (one per GPU) and watch them");
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
@@ -29,6 +31,7 @@ int main(int argc, char** argv) {
     // Launcher mode: validate the config, then start and watch the ranks.
     if (nproc > 1 && !std::getenv("RANK")) {
       auto cfg = TrainConfig::load(config_path, common.sets);
+      prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/true);
       std::vector<std::string> args;
       for (int i = 1; i < argc; ++i) {
         if (std::strcmp(argv[i], "--nproc-per-node") == 0) { ++i; continue; }
@@ -41,6 +44,7 @@ int main(int argc, char** argv) {
     const auto env = DistEnv::from_environment();
     simu::log::set_rank(env.rank);
     auto cfg = TrainConfig::load(config_path, common.sets);
+    prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/env.rank == 0);
     torch::Device device(torch::kCPU);
     if (cfg.train.device == "cuda") {
       if (!torch::cuda::is_available())

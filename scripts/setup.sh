@@ -25,6 +25,8 @@ APT_PKGS=(
   libeigen3-dev libyaml-cpp-dev libgtest-dev libgmock-dev
   libcli11-dev nlohmann-json3-dev libassimp-dev
   libgloo-dev
+  libre2-dev
+  clang libclang-rt-dev
   python3-venv
 )
 missing=()

@@ -1,21 +1,102 @@
 #include "common/config.h"
 
+#include <algorithm>
 #include <filesystem>
+
+#include "common/fs.h"
+#include "common/text.h"
 
 namespace simu::config {
 
-YAML::Node load_file(const std::string& path, const std::vector<std::string>& overrides) {
-  if (!std::filesystem::exists(path)) fail_hint("check the path given with --config", "config file '{}' does not exist", path);
+namespace {
+
+// Upper bound of the nesting yaml-cpp would recurse through for this text: per line, the indentation
+// plus the block indicators ("- ", "? ", ": ") on it, plus the flow brackets open at that point.
+int yaml_depth_bound(const std::string& text) {
+  int deepest = 0, flow = 0;
+  size_t i = 0;
+  while (i < text.size()) {
+    int indent = 0, indicators = 0;
+    while (i < text.size() && text[i] == ' ') ++indent, ++i;
+    char quote = 0;
+    for (; i < text.size() && text[i] != '\n'; ++i) {
+      const char c = text[i];
+      if (quote) {
+        if (c == '\\' && quote == '"') ++i;
+        else if (c == quote) quote = 0;
+        continue;
+      }
+      if (c == '#' && (i == 0 || text[i - 1] == ' ' || text[i - 1] == '\t')) {
+        while (i < text.size() && text[i] != '\n') ++i;
+        break;
+      }
+      if (c == '"' || c == '\'') quote = c;
+      else if (c == '[' || c == '{') ++flow;
+      else if ((c == ']' || c == '}') && flow > 0) --flow;
+      else if ((c == '-' || c == '?' || c == ':') && (i + 1 == text.size() || text[i + 1] == ' ' || text[i + 1] == '\n'))
+        ++indicators;
+      deepest = std::max(deepest, indent + indicators + flow);
+    }
+    deepest = std::max(deepest, indent + indicators + flow);
+    ++i;
+  }
+  return deepest;
+}
+
+// Number of values of the tree with aliases expanded, stopping once it passes limit.
+int64_t count_values(const YAML::Node& root, int64_t limit) {
+  int64_t n = 0;
+  std::vector<YAML::Node> stack{root};
+  while (!stack.empty() && n <= limit) {
+    YAML::Node node = stack.back();
+    stack.pop_back();
+    ++n;
+    if (node.IsSequence()) {
+      for (const auto& item : node) stack.push_back(item);
+    } else if (node.IsMap()) {
+      for (const auto& kv : node) {
+        stack.push_back(kv.first);
+        stack.push_back(kv.second);
+      }
+    }
+  }
+  return n;
+}
+
+}  // namespace
+
+YAML::Node load_text(const std::string& text, const std::string& name, const std::vector<std::string>& overrides) {
+  if (text.size() > kMaxConfigBytes)
+    fail("{}: {} bytes is larger than the {} MiB a config may have", name, text.size(), kMaxConfigBytes >> 20);
+  simu::text::check_utf8(text, name);
+  if (yaml_depth_bound(text) > kMaxConfigDepth)
+    fail("{}: nested deeper than {} levels (indentation, '- ' items or brackets)", name, kMaxConfigDepth);
   YAML::Node root;
   try {
-    root = YAML::LoadFile(path);
+    root = YAML::Load(text);
   } catch (const YAML::Exception& e) {
-    fail("{}: line {}, column {}: {}", path, e.mark.line + 1, e.mark.column + 1, e.msg);
+    fail("{}: line {}, column {}: {}", name, e.mark.line + 1, e.mark.column + 1, e.msg);
+  } catch (const std::exception& e) {
+    fail("{}: not valid YAML: {}", name, e.what());
   }
+  if (count_values(root, kMaxConfigNodes) > kMaxConfigNodes)
+    fail("{}: more than {} values once YAML aliases are expanded", name, kMaxConfigNodes);
   if (root.IsNull()) root = YAML::Node(YAML::NodeType::Map);
-  if (!root.IsMap()) fail("{}: expected a mapping at the top level", path);
-  for (const auto& o : overrides) apply_override(root, o, path);
+  if (!root.IsMap()) fail("{}: expected a mapping at the top level", name);
+  // Keys must be plain scalars (a list or mapping as a key has no dotted path).
+  for (const auto& kv : root)
+    if (!kv.first.IsScalar()) fail("{}: a top-level key is a {}, expected a name", name, kv.first.IsMap() ? "mapping" : "list");
+  for (const auto& o : overrides) apply_override(root, o, name);
   return root;
+}
+
+YAML::Node load_file(const std::string& path, const std::vector<std::string>& overrides) {
+  if (!std::filesystem::exists(path)) fail_hint("check the path given with --config", "config file '{}' does not exist", path);
+  if (!std::filesystem::is_regular_file(path)) fail("config file '{}' is not a regular file", path);
+  if (std::filesystem::file_size(path) > kMaxConfigBytes)
+    fail("{}: {} bytes is larger than the {} MiB a config may have", path, std::filesystem::file_size(path),
+         kMaxConfigBytes >> 20);
+  return load_text(simu::fs::read_file(path), path, overrides);
 }
 
 namespace {
@@ -49,12 +130,17 @@ void apply_override(YAML::Node& root, const std::string& assignment, const std::
       start = p + 1;
     }
   }
+  simu::text::check_utf8(assignment, fmt::format("--set '{}'", assignment));
+  if (yaml_depth_bound(text) > kMaxConfigDepth) fail("--set '{}': value nested deeper than {} levels", assignment, kMaxConfigDepth);
   YAML::Node value;
   try {
     value = YAML::Load(text);
-  } catch (const YAML::Exception& e) {
-    fail("--set '{}' ({}): value is not valid YAML: {}", assignment, file, e.msg);
+  } catch (const std::exception& e) {
+    const auto* ye = dynamic_cast<const YAML::Exception*>(&e);
+    fail("--set '{}' ({}): value is not valid YAML: {}", assignment, file, ye ? ye->msg : std::string(e.what()));
   }
+  if (count_values(value, kMaxConfigNodes) > kMaxConfigNodes)
+    fail("--set '{}': more than {} values once YAML aliases are expanded", assignment, kMaxConfigNodes);
   set_path(root, parts, 0, value, assignment);
 }
 
@@ -74,7 +160,7 @@ bool Reader::has(const std::string& key) const {
 
 std::vector<std::string> Reader::keys() const {
   std::vector<std::string> out;
-  for (const auto& kv : node_) out.push_back(kv.first.as<std::string>());
+  for (const auto& kv : node_) out.push_back(kv.first.IsScalar() ? kv.first.Scalar() : std::string("<non-scalar key>"));
   return out;
 }
 
@@ -92,7 +178,7 @@ YAML::Node Reader::raw(const std::string& key) {
 
 void Reader::collect_unknown(const YAML::Node& node, const std::string& path, std::vector<std::string>& out) const {
   for (const auto& kv : node) {
-    const std::string k = kv.first.as<std::string>();
+    const std::string k = kv.first.IsScalar() ? kv.first.Scalar() : std::string("<non-scalar key>");
     const std::string p = path.empty() ? k : path + "." + k;
     if (seen_->values.count(p)) continue;
     if (seen_->maps.count(p) && kv.second.IsMap()) {

@@ -19,6 +19,14 @@ namespace simu::config {
 // Loads a YAML/JSON file and applies overrides of the form "a.b.c=value" (value parsed as YAML).
 // Throws simu::Error naming the file on a missing file or a syntax error.
 YAML::Node load_file(const std::string& path, const std::vector<std::string>& overrides = {});
+// Same from text already read; name is the file named in messages. Untrusted text is checked before
+// yaml-cpp sees it: at most kMaxConfigBytes, valid UTF-8 (line and column of the first bad byte),
+// nesting at most kMaxConfigDepth (yaml-cpp recurses per level), and the loaded tree, aliases
+// expanded, at most kMaxConfigNodes values.
+YAML::Node load_text(const std::string& text, const std::string& name, const std::vector<std::string>& overrides = {});
+inline constexpr size_t kMaxConfigBytes = 16u << 20;
+inline constexpr int kMaxConfigDepth = 128;
+inline constexpr int64_t kMaxConfigNodes = 1000000;
 // Applies one "a.b.c=value" override to root, creating maps on the way.
 void apply_override(YAML::Node& root, const std::string& assignment, const std::string& file = "");
 
@@ -83,7 +91,7 @@ T Reader::convert(const std::string& key) {
   try {
     if (v.IsNull()) throw YAML::Exception(YAML::Mark::null_mark(), "null");
     return v.as<T>();
-  } catch (const YAML::Exception&) {
+  } catch (const std::exception&) {
     std::string got = v.IsScalar() ? "'" + v.Scalar() + "'" : (v.IsSequence() ? "a list" : v.IsMap() ? "a mapping" : "nothing");
     fail("{}: key '{}': expected {}, got {}", file_, full(key), type_name<T>(), got);
   }

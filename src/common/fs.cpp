@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <stdio.h>  // renameat2, RENAME_EXCHANGE (glibc >= 2.28)
 #include <ftw.h>
+#include <signal.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -79,6 +80,60 @@ void atomic_write(const std::string& path, std::string_view bytes) {
     fail("cannot flush '{}': {}", tmp, std::strerror(errno));
   }
   atomic_rename(tmp, path);
+}
+
+int remove_stale_temps(const std::string& path) {
+  const std::filesystem::path p(path);
+  const std::string name = p.filename().string();
+  if (name.empty()) return 0;
+  const std::filesystem::path dir = p.has_parent_path() ? p.parent_path() : std::filesystem::path(".");
+  std::error_code ec;
+  std::filesystem::directory_iterator it(dir, ec), end;
+  if (ec) return 0;
+  int removed = 0;
+  for (; it != end; it.increment(ec)) {
+    if (ec) break;
+    const std::string n = it->path().filename().string();
+    for (const char* tag : {".tmp-", ".old-"}) {
+      const std::string prefix = name + tag;
+      if (n.size() <= prefix.size() || n.compare(0, prefix.size(), prefix) != 0) continue;
+      const std::string digits = n.substr(prefix.size());
+      if (digits.size() > 9 || digits.find_first_not_of("0123456789") != std::string::npos) continue;
+      const pid_t pid = static_cast<pid_t>(std::stol(digits));
+      if (pid <= 0 || pid == ::getpid() || ::kill(pid, 0) == 0 || errno != ESRCH) continue;  // alive (or unknown)
+      remove_tree(it->path().string());
+      ++removed;
+    }
+  }
+  return removed;
+}
+
+void replace_dir(const std::string& tmp, const std::string& target) {
+  fsync_dir(tmp);
+  struct stat st {};
+  if (::lstat(target.c_str(), &st) != 0) {
+    atomic_rename(tmp, target);
+    return;
+  }
+  if (atomic_exchange(tmp, target)) {
+    remove_tree(tmp);  // now the old content
+    return;
+  }
+  const std::string old = target + ".old-" + std::to_string(::getpid());
+  atomic_rename(target, old);
+  try {
+    atomic_rename(tmp, target);
+  } catch (...) {
+    atomic_rename(old, target);
+    throw;
+  }
+  remove_tree(old);
+}
+
+void check_overwrite(const std::string& path, bool overwrite, const std::string& what) {
+  struct stat st {};
+  if (overwrite || ::lstat(path.c_str(), &st) != 0) return;
+  fail_hint("pass --overwrite to replace it, or choose another path", "{} '{}' already exists", what, path);
 }
 
 std::string read_file(const std::string& path) {

@@ -25,4 +25,16 @@ bool atomic_exchange(const std::string& a, const std::string& b);
 // non-empty directories when the dynamic linker binds to it.
 void remove_tree(const std::string& path);
 
+// Temporaries of dead writers: removes every sibling of path named "<name>.tmp-<pid>" or
+// "<name>.old-<pid>" whose process no longer exists (what a killed run of atomic_write,
+// replace_dir or the pair cache writer leaves behind). Returns how many it removed.
+int remove_stale_temps(const std::string& path);
+// Puts the finished directory tmp in place of target: renamed when target does not exist, else
+// swapped in one atomic step (or, where the filesystem cannot, target moved to
+// "<target>.old-<pid>" first) and the old content removed. A failure leaves target as it was.
+void replace_dir(const std::string& tmp, const std::string& target);
+// Refuses (simu::Error naming path, with a hint about --overwrite) when path exists and overwrite
+// is false; what names the output ("output directory", "--out").
+void check_overwrite(const std::string& path, bool overwrite, const std::string& what);
+
 }  // namespace simu::fs

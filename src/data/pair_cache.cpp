@@ -8,7 +8,13 @@
 #include <fmt/ranges.h>
 
 #include <algorithm>
+#include <poll.h>
+#include <sys/wait.h>
+
 #include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <limits>
@@ -29,6 +35,11 @@ constexpr const char* kFormat = "simu.pair_cache";
 constexpr const char* kDefaultCreatedBy = "simuscene_resampler PairCacheWriter";
 constexpr int kGzipLevel = 4;
 constexpr hsize_t kScalarChunk = 1024;  // rows per chunk of the per-pair scalar datasets
+constexpr hssize_t kMaxAttrValues = 64;   // values of an integer root attribute (shapes, version)
+constexpr size_t kMaxAttrString = 1 << 16;  // bytes of a fixed-length string root attribute
+// Deflate expands at most ~1032:1; a dataset cannot hold more decoded bytes than this many times
+// the file's size (sizes above that come from a corrupt header, and are refused before allocating).
+constexpr uint64_t kMaxExpansion = 1100;
 
 // ---------------------------------------------------------------------------------------------
 // HDF5 plumbing: the global lock, error text, RAII ids.
@@ -253,6 +264,8 @@ std::vector<int64_t> read_attr_ints(hid_t obj, const char* name, const std::stri
     fail("pair cache '{}': root attribute '{}' has type {}, expected integer", path, name, type_name(t.get()));
   H5Id space(H5Aget_space(a.get()));
   const hssize_t n = H5Sget_simple_extent_npoints(space.get());
+  if (n < 0 || n > kMaxAttrValues)
+    fail("pair cache '{}': root attribute '{}' holds {} values, expected at most {}", path, name, n, kMaxAttrValues);
   std::vector<int64_t> v(static_cast<size_t>(std::max<hssize_t>(n, 0)));
   if (!v.empty()) check_ok(H5Aread(a.get(), H5T_NATIVE_INT64, v.data()), path, fmt::format("read attribute {}", name));
   return v;
@@ -262,6 +275,12 @@ std::string read_attr_str(hid_t obj, const char* name, const std::string& path) 
   H5Id t(H5Aget_type(a.get()));
   if (H5Tget_class(t.get()) != H5T_STRING)
     fail("pair cache '{}': root attribute '{}' has type {}, expected string", path, name, type_name(t.get()));
+  {
+    H5Id space(H5Aget_space(a.get()));
+    if (H5Sget_simple_extent_npoints(space.get()) != 1)
+      fail("pair cache '{}': root attribute '{}' holds {} values, expected one string", path, name,
+           H5Sget_simple_extent_npoints(space.get()));
+  }
   if (H5Tis_variable_str(t.get()) > 0) {
     H5Id mt = make_vlen_string_type();
     char* p = nullptr;
@@ -271,6 +290,8 @@ std::string read_attr_str(hid_t obj, const char* name, const std::string& path) 
     return s;
   }
   const size_t size = H5Tget_size(t.get());
+  if (size == 0 || size > kMaxAttrString)
+    fail("pair cache '{}': root attribute '{}' is a string of {} bytes, expected 1..{}", path, name, size, kMaxAttrString);
   std::string s(size, '\0');
   H5Id mt(H5Tcopy(H5T_C_S1));
   H5Tset_size(mt.get(), size);
@@ -296,6 +317,7 @@ std::vector<std::string> read_strings(hid_t dset, int64_t start, int64_t n, cons
     H5Dvlen_reclaim(mt.get(), ms.get(), H5P_DEFAULT, ptrs.data());
   } else {
     const size_t size = H5Tget_size(ft.get());
+    if (size == 0 || size > (1u << 20)) fail("pair cache '{}': dataset '{}' holds strings of {} bytes, expected 1..1 MiB", path, name, size);
     H5Id mt(H5Tcopy(H5T_C_S1));
     H5Tset_size(mt.get(), size);
     std::vector<char> buf(size * static_cast<size_t>(n));
@@ -466,6 +488,28 @@ void open_cache(CacheHandles& h, const std::string& path, bool writable) {
          info.latent_shape[0], info.latent_shape[1]);
   const int64_t n = pos_dims[0];
   info.size = n;
+  // Sizes from the file's header are checked against the file's length before anything is
+  // allocated for them: every pair stores at least its id (one byte or more), and one record's
+  // latents or condition cannot decode to more than kMaxExpansion times the file.
+  {
+    std::error_code ec;
+    const uint64_t file_bytes = stdfs::file_size(path, ec);
+    if (!ec && static_cast<uint64_t>(n) > file_bytes)
+      fail_hint("the file is damaged or not written by this toolkit; rebuild it",
+                "pair cache '{}': dataset 'latent_pos' declares {} records, more than a file of {} bytes can hold",
+                path, n, file_bytes);
+    const uint64_t limit = std::max<uint64_t>(uint64_t{1} << 20, kMaxExpansion * (ec ? 0 : file_bytes));
+    for (const auto& [shape, what] : {std::pair<const std::vector<int64_t>*, const char*>{&info.latent_shape, "latent_shape"},
+                                      {&info.cond_shape, "cond_shape"}}) {
+      unsigned __int128 bytes = 4;
+      for (auto d : *shape) bytes = std::min<unsigned __int128>(bytes * static_cast<uint64_t>(d), UINT64_MAX);
+      if (bytes > limit)
+        fail_hint("the file is damaged or not written by this toolkit; rebuild it",
+                  "pair cache '{}': attribute {} [{}] needs {} bytes per record, more than a file of {} bytes can hold",
+                  path, what, fmt::join(*shape, ", "), static_cast<uint64_t>(std::min<unsigned __int128>(bytes, UINT64_MAX)),
+                  file_bytes);
+    }
+  }
   const std::vector<int64_t> lat{n, info.latent_shape[0], info.latent_shape[1]};
   const std::vector<int64_t> cnd{n, info.cond_shape[0], info.cond_shape[1]};
   info.latent_dtype = check_dataset(h.latent_pos.get(), "latent_pos", {"float16", "float32"}, lat, path);
@@ -536,6 +580,139 @@ torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t star
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------
+// Crash isolation. libhdf5 1.10 (Debian 12) trusts several on-disk structures: a corrupted global
+// heap (where variable-length strings such as the 'format' attribute and the ids live) makes
+// H5Aread/H5Dread read out of bounds and crash (H5HG_read). HDF5 1.14 reports such files cleanly, 1.10
+// cannot be fixed from outside. So the first reads of a file -- attributes, dataset headers, every
+// id, and `pairs validate`'s full scan -- run in a forked child process: if libhdf5 crashes there,
+// the caller gets a simu::Error naming the file; if the child succeeds, the same reads in this
+// process touch exactly the bytes that were just read safely. SIMU_HDF5_ISOLATE=0 turns it off
+// (debugging).
+
+namespace {
+
+// Runs fn in a forked child. fn may report progress through the callback it gets. Returns when fn
+// succeeded; rethrows its simu::Error (same message and hint); throws a simu::Error naming the file
+// when the child died (signal, sanitizer abort).
+void isolated(const std::string& path, const char* what,
+              const std::function<void(const std::function<void(int64_t, int64_t)>&)>& fn,
+              const std::function<void(int64_t, int64_t)>& progress = nullptr) {
+  const char* env = std::getenv("SIMU_HDF5_ISOLATE");
+  if (env && std::string(env) == "0") {
+    fn(progress ? progress : [](int64_t, int64_t) {});
+    return;
+  }
+  int fds[2];
+  if (::pipe(fds) != 0) fail("pair cache '{}': pipe(): {}", path, std::strerror(errno));
+  pid_t pid;
+  {
+    // No other thread may be inside HDF5 while the child is forked (its state is copied).
+    std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
+    std::fflush(nullptr);
+    pid = ::fork();
+    if (pid == 0) {
+      // Child: the only thread. The HDF5 mutex was copied locked by a thread id this process does not
+      // have: make it a fresh one.
+      new (&hdf5_mutex()) std::recursive_mutex();
+      ::close(fds[0]);
+      auto send = [&](const std::string& msg) {
+        size_t done = 0;
+        while (done < msg.size()) {
+          const ssize_t k = ::write(fds[1], msg.data() + done, msg.size() - done);
+          if (k <= 0) {
+            if (k < 0 && errno == EINTR) continue;
+            break;
+          }
+          done += static_cast<size_t>(k);
+        }
+      };
+      int code = 0;
+      try {
+        fn([&](int64_t done, int64_t total) { send(fmt::format("P {} {}\n", done, total)); });
+      } catch (const Error& e) {
+        send(std::string("E") + e.what() + '\0' + e.hint());
+        code = 3;
+      } catch (const std::exception& e) {
+        send(std::string("E") + "pair cache '" + path + "': " + e.what() + '\0');
+        code = 3;
+      }
+      ::close(fds[1]);
+      ::_exit(code);
+    }
+  }
+  ::close(fds[1]);
+  if (pid < 0) {
+    ::close(fds[0]);
+    fail("pair cache '{}': fork(): {}", path, std::strerror(errno));
+  }
+  // Progress lines ("P done total\n"), then possibly one error ("E<message>\0<hint>").
+  std::string buf, error;
+  bool in_error = false, hung = false;
+  char chunk[4096];
+  // Watchdog: libhdf5 1.10 also loops forever on some corrupt heaps; a child silent for longer than
+  // SIMU_HDF5_TIMEOUT_S (default 120 s; progress lines reset it) is killed.
+  const char* tenv = std::getenv("SIMU_HDF5_TIMEOUT_S");
+  const int timeout_ms = 1000 * std::max(1, tenv ? std::atoi(tenv) : 120);
+  while (true) {
+    pollfd pfd{fds[0], POLLIN, 0};
+    const int ready = ::poll(&pfd, 1, timeout_ms);
+    if (ready < 0 && errno == EINTR) continue;
+    if (ready == 0) {
+      hung = true;
+      ::kill(pid, SIGKILL);
+      break;
+    }
+    const ssize_t k = ::read(fds[0], chunk, sizeof chunk);
+    if (k < 0 && errno == EINTR) continue;
+    if (k <= 0) break;
+    buf.append(chunk, static_cast<size_t>(k));
+    while (!in_error && !buf.empty()) {
+      if (buf[0] == 'E') {
+        in_error = true;
+        break;
+      }
+      const auto nl = buf.find('\n');
+      if (nl == std::string::npos) break;
+      long long done = 0, total = 0;
+      if (std::sscanf(buf.c_str(), "P %lld %lld", &done, &total) == 2 && progress) progress(done, total);
+      buf.erase(0, nl + 1);
+    }
+  }
+  ::close(fds[0]);
+  int status = 0;
+  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
+  }
+  if (WIFEXITED(status) && WEXITSTATUS(status) == 0) return;
+  if (WIFEXITED(status) && WEXITSTATUS(status) == 3 && in_error) {
+    const auto zero = buf.find('\0');
+    throw Error(buf.substr(1, zero == std::string::npos ? std::string::npos : zero - 1),
+                zero == std::string::npos ? "" : buf.substr(zero + 1));
+  }
+  if (hung)
+    fail_hint("the file is damaged: restore a copy or rebuild it (SIMU_HDF5_TIMEOUT_S raises the limit for huge files)",
+              "pair cache '{}' is corrupt: reading its {} made libhdf5 1.10 loop for more than {} s (stopped; it ran in "
+              "a separate process)",
+              path, what, timeout_ms / 1000);
+  const std::string how = WIFSIGNALED(status) ? fmt::format("signal {} ({})", WTERMSIG(status), strsignal(WTERMSIG(status)))
+                                              : fmt::format("exit status {}", WEXITSTATUS(status));
+  fail_hint("the file is damaged: restore a copy or rebuild it (h5py on HDF5 >= 1.14 may say which object is corrupt)",
+            "pair cache '{}' is corrupt: reading its {} crashed libhdf5 1.10 ({}, in a separate process)", path, what,
+            how);
+}
+
+// The structure checks of open_cache plus every id, in a child process (see isolated()).
+void preflight(const std::string& path) {
+  isolated(path, "structure and ids", [&](const std::function<void(int64_t, int64_t)>&) {
+    CacheHandles h;
+    open_cache(h, path, /*writable=*/false);
+    H5Lock lock;
+    (void)read_strings(h.id.get(), 0, h.info.size, path, "id");
+  });
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
 // Writer.
 
 struct PairCacheWriter::Impl {
@@ -563,7 +740,13 @@ PairCacheWriter::PairCacheWriter(const std::string& path, std::vector<int64_t> l
   const stdfs::path p(path);
   if (p.has_parent_path()) stdfs::create_directories(p.parent_path());
   // Resume: copy the finished cache and reopen the copy for appending.
+  fs::remove_stale_temps(path);  // a killed writer's path.tmp-<pid>
   if (resume && stdfs::exists(path)) {
+    try {
+      preflight(path);
+    } catch (const Error& e) {
+      throw Error(fmt::format("cannot resume pair cache '{}': {}", path, e.what()), e.hint());
+    }
     stdfs::copy_file(path, tmp_path_, stdfs::copy_options::overwrite_existing);
     try {
       open_cache(m.h, tmp_path_, /*writable=*/true);
@@ -709,6 +892,8 @@ struct PairCacheReader::Impl {
 PairCacheReader PairCacheReader::open(const std::string& path) {
   PairCacheReader r;
   r.impl_ = std::make_shared<Impl>();
+  if (!stdfs::exists(path)) fail("pair cache '{}' does not exist", path);
+  preflight(path);
   open_cache(r.impl_->h, path, /*writable=*/false);
   return r;
 }
@@ -819,7 +1004,24 @@ std::vector<DatasetInfo> describe_datasets(const std::string& path) {
   return out;
 }
 
+namespace {
+CacheInfo validate_in_process(const std::string& path, const std::function<void(int64_t, int64_t)>& progress);
+}  // namespace
+
 CacheInfo validate_cache(const std::string& path, const std::function<void(int64_t, int64_t)>& progress) {
+  if (!stdfs::exists(path)) fail("pair cache '{}' does not exist", path);
+  // The full scan runs in a child process (a corrupt file cannot crash the caller, see isolated());
+  // the info then comes from a structure read in this process.
+  isolated(path, "records", [&](const std::function<void(int64_t, int64_t)>& report) {
+    (void)validate_in_process(path, report);
+  }, progress);
+  CacheHandles h;
+  open_cache(h, path, /*writable=*/false);
+  return h.info;
+}
+
+namespace {
+CacheInfo validate_in_process(const std::string& path, const std::function<void(int64_t, int64_t)>& progress) {
   // Structure: attributes, datasets, dtypes, shapes, kinds (open_cache checks them all).
   CacheHandles h;
   open_cache(h, path, /*writable=*/false);
@@ -869,6 +1071,7 @@ CacheInfo validate_cache(const std::string& path, const std::function<void(int64
   }
   return info;
 }
+}  // namespace
 
 // ---------------------------------------------------------------------------------------------
 // Synthetic cache.

@@ -14,6 +14,7 @@
 
 #include "common/error.h"
 #include "common/fs.h"
+#include "data/safetensors_header.h"
 
 namespace simu::data {
 
@@ -58,7 +59,10 @@ SafeTensorsFile SafeTensorsFile::open(const std::string& path) {
   const int fd = ::open(path.c_str(), O_RDONLY);
   if (fd < 0) fail("cannot open safetensors file '{}': {}", path, std::strerror(errno));
   struct stat st {};
-  ::fstat(fd, &st);
+  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode)) {
+    ::close(fd);
+    fail("safetensors file '{}' is not a regular file", path);
+  }
   const uint64_t size = static_cast<uint64_t>(st.st_size);
   if (size < 8) {
     ::close(fd);
@@ -71,78 +75,19 @@ SafeTensorsFile SafeTensorsFile::open(const std::string& path) {
   if (f.map_->addr == MAP_FAILED) fail("{}: mmap failed: {}", path, std::strerror(errno));
   const auto* bytes = static_cast<const uint8_t*>(f.map_->addr);
 
-  // Header length and JSON.
-  uint64_t n = 0;
-  for (int i = 7; i >= 0; --i) n = (n << 8) | bytes[i];
-  if (n > size - 8) fail("{}: truncated safetensors file: header says {} bytes of JSON, file has {} after it", path, n, size - 8);
-  nlohmann::json header;
-  try {
-    header = nlohmann::json::parse(bytes + 8, bytes + 8 + n);
-  } catch (const nlohmann::json::exception& e) {
-    fail("{}: safetensors header is not valid JSON: {}", path, e.what());
-  }
-  if (!header.is_object()) fail("{}: safetensors header is not a JSON object", path);
-  f.data_start_ = 8 + n;
-  const uint64_t buffer = size - f.data_start_;
-
-  // Entries: dtype, shape, offsets; sizes and ranges checked.
-  std::vector<std::pair<uint64_t, std::string>> order;
-  for (auto it = header.begin(); it != header.end(); ++it) {
-    const std::string& key = it.key();
-    if (key == "__metadata__") {
-      if (!it->is_object()) fail("{}: __metadata__ must be an object of strings", path);
-      for (auto m = it->begin(); m != it->end(); ++m) {
-        if (!m->is_string()) fail("{}: __metadata__['{}'] is not a string", path, m.key());
-        f.metadata_[m.key()] = m->get<std::string>();
-      }
-      continue;
-    }
-    const auto& e = *it;
-    if (!e.is_object() || !e.contains("dtype") || !e.contains("shape") || !e.contains("data_offsets"))
-      fail("{}: tensor '{}': entry needs dtype, shape and data_offsets", path, key);
+  // Header and tensor table: parsed and checked against the file's length (safetensors_header.h).
+  auto header = parse_safetensors_header(bytes, size, path);
+  f.data_start_ = header.data_start;
+  f.metadata_ = std::move(header.metadata);
+  for (auto& e : header.tensors) {
     TensorInfo info;
-    try {
-      info.dtype = e["dtype"].get<std::string>();
-      info.shape = e["shape"].get<std::vector<int64_t>>();
-      const auto off = e["data_offsets"].get<std::vector<uint64_t>>();
-      if (off.size() != 2) fail("{}: tensor '{}': data_offsets must have 2 entries", path, key);
-      info.begin = off[0];
-      info.end = off[1];
-    } catch (const nlohmann::json::exception& ex) {
-      fail("{}: tensor '{}': malformed entry: {}", path, key, ex.what());
-    }
-    try {
-      info.scalar_type = dtype_from_name(info.dtype);
-    } catch (const Error&) {
-      fail("{}: tensor '{}': unknown dtype '{}'", path, key, info.dtype);
-    }
-    uint64_t numel = 1;
-    for (auto d : info.shape) {
-      if (d < 0) fail("{}: tensor '{}': negative dimension in shape", path, key);
-      numel *= static_cast<uint64_t>(d);
-    }
-    const uint64_t expect = numel * c10::elementSize(info.scalar_type);
-    if (info.end < info.begin || info.end > buffer)
-      fail("{}: tensor '{}': data_offsets [{}, {}] outside the data buffer of {} bytes (truncated file?)", path, key,
-           info.begin, info.end, buffer);
-    if (info.end - info.begin != expect)
-      fail("{}: tensor '{}': {} bytes for shape {} of {} ({} expected)", path, key, info.end - info.begin,
-           fmt::format("[{}]", fmt::join(info.shape, ", ")), info.dtype, expect);
-    order.emplace_back(info.begin, key);
-    f.infos_[key] = std::move(info);
-  }
-  std::sort(order.begin(), order.end());
-  uint64_t prev_end = 0;
-  std::string prev_key;
-  for (const auto& [begin, key] : order) {
-    const auto& info = f.infos_[key];
-    if (info.begin < prev_end && info.end > info.begin)
-      fail("{}: tensors '{}' and '{}' overlap in the data buffer", path, prev_key, key);
-    if (info.end > info.begin) {
-      prev_end = info.end;
-      prev_key = key;
-    }
-    f.keys_.push_back(key);
+    info.dtype = e.dtype;
+    info.scalar_type = dtype_from_name(e.dtype);
+    info.shape = std::move(e.shape);
+    info.begin = e.begin;
+    info.end = e.end;
+    f.keys_.push_back(e.name);
+    f.infos_[e.name] = std::move(info);
   }
   return f;
 }

@@ -9,6 +9,7 @@
 
 #include "common/error.h"
 #include "common/fs.h"
+#include "common/text.h"
 #include "data/safetensors.h"
 
 namespace simu::lora {
@@ -37,16 +38,24 @@ LoraConfig config_from_json(const json& j, const std::string& where) {
         c.target_suffixes = tm.get<std::vector<std::string>>();
     }
   } catch (const json::exception& e) {
-    fail("{}: bad lora config: {}", where, e.what());
+    fail("{}: key 'lora': expected an object with r (integer), alpha (number), dropout (number), use_rslora "
+         "(true/false), target_modules (string or list of strings), got {}",
+         where, text::excerpt(j));
   }
-  c.validate();
+  try {
+    c.validate();
+  } catch (const Error& e) {
+    fail("{}: key 'lora': {}", where, e.what());
+  }
   return c;
 }
 
 // The training checkpoint's adapter file, renamed to PEFT file keys.
 std::map<std::string, torch::Tensor> read_checkpoint_tensors(const std::string& path) {
   std::map<std::string, torch::Tensor> out;
-  for (auto& [key, t] : data::load_safetensors(path)) {
+  const auto all = data::load_safetensors(path);
+  check_adapter_tensors(all, 0, path);
+  for (auto& [key, t] : all) {
     const std::string name = model_name_from_peft(key);  // accepts file or in-memory PEFT names
     SIMU_CHECK(out.emplace(peft_file_key(name), t).second, "{}: '{}' appears twice", path, name);
   }
@@ -66,7 +75,11 @@ AdapterSource read_adapter_source(const std::string& dir, const std::optional<Lo
     src.kind = "peft";
     src.cfg = read_peft_config(dir);
     const std::string weights = (d / kPeftWeightsFile).string();
-    for (auto& [key, t] : data::load_safetensors(weights)) src.tensors.emplace(peft_file_key(model_name_from_peft(key)), t);
+    SIMU_CHECK(stdfs::is_regular_file(weights), "{}: missing (a PEFT LoRA directory holds {} and {})", weights,
+               kPeftConfigFile, kPeftWeightsFile);
+    const auto all = data::load_safetensors(weights);
+    check_adapter_tensors(all, src.cfg.r, weights);
+    for (auto& [key, t] : all) src.tensors.emplace(peft_file_key(model_name_from_peft(key)), t);
   } else if (stdfs::exists(d / "adapter.safetensors")) {
     // Training checkpoint of this toolkit (src/training/checkpoint.*): adapter.safetensors + train_state.json.
     src.kind = "training-checkpoint";
@@ -74,11 +87,7 @@ AdapterSource read_adapter_source(const std::string& dir, const std::optional<Lo
     const std::string state_path = (d / "train_state.json").string();
     json state;
     if (stdfs::exists(state_path)) {
-      try {
-        state = json::parse(fs::read_file(state_path));
-      } catch (const json::exception& e) {
-        fail("{}: not valid JSON: {}", state_path, e.what());
-      }
+      state = text::parse_json(fs::read_file(state_path), state_path);
     }
     if (state.is_object() && state.contains("lora") && state["lora"].is_object())
       src.cfg = config_from_json(state["lora"], state_path);
@@ -93,14 +102,9 @@ AdapterSource read_adapter_source(const std::string& dir, const std::optional<Lo
               "{}: neither a training checkpoint nor a PEFT adapter directory", dir);
   }
 
-  // The config's rank must agree with the tensors (A is [r, in], B is [out, r]).
-  SIMU_CHECK(!src.tensors.empty(), "{}: no adapter tensors", dir);
-  for (const auto& [key, t] : src.tensors) {
-    const bool is_a = key.size() >= 14 && key.compare(key.size() - 14, 14, ".lora_A.weight") == 0;
-    const int64_t r = t.dim() == 2 ? (is_a ? t.size(0) : t.size(1)) : -1;
-    SIMU_CHECK(r == src.cfg.r, "{}: '{}' has shape [{}], which is not rank {} as the config says", dir, key,
-               fmt::join(t.sizes(), ", "), src.cfg.r);
-  }
+  // The config's rank must agree with the tensors (A is [r, in], B is [out, r]), every A with its B,
+  // float dtypes, finite values.
+  check_adapter_tensors(src.tensors, src.cfg.r, dir);
   return src;
 }
 

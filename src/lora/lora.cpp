@@ -6,7 +6,6 @@
 #include <fmt/ranges.h>
 
 #include <cmath>
-#include <regex>
 #include <set>
 
 #include "common/error.h"
@@ -38,64 +37,6 @@ bool is_lora_name(const std::string& name) {
 std::string shape_str(const torch::Tensor& t) { return fmt::format("[{}]", fmt::join(t.sizes(), ", ")); }
 
 }  // namespace
-
-// ---------------------------------------------------------------- config
-
-double LoraConfig::scale() const {
-  return use_rslora ? alpha / std::sqrt(static_cast<double>(r)) : alpha / static_cast<double>(r);
-}
-
-void LoraConfig::validate() const {
-  SIMU_CHECK(r > 0, "lora: r must be positive, got {}", r);
-  SIMU_CHECK(alpha > 0, "lora: alpha must be positive, got {}", alpha);
-  SIMU_CHECK(dropout >= 0 && dropout < 1, "lora: dropout must be in [0, 1), got {}", dropout);
-  SIMU_CHECK(!target_regex.empty() || !target_suffixes.empty(), "lora: target_modules is empty");
-  if (!target_regex.empty()) {
-    try {
-      std::regex re(target_regex);
-    } catch (const std::regex_error& e) {
-      fail("lora: target_modules regex '{}' is invalid: {}", target_regex, e.what());
-    }
-  }
-  for (const auto& s : target_suffixes) SIMU_CHECK(!s.empty(), "lora: target_modules has an empty entry");
-}
-
-std::vector<std::string> LoraConfig::default_targets() {
-  return {"self_attn.to_qkv.shape", "self_attn.to_out.shape", "cross_attn.shape.to_q", "cross_attn.shape.to_kv",
-          "cross_attn.shape.to_out"};
-}
-
-LoraConfig LoraConfig::from(config::Reader& reader) {
-  LoraConfig c;
-  reader.field("r", c.r);
-  reader.field("alpha", c.alpha);
-  reader.field("dropout", c.dropout);
-  reader.field("use_rslora", c.use_rslora);
-  // target_modules: a string is PEFT's regex form, a list its suffix form.
-  if (reader.has("target_modules")) {
-    const YAML::Node node = reader.raw("target_modules");
-    if (node.IsScalar()) {
-      c.target_regex = node.as<std::string>();
-      c.target_suffixes.clear();
-    } else if (node.IsSequence()) {
-      c.target_suffixes.clear();
-      for (const auto& item : node) {
-        if (!item.IsScalar())
-          fail("{}: key '{}': expected a string or a list of strings", reader.file(), reader.full("target_modules"));
-        c.target_suffixes.push_back(item.as<std::string>());
-      }
-    } else {
-      fail("{}: key '{}': expected a regex string or a list of module-name suffixes", reader.file(),
-           reader.full("target_modules"));
-    }
-  }
-  try {
-    c.validate();
-  } catch (const Error& e) {
-    fail("{}: {}", reader.file(), e.what());
-  }
-  return c;
-}
 
 // ---------------------------------------------------------------- layer
 
@@ -158,9 +99,8 @@ std::vector<std::pair<std::string, std::shared_ptr<models::LinearImpl>>> lora_la
 // ---------------------------------------------------------------- injection
 
 InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg) {
-  cfg.validate();
-  const bool use_regex = !cfg.target_regex.empty();
-  const std::regex re = use_regex ? std::regex(cfg.target_regex) : std::regex();
+  const TargetMatcher matcher(cfg);  // validates cfg
+  const bool use_regex = matcher.is_regex();
   std::set<std::string> unused_suffixes(cfg.target_suffixes.begin(), cfg.target_suffixes.end());
   std::vector<std::string> problems;
   std::vector<std::pair<std::string, std::shared_ptr<models::LinearImpl>>> targets;
@@ -170,18 +110,8 @@ InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg) {
     const std::string& path = item.key();
     const std::string name = leaf(path);
     if (name == "lora_A" || name == "lora_B") continue;  // our own adapter matrices
-    bool hit = false;
-    if (use_regex) {
-      hit = std::regex_match(path, re);
-    } else {
-      for (const auto& s : cfg.target_suffixes) {
-        if (path == s || ends_with(path, "." + s)) {
-          hit = true;
-          unused_suffixes.erase(s);
-        }
-      }
-    }
-    if (!hit) continue;
+    if (!matcher.matches(path)) continue;
+    for (const auto& s : matcher.matching_entries(path)) unused_suffixes.erase(s);
     auto linear = std::dynamic_pointer_cast<models::LinearImpl>(item.value());
     if (!linear) {
       problems.push_back(fmt::format("'{}' is a {}, not a models::Linear", path, item.value()->name()));

@@ -24,33 +24,10 @@
 #include <vector>
 
 #include "common/config.h"
+#include "lora/lora_config.h"
 #include "models/linear.h"
 
 namespace simu::lora {
-
-// Hyper-parameters of the adapters (PEFT LoraConfig's subset that this toolkit supports).
-struct LoraConfig {
-  int64_t r = 64;            // rank
-  double alpha = 128.0;      // lora_alpha
-  double dropout = 0.0;      // lora_dropout on the adapter's input (training mode only)
-  bool use_rslora = false;   // scale = alpha / sqrt(r) instead of alpha / r
-  // PEFT target_modules. When target_regex is non-empty it is the string form: a regex that must
-  // match the whole module path (std::regex ECMAScript, like Python's re.fullmatch for the usual
-  // patterns). Otherwise target_suffixes is the list form: a module is targeted when its path
-  // equals an entry or ends with "." + entry. Default: the 5 shape-branch attention projections.
-  std::string target_regex;
-  std::vector<std::string> target_suffixes = default_targets();
-
-  // scale = alpha / r (or alpha / sqrt(r)).
-  double scale() const;
-  // Throws simu::Error on r <= 0, alpha <= 0, dropout outside [0, 1), no targets.
-  void validate() const;
-  // The 5 shape-branch projections of each block (self_attn.to_qkv.shape, self_attn.to_out.shape,
-  // cross_attn.shape.to_q, cross_attn.shape.to_kv, cross_attn.shape.to_out).
-  static std::vector<std::string> default_targets();
-  // Reads r, alpha, dropout, use_rslora, target_modules (a string = regex, or a list of suffixes).
-  static LoraConfig from(config::Reader& reader);
-};
 
 // What inject_lora did.
 struct InjectReport {
@@ -98,6 +75,8 @@ std::shared_ptr<LoraAdapter> lora_adapter(const models::LinearImpl& linear);
 
 // Wraps every Linear whose path (relative to root, e.g. "reverse_fn.backbone.blocks.0.self_attn.to_qkv.shape")
 // is targeted by cfg, then freezes every non-LoRA parameter of root (requires_grad false).
+// Matching follows PEFT (lora_config.h: a regex must match the whole path, on RE2; a list entry
+// matches the path or a ".entry" suffix).
 // Errors (one simu::Error listing all): a regex matching nothing, a suffix matching nothing, a
 // targeted module that is not a models::Linear, a Linear already wrapped. Logs the report.
 InjectReport inject_lora(torch::nn::Module& root, const LoraConfig& cfg);
@@ -131,21 +110,23 @@ std::string peft_param_key(const std::string& model_name);
 // Inverse of both (accepts either form); throws on a key that is neither.
 std::string model_name_from_peft(const std::string& peft_key);
 
-// PEFT LoRA directory: adapter_config.json + adapter_model.safetensors (PEFT 0.21 layout).
-inline constexpr const char* kPeftConfigFile = "adapter_config.json";
-inline constexpr const char* kPeftWeightsFile = "adapter_model.safetensors";
+// Checks adapter tensors (any key form model_name_from_peft accepts) before they are written or
+// loaded: each a LoRA A/B weight of a float dtype (F32, F16, BF16, F64), 2-D, finite; every lora_A
+// has the lora_B of the same module and back; A is [r, in], B is [out, r] with one r (= r when r > 0).
+// Throws simu::Error naming source and the tensor, and saying what was expected.
+void check_adapter_tensors(const std::map<std::string, torch::Tensor>& tensors, int64_t r, const std::string& source);
 
 // Writes root's adapters as a PEFT directory. base_description (free text naming the base model and
-// its config) goes into base_model_name_or_path. A new directory is built beside dir and renamed
-// into place; an existing one gets each file replaced atomically (weights first, config last).
+// its config) goes into base_model_name_or_path. The directory is built beside dir
+// ("<dir>.tmp-<pid>") and moved into place in one step (an existing dir is replaced whole, so a failed
+// run leaves the previous adapter intact); temporaries of dead writers are removed first. Refuses
+// tensors that check_adapter_tensors refuses. (Programs decide whether replacing is allowed.)
 void save_peft(const std::string& dir, torch::nn::Module& root, const LoraConfig& cfg,
                const std::string& base_description);
 // Same from tensors already named by PEFT file keys (for converters that have no model).
 void save_peft_tensors(const std::string& dir, const std::map<std::string, torch::Tensor>& tensors,
                        const LoraConfig& cfg, const std::string& base_description);
 
-// Reads adapter_config.json of a PEFT LoRA directory (features we do not implement -> error).
-LoraConfig read_peft_config(const std::string& dir);
 // Loads a PEFT directory into root: injects with the file's config when root has no adapters yet
 // (otherwise the existing adapters get the file's scale/dropout), then loads strictly: one error
 // lists every missing key, unexpected key, and shape mismatch (file [..] vs model [..]). On an error

@@ -65,20 +65,57 @@ json peft_config_json(const LoraConfig& cfg, const std::string& base_description
   return j;
 }
 
-// True when a JSON field is absent, null, false, or an empty object/list/string.
-bool unset(const json& j, const char* key) {
-  if (!j.contains(key)) return true;
-  const json& v = j.at(key);
-  return v.is_null() || (v.is_boolean() && !v.get<bool>()) || (v.is_object() && v.empty()) ||
-         (v.is_array() && v.empty()) || (v.is_string() && v.get<std::string>().empty());
-}
-
 }  // namespace
+
+void check_adapter_tensors(const std::map<std::string, torch::Tensor>& tensors, int64_t r, const std::string& source) {
+  SIMU_CHECK(!tensors.empty(), "{}: no adapter tensors", source);
+  // module path -> (A, B) keys
+  std::map<std::string, std::pair<std::string, std::string>> modules;
+  int64_t rank = r;
+  std::string rank_from;
+  for (const auto& [key, t] : tensors) {
+    std::string name;
+    try {
+      name = key.rfind("base_model.model.", 0) == 0 ? model_name_from_peft(key) : key;
+    } catch (const Error& e) {
+      fail("{}: tensor '{}' is not a LoRA A/B weight (expected base_model.model.<module>.lora_A.weight or .lora_B.weight)",
+           source, key);
+    }
+    const bool is_a = name.size() > 14 && name.compare(name.size() - 14, 14, ".lora_A.weight") == 0;
+    const bool is_b = name.size() > 14 && name.compare(name.size() - 14, 14, ".lora_B.weight") == 0;
+    SIMU_CHECK(is_a || is_b, "{}: tensor '{}' is not a LoRA A/B weight (expected <module>.lora_A.weight or .lora_B.weight)",
+               source, key);
+    const auto st = t.scalar_type();
+    SIMU_CHECK(st == torch::kFloat32 || st == torch::kFloat16 || st == torch::kBFloat16 || st == torch::kFloat64,
+               "{}: tensor '{}' has dtype {}, expected a float type (F32, F16, BF16 or F64)", source, key,
+               c10::toString(st));
+    SIMU_CHECK(t.dim() == 2 && t.numel() > 0, "{}: tensor '{}' has shape [{}], expected a non-empty 2-D matrix", source,
+               key, fmt::join(t.sizes(), ", "));
+    SIMU_CHECK(torch::isfinite(t).all().item<bool>(), "{}: tensor '{}' holds NaN or Inf ({} non-finite of {} values)",
+               source, key, (~torch::isfinite(t)).sum().item<int64_t>(), t.numel());
+    const int64_t tr = is_a ? t.size(0) : t.size(1);
+    if (rank <= 0) {
+      rank = tr;
+      rank_from = key;
+    }
+    SIMU_CHECK(tr == rank, "{}: tensor '{}' has shape [{}], which is not rank {} ({})", source, key,
+               fmt::join(t.sizes(), ", "), rank, rank_from.empty() ? std::string("the config's r") : "as " + rank_from);
+    auto& slot = modules[name.substr(0, name.size() - 14)];
+    (is_a ? slot.first : slot.second) = key;
+  }
+  for (const auto& [module, keys] : modules) {
+    SIMU_CHECK(!keys.first.empty(), "{}: '{}' has no lora_A partner (every module needs lora_A and lora_B)", source,
+               keys.second);
+    SIMU_CHECK(!keys.second.empty(), "{}: '{}' has no lora_B partner (every module needs lora_A and lora_B)", source,
+               keys.first);
+  }
+}
 
 void save_peft_tensors(const std::string& dir, const std::map<std::string, torch::Tensor>& tensors,
                        const LoraConfig& cfg, const std::string& base_description) {
   cfg.validate();
   SIMU_CHECK(!tensors.empty(), "save_peft: no adapter tensors to write to {}", dir);
+  check_adapter_tensors(tensors, cfg.r, fmt::format("save_peft {}", dir));
   // Adapter weights in fp32 under PEFT file keys; every key must be a LoRA A/B weight.
   std::map<std::string, torch::Tensor> out;
   for (const auto& [key, t] : tensors) {
@@ -87,19 +124,23 @@ void save_peft_tensors(const std::string& dir, const std::map<std::string, torch
   }
   const std::string config_text = peft_config_json(cfg, base_description).dump(2) + "\n";
 
-  // New directory: build it beside the target and rename it into place; existing: replace per file.
+  // Built beside the target, then moved into place whole (the previous adapter stays on failure).
   const stdfs::path target(dir);
-  if (!stdfs::exists(target)) {
-    const stdfs::path tmp = target.string() + ".tmp-" + std::to_string(::getpid());
-    fs::remove_tree(tmp.string());
-    stdfs::create_directories(tmp);
+  SIMU_CHECK(!stdfs::exists(target) || stdfs::is_directory(target), "save_peft: {} exists and is not a directory", dir);
+  fs::remove_stale_temps(target.string());
+  const stdfs::path tmp = target.string() + ".tmp-" + std::to_string(::getpid());
+  fs::remove_tree(tmp.string());
+  stdfs::create_directories(tmp);
+  try {
     data::save_safetensors((tmp / kPeftWeightsFile).string(), out, {{"format", "pt"}});
     fs::atomic_write((tmp / kPeftConfigFile).string(), config_text);
-    fs::atomic_rename(tmp.string(), target.string());
-  } else {
-    SIMU_CHECK(stdfs::is_directory(target), "save_peft: {} exists and is not a directory", dir);
-    data::save_safetensors((target / kPeftWeightsFile).string(), out, {{"format", "pt"}});
-    fs::atomic_write((target / kPeftConfigFile).string(), config_text);
+    fs::replace_dir(tmp.string(), target.string());
+  } catch (...) {
+    try {
+      fs::remove_tree(tmp.string());
+    } catch (...) {
+    }
+    throw;
   }
   log::info("lora: wrote PEFT adapter {} ({} tensors, r={}, alpha={})", dir, out.size(), cfg.r, cfg.alpha);
 }
@@ -117,62 +158,13 @@ void save_peft(const std::string& dir, torch::nn::Module& root, const LoraConfig
   save_peft_tensors(dir, tensors, cfg, base_description);
 }
 
-LoraConfig read_peft_config(const std::string& dir) {
-  const std::string path = (stdfs::path(dir) / kPeftConfigFile).string();
-  json j;
-  try {
-    j = json::parse(fs::read_file(path));
-  } catch (const json::exception& e) {
-    fail("{}: not valid JSON: {}", path, e.what());
-  }
-  SIMU_CHECK(j.is_object(), "{}: expected a JSON object", path);
-  try {
-    // Only plain LoRA is implemented: refuse every PEFT feature that would change the math.
-    const std::string type = j.value("peft_type", std::string());
-    SIMU_CHECK(type == "LORA", "{}: peft_type is '{}', expected 'LORA'", path, type);
-    const std::string bias = j.contains("bias") && !j["bias"].is_null() ? j["bias"].get<std::string>() : "none";
-    SIMU_CHECK(bias == "none", "{}: bias '{}' is not supported (only \"none\")", path, bias);
-    for (const char* key : {"use_dora", "fan_in_fan_out", "lora_bias", "rank_pattern", "alpha_pattern",
-                            "modules_to_save", "layers_to_transform", "layers_pattern", "exclude_modules",
-                            "layer_replication", "target_parameters", "use_qalora", "use_bdlora"})
-      SIMU_CHECK(unset(j, key), "{}: '{}' = {} is not supported by this toolkit", path, key, j.at(key).dump());
-
-    LoraConfig cfg;
-    SIMU_CHECK(j.contains("r") && j["r"].is_number_integer(), "{}: 'r' must be an integer", path);
-    cfg.r = j["r"].get<int64_t>();
-    SIMU_CHECK(j.contains("lora_alpha") && j["lora_alpha"].is_number(), "{}: 'lora_alpha' must be a number", path);
-    cfg.alpha = j["lora_alpha"].get<double>();
-    cfg.dropout = j.contains("lora_dropout") && j["lora_dropout"].is_number() ? j["lora_dropout"].get<double>() : 0.0;
-    cfg.use_rslora = j.contains("use_rslora") && j["use_rslora"].is_boolean() && j["use_rslora"].get<bool>();
-    const json& tm = j.contains("target_modules") ? j["target_modules"] : json(nullptr);
-    cfg.target_suffixes.clear();
-    if (tm.is_string()) {
-      cfg.target_regex = tm.get<std::string>();
-    } else if (tm.is_array()) {
-      for (const auto& item : tm) {
-        SIMU_CHECK(item.is_string(), "{}: target_modules entries must be strings", path);
-        cfg.target_suffixes.push_back(item.get<std::string>());
-      }
-    } else {
-      fail("{}: target_modules must be a regex string or a list of names, got {}", path, tm.dump());
-    }
-    cfg.validate();
-    return cfg;
-  } catch (const json::exception& e) {
-    fail("{}: unexpected value type: {}", path, e.what());
-  } catch (const Error& e) {
-    const std::string msg = e.what();
-    if (msg.rfind(path, 0) == 0) throw;
-    throw Error(path + ": " + msg, e.hint());
-  }
-}
-
 LoraConfig load_peft(const std::string& dir, torch::nn::Module& root) {
   const LoraConfig cfg = read_peft_config(dir);
   const std::string weights = (stdfs::path(dir) / kPeftWeightsFile).string();
   SIMU_CHECK(stdfs::exists(weights), "{}: missing (a PEFT LoRA directory holds {} and {})", weights, kPeftConfigFile,
              kPeftWeightsFile);
   const auto file = data::SafeTensorsFile::open(weights);
+  check_adapter_tensors(file.all(), cfg.r, weights);
 
   // Inject with the file's config, or give existing adapters the file's scale and dropout.
   const bool injected = ensure_lora(root, cfg);

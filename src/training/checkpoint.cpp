@@ -14,6 +14,7 @@
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
+#include "common/text.h"
 #include "data/safetensors.h"
 
 namespace simu::training {
@@ -105,12 +106,20 @@ CheckpointData load_checkpoint(const std::string& dir) {
                 "{}: not a checkpoint: missing {}", dir, f);
   d.adapter = simu::data::load_safetensors(dir + "/adapter.safetensors");
   d.optimizer = simu::data::load_safetensors(dir + "/optimizer.safetensors");
-  try {
-    d.state = nlohmann::json::parse(simu::fs::read_file(dir + "/train_state.json"));
-    d.step = d.state.at("step").get<int64_t>();
-  } catch (const nlohmann::json::exception& e) {
-    fail("{}/train_state.json: malformed: {}", dir, e.what());
-  }
+  const std::string state_path = dir + "/train_state.json";
+  d.state = simu::text::parse_json(simu::fs::read_file(state_path), state_path);
+  // What resume reads: step and data_position {epoch, step}, non-negative integers.
+  auto integer = [&](const nlohmann::json& obj, const char* key, const char* where) {
+    if (!obj.is_object() || !obj.contains(key) || !obj.at(key).is_number_integer() || obj.at(key).get<int64_t>() < 0)
+      fail_hint("the checkpoint is damaged: resume from an earlier one", "{}: key '{}{}': expected a non-negative integer, got {}",
+                state_path, where, key, obj.is_object() && obj.contains(key) ? simu::text::excerpt(obj.at(key)) : "nothing");
+    return obj.at(key).get<int64_t>();
+  };
+  d.step = integer(d.state, "step", "");
+  const nlohmann::json pos = d.state.contains("data_position") ? d.state.at("data_position") : nlohmann::json();
+  integer(pos, "epoch", "data_position.");
+  integer(pos, "step", "data_position.");
+  if (d.state.contains("global_batch")) integer(d.state, "global_batch", "");
   // Own copies: the mapped files may be replaced while training goes on.
   for (auto& [k, v] : d.adapter) v = v.clone();
   for (auto& [k, v] : d.optimizer) v = v.clone();

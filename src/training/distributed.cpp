@@ -47,6 +47,15 @@ int env_int(const char* name, int fallback) {
   return static_cast<int>(x);
 }
 
+// An exception's text without a C++ backtrace (c10::Error carries one) and on one line.
+std::string short_what(const std::exception& e) {
+  std::string msg;
+  if (const auto* ce = dynamic_cast<const c10::Error*>(&e)) msg = ce->what_without_backtrace();
+  else msg = e.what();
+  if (const auto nl = msg.find('\n'); nl != std::string::npos) msg = msg.substr(0, nl);
+  return msg;
+}
+
 // Flattens tensors into one contiguous buffer (same dtype/device as the first).
 torch::Tensor flatten(const std::vector<torch::Tensor>& ts) {
   std::vector<torch::Tensor> flat;
@@ -113,17 +122,28 @@ class StoreCommunicator : public Communicator {
   void barrier() override { exchange("barrier", {1}); }
 
  protected:
-  // Names the ranks that have not posted key(r) (or cannot be asked: the store is gone).
-  std::vector<int> ranks_without(const std::function<std::string(int)>& key) {
+  // Why a collective of this rank failed, in words that name the culprit: the other ranks that never
+  // posted key(r), or rank 0 itself when the store it hosts cannot be reached (it is gone). This
+  // rank is never listed; "after X s" says how long it waited, "timed out" only when the full
+  // timeout passed.
+  std::string failure_cause(const std::function<std::string(int)>& key, std::chrono::steady_clock::time_point began) {
+    const double waited = std::chrono::duration<double>(std::chrono::steady_clock::now() - began).count();
+    const double limit = timeout_.count() / 1000.0;
+    const std::string when = waited + 0.5 >= limit ? fmt::format("timed out after {:.0f} s", waited)
+                                                   : fmt::format("failed after {:.1f} s", waited);
     std::vector<int> missing;
     for (int r = 0; r < world_; ++r) {
+      if (r == rank_) continue;
       try {
         if (!store_->check({key(r)})) missing.push_back(r);
       } catch (const std::exception&) {
-        missing.push_back(r);
+        if (rank_ == 0) return fmt::format("{}: the rendezvous store stopped answering", when);
+        return fmt::format("{}: rank 0 is gone (it hosts the rendezvous store, which no longer answers); see rank 0's log",
+                           when);
       }
     }
-    return missing;
+    if (missing.empty()) return fmt::format("{}: every other rank reached it (a peer's connection broke)", when);
+    return fmt::format("{} waiting for rank(s) {} (dead or hung)", when, fmt::join(missing, ", "));
   }
 
   c10::intrusive_ptr<c10d::Store> store_;
@@ -147,19 +167,23 @@ class StoreCommunicator : public Communicator {
   std::vector<std::vector<uint8_t>> exchange(const std::string& what, const std::vector<uint8_t>& mine) {
     const int64_t round = round_++;
     auto key = [&](int64_t rd, int r) { return fmt::format("simu/{}/{}", rd, r); };
-    store_->set(key(round, rank_), mine);
+    try {
+      store_->set(key(round, rank_), mine);
+    } catch (const std::exception&) {
+      fail("rank {}: {} #{}: rank 0 is gone (it hosts the rendezvous store, which no longer answers); see rank 0's log",
+           rank_, what, round);
+    }
     std::vector<std::string> keys;
     for (int r = 0; r < world_; ++r) keys.push_back(key(round, r));
+    const auto began = std::chrono::steady_clock::now();
+    std::vector<std::vector<uint8_t>> out;
     try {
       store_->wait(keys, timeout_);
+      for (auto& k : keys) out.push_back(store_->get(k));
     } catch (const std::exception&) {
-      const auto missing = ranks_without([&](int r) { return keys[r]; });
-      fail_hint("check the log of the named rank(s); raise dist.timeout_s if they are only slow",
-                "rank {}: {} #{} timed out after {} s waiting for rank(s) {} (dead or hung)", rank_, what, round,
-                timeout_.count() / 1000.0, fmt::join(missing, ", "));
+      fail_hint("check the log of the named rank(s); raise dist.timeout_s if they are only slow", "rank {}: {} #{} {}",
+                rank_, what, round, failure_cause([&](int r) { return keys[r]; }, began));
     }
-    std::vector<std::vector<uint8_t>> out;
-    for (auto& k : keys) out.push_back(store_->get(k));
     // Every rank has read round-2 by the time any rank posts this round's key: drop my old one.
     if (round >= 2) store_->deleteKey(key(round - 2, rank_));
     return out;
@@ -215,7 +239,7 @@ class GlooCommunicator : public StoreCommunicator {
     } catch (const std::exception& e) {
       fail_hint("check that every rank started and can reach the others (GLOO_SOCKET_IFNAME selects the interface)",
                 "rank {}: Gloo process group setup failed (world size {}, timeout {} s): {}", rank, world,
-                timeout.count() / 1000.0, e.what());
+                timeout.count() / 1000.0, short_what(e));
     }
   }
   std::string backend() const override { return "gloo"; }
@@ -249,17 +273,20 @@ class GlooCommunicator : public StoreCommunicator {
   // Announces collective #round, runs it, waits for it; on failure names the ranks that never arrived.
   void run(const char* what, const std::function<c10::intrusive_ptr<c10d::Work>()>& op) {
     const int64_t round = round_++;
-    store_->set(key(round, rank_), std::vector<uint8_t>{1});
+    try {
+      store_->set(key(round, rank_), std::vector<uint8_t>{1});
+    } catch (const std::exception& e) {
+      fail("rank {}: gloo {} #{}: rank 0 is gone (it hosts the rendezvous store, which no longer answers); see rank 0's log",
+           rank_, what, round);
+    }
+    const auto began = std::chrono::steady_clock::now();
     try {
       // Gloo ends the operation itself after the options' timeout; the margin lets its error win.
       op()->wait(timeout_ + std::chrono::seconds(5));
     } catch (const std::exception& e) {
-      const auto missing = ranks_without([&](int r) { return key(round, r); });
-      const std::string who = missing.empty() ? std::string("no rank missing: every rank reached it")
-                                              : fmt::format("waiting for rank(s) {} (dead or hung)", fmt::join(missing, ", "));
       fail_hint("check the log of the named rank(s); raise dist.timeout_s if they are only slow",
-                "rank {}: gloo {} #{} failed (timeout {} s), {}: {}", rank_, what, round, timeout_.count() / 1000.0, who,
-                e.what());
+                "rank {}: gloo {} #{} {} (gloo: {})", rank_, what, round,
+                failure_cause([&](int r) { return key(round, r); }, began), short_what(e));
     }
     // Every rank entered this round, so all are done with the previous one: drop my old key.
     if (round >= 1) store_->deleteKey(key(round - 1, rank_));
@@ -344,7 +371,7 @@ c10::intrusive_ptr<c10d::Store> connect_store(const DistEnv& env, std::chrono::m
   } catch (const std::exception& e) {
     fail_hint("check MASTER_ADDR/MASTER_PORT and that every rank started",
               "rank {}: rendezvous at {}:{} failed (world size {}, timeout {} s): {}", env.rank, env.master_addr,
-              env.master_port, env.world_size, timeout.count() / 1000.0, e.what());
+              env.master_port, env.world_size, timeout.count() / 1000.0, short_what(e));
   }
 }
 
@@ -409,6 +436,21 @@ void heartbeat() {
 namespace {
 volatile sig_atomic_t g_forward_signal = 0;
 void on_signal(int sig) { g_forward_signal = sig; }
+
+// True when the process is stopped by a signal (state T in /proc/<pid>/stat) or traced (t).
+bool process_stopped(pid_t pid) {
+  const std::string path = fmt::format("/proc/{}/stat", pid);
+  const int fd = ::open(path.c_str(), O_RDONLY);
+  if (fd < 0) return false;
+  char buf[512];
+  const ssize_t n = ::read(fd, buf, sizeof(buf) - 1);
+  ::close(fd);
+  if (n <= 0) return false;
+  buf[n] = '\0';
+  // "pid (comm) S ...": the state follows the last ')'.
+  const char* close = std::strrchr(buf, ')');
+  return close && close[1] == ' ' && (close[2] == 'T' || close[2] == 't');
+}
 }  // namespace
 
 void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::chrono::seconds hang_timeout) {
@@ -461,10 +503,11 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
   ::sigaction(SIGINT, &sa, nullptr);
   ::sigaction(SIGTERM, &sa, nullptr);
 
-  // Ends every rank still running: SIGTERM, then SIGKILL after 5 s.
+  // Ends every rank still running: a stopped (SIGSTOPped, suspended) rank cannot act on SIGTERM, so it
+  // gets SIGKILL at once; the others SIGTERM, then SIGKILL after 5 s.
   auto stop_all = [&](int sig) {
     for (auto p : pids)
-      if (p > 0) ::kill(p, sig);
+      if (p > 0) ::kill(p, process_stopped(p) ? SIGKILL : sig);
     const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
     while (std::chrono::steady_clock::now() < until) {
       bool any = false;
@@ -473,7 +516,7 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
         if (::waitpid(p, nullptr, WNOHANG) == p) p = -1; else any = true;
       }
       if (!any) break;
-      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
     for (auto& p : pids)
       if (p > 0) {
@@ -482,6 +525,14 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
         p = -1;
       }
     simu::fs::remove_tree(beat_dir);
+  };
+  // The ranks (other than `except`) that are stopped by a signal right now: they, not the rank that
+  // reported a timeout waiting for them, are the cause.
+  auto stopped_ranks = [&](int except) {
+    std::vector<int> out;
+    for (int r = 0; r < nproc; ++r)
+      if (r != except && pids[r] > 0 && process_stopped(pids[r])) out.push_back(r);
+    return out;
   };
 
   // Watch: exits, signals, heartbeats.
@@ -501,7 +552,13 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
       if (WIFEXITED(status) && WEXITSTATUS(status) == 0) continue;
       const std::string how = WIFSIGNALED(status) ? fmt::format("was killed by signal {} ({})", WTERMSIG(status), strsignal(WTERMSIG(status)))
                                                   : fmt::format("exited with status {}", WEXITSTATUS(status));
+      // A rank that failed waiting for a stopped one: name the stopped rank as the cause.
+      const auto stopped = stopped_ranks(r);
       stop_all(SIGTERM);
+      if (!stopped.empty())
+        fail_hint("a stopped process (SIGSTOP, Ctrl-Z, a debugger) cannot take part in collectives",
+                  "rank(s) {} stopped (hung) and rank {} {} waiting for it; all ranks stopped",
+                  fmt::join(stopped, ", "), r, how);
       fail("rank {} {}; the other ranks were stopped", r, how);
     }
     const auto now = std::filesystem::file_time_type::clock::now();
@@ -510,9 +567,11 @@ void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::ch
       std::error_code ec;
       const auto t = std::filesystem::last_write_time(beats[r], ec);
       if (!ec && now - t > hang_timeout) {
+        const bool stopped = process_stopped(pids[r]);
         stop_all(SIGTERM);
         fail_hint("raise dist.hang_timeout_s if a step (or start-up) is legitimately this slow",
-                  "rank {} made no progress for {} s (hung); all ranks stopped", r, hang_timeout.count());
+                  "rank {} made no progress for {} s ({}); all ranks stopped", r, hang_timeout.count(),
+                  stopped ? "stopped by a signal" : "hung");
       }
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(100));

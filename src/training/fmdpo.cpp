@@ -1,5 +1,7 @@
 #include "training/fmdpo.h"
 
+#include <cmath>
+
 #include <ATen/CPUGeneratorImpl.h>
 #include <ATen/autocast_mode.h>
 
@@ -16,9 +18,16 @@ ObjectiveConfig ObjectiveConfig::from(simu::config::Reader& r) {
   r.field("weight_preservation", c.weight_preservation);
   r.field("t_mean", c.t_mean);
   r.field("t_std", c.t_std);
-  SIMU_CHECK(c.beta > 0, "{}: objective.beta must be > 0, got {}", r.file(), c.beta);
-  SIMU_CHECK(c.weight_completion >= 0 && c.weight_preservation >= 0, "{}: objective weights must be >= 0", r.file());
-  SIMU_CHECK(c.t_std > 0, "{}: objective.t_std must be > 0", r.file());
+  // Domains: finite values only; beta is the DPO temperature (the paper's range is 10^2..10^4).
+  auto in = [&](double v, double lo, double hi, bool lo_open, const char* key, const char* domain) {
+    if (!std::isfinite(v) || v > hi || (lo_open ? v <= lo : v < lo))
+      fail("{}: key 'objective.{}': expected a finite number in {}, got {}", r.file(), key, domain, v);
+  };
+  in(c.beta, 0, 1e6, true, "beta", "(0, 1e6]");
+  in(c.weight_completion, 0, 1e6, false, "weight_completion", "[0, 1e6]");
+  in(c.weight_preservation, 0, 1e6, false, "weight_preservation", "[0, 1e6]");
+  in(c.t_mean, -100, 100, false, "t_mean", "[-100, 100]");
+  in(c.t_std, 0, 100, true, "t_std", "(0, 100]");
   return c;
 }
 

@@ -86,12 +86,14 @@ bool have_generator_policy() { return true; }
 
 std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_config, const std::string& weights,
                                                    const YAML::Node& lora, const std::string& lora_dir,
-                                                   torch::Device device) {
+                                                   torch::Device device, const std::string& lora_file) {
   auto gen = simu::models::load_generator(generator_config, weights, torch::kCPU);
   freeze(*gen);
   simu::lora::LoraConfig lc;
   if (lora_dir.empty()) {
-    simu::config::Reader r(lora ? lora : YAML::Node(YAML::NodeType::Map), generator_config, "lora");
+    // Errors name the file the lora: section comes from (the training config), not the model's.
+    simu::config::Reader r(lora ? lora : YAML::Node(YAML::NodeType::Map),
+                           lora_file.empty() ? std::string("lora section") : lora_file, "lora");
     lc = simu::lora::LoraConfig::from(r);
     r.finish();
     auto report = simu::lora::inject_lora(*gen, lc);
@@ -108,12 +110,12 @@ std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch
   // train.seed fixes the random parts of the model (the LoRA A init, and the base when no weights are
   // given), identically on every rank and for every world size.
   torch::manual_seed(cfg.train.seed);
-  return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device);
+  return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device, cfg.file);
 }
 #else
 bool have_generator_policy() { return false; }
 std::unique_ptr<PolicyModel> make_generator_policy(const std::string&, const std::string&, const YAML::Node&,
-                                                   const std::string&, torch::Device) {
+                                                   const std::string&, torch::Device, const std::string&) {
   fail("this build has no Stage-1 generator / LoRA library (models/generator.h, lora/lora.h)");
 }
 std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig&, torch::Device) {

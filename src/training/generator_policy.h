@@ -18,9 +18,10 @@ std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch
 
 // Same, from a generator already built (tests: fixture weights + a PEFT adapter loaded on top).
 // lora_dir: "" -> inject fresh adapters from cfg.lora; else load_peft(lora_dir) (adapter config there).
+// lora_file: the file the lora node comes from, named in its errors ("" -> "lora section").
 std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_config, const std::string& weights,
                                                    const YAML::Node& lora, const std::string& lora_dir,
-                                                   torch::Device device);
+                                                   torch::Device device, const std::string& lora_file = "");
 
 // Source over the HDF5 pair cache (data/pair_cache.h PairStream) with `prefetch` batches read ahead.
 PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch);

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <numeric>
 #include <random>
@@ -13,7 +14,9 @@
 #include <fmt/ranges.h>
 
 #include "common/error.h"
+#include "common/fs.h"
 #include "common/log.h"
+#include "lora/lora_config.h"
 #include "training/observe.h"
 
 namespace simu::training {
@@ -36,7 +39,8 @@ DataConfig DataConfig::from(simu::config::Reader& r) {
   r.field("seed", c.seed);
   SIMU_CHECK(c.global_batch >= 1, "{}: data.global_batch must be >= 1, got {}", r.file(), c.global_batch);
   SIMU_CHECK(c.micro_batch >= 1, "{}: data.micro_batch must be >= 1, got {}", r.file(), c.micro_batch);
-  SIMU_CHECK(c.prefetch >= 0, "{}: data.prefetch must be >= 0", r.file());
+  SIMU_CHECK(c.prefetch >= 0 && c.prefetch <= 1024, "{}: key 'data.prefetch': expected an integer in 0..1024, got {}",
+             r.file(), c.prefetch);
   return c;
 }
 
@@ -63,6 +67,8 @@ RunConfig RunConfig::from(simu::config::Reader& r) {
   r.field("log_every", c.log_every);
   r.field("progress", c.progress);
   SIMU_CHECK(c.checkpoint_every >= 0, "{}: run.checkpoint_every must be >= 0", r.file());
+  SIMU_CHECK(c.keep_last >= 0, "{}: key 'run.keep_last': expected an integer >= 0 (0 keeps all), got {}", r.file(), c.keep_last);
+  SIMU_CHECK(c.log_every >= 1, "{}: key 'run.log_every': expected an integer >= 1, got {}", r.file(), c.log_every);
   SIMU_CHECK(!c.out_dir.empty(), "{}: run.out_dir must not be empty", r.file());
   return c;
 }
@@ -71,7 +77,9 @@ DistConfig DistConfig::from(simu::config::Reader& r) {
   DistConfig c;
   r.field("timeout_s", c.timeout_s);
   r.field("hang_timeout_s", c.hang_timeout_s);
-  SIMU_CHECK(c.timeout_s > 0 && c.hang_timeout_s > 0, "{}: dist timeouts must be > 0", r.file());
+  for (const auto& [key, v] : {std::pair<const char*, double>{"timeout_s", c.timeout_s}, {"hang_timeout_s", c.hang_timeout_s}})
+    SIMU_CHECK(std::isfinite(v) && v > 0 && v <= 7 * 24 * 3600.0,
+               "{}: key 'dist.{}': expected a number of seconds in (0, 604800], got {}", r.file(), key, v);
   return c;
 }
 
@@ -79,7 +87,12 @@ TrainConfig TrainConfig::from(simu::config::Reader& r) {
   TrainConfig c;
   auto m = r.child("model");
   c.model = ModelConfig::from(m);
-  c.lora = r.raw("lora");
+  // The lora: section is checked here, naming this file (make_generator_policy reads it again).
+  {
+    auto l = r.child("lora");
+    (void)simu::lora::LoraConfig::from(l);
+  }
+  c.lora = r.node()["lora"];
   auto o = r.child("objective");
   c.objective = ObjectiveConfig::from(o);
   auto op = r.child("optim");
@@ -102,6 +115,25 @@ TrainConfig TrainConfig::load(const std::string& path, const std::vector<std::st
   auto node = simu::config::load_file(path, overrides);
   simu::config::Reader r(node, path);
   return from(r);
+}
+
+void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead) {
+  if (cfg.data.cache.empty())
+    fail_hint("set data.cache in the config or pass --set data.cache=PATH (build one with pairs make / build_pairs)",
+              "{}: key 'data.cache' is missing: the pair cache (.h5) to train on", cfg.file);
+  if (resuming) return;
+  namespace stdfs = std::filesystem;
+  const std::string out = cfg.run.out_dir;
+  std::vector<std::string> found;
+  for (const char* name : {"checkpoints", "adapter", "metrics.jsonl", "tensorboard"})
+    if (stdfs::exists(stdfs::path(out) / name)) found.push_back(name);
+  if (found.empty()) return;
+  if (!overwrite)
+    fail_hint("pass --resume latest to continue that run, --overwrite to replace it, or --set run.out_dir=NEW",
+              "{}: run.out_dir '{}' already holds an earlier run ({})", cfg.file, out, fmt::join(found, ", "));
+  if (!lead) return;
+  for (const auto& name : found) simu::fs::remove_tree((stdfs::path(out) / name).string());
+  simu::log::info("--overwrite: removed the earlier run's {} from {}", fmt::join(found, ", "), out);
 }
 
 // ---- data ------------------------------------------------------------------------------------
@@ -391,18 +423,27 @@ StepMetrics Trainer::step() {
   m.seconds_compute = seconds_since(compute_began);
   auto phase_began = clock::now();
   comm_.all_reduce_mean(grads);
+  // Metrics over all ranks (before the update: a non-finite loss must stop it on every rank alike).
+  sums = comm_.all_reduce_sum(sums);
   settle();
   m.seconds_allreduce = seconds_since(phase_began);
   phase_began = clock::now();
   m.grad_norm = clip_grad_norm(params, cfg_.optim.clip_grad_norm);
   m.lr = learning_rate(cfg_.optim, step_, cfg_.train.steps);
+  // A non-finite loss or gradient (global values: every rank takes the same branch) stops training
+  // before the optimizer touches the adapters, so the last checkpoint stays the last good state.
+  const double global_loss = sums[0] / static_cast<double>(cfg_.data.global_batch);
+  if (!std::isfinite(global_loss) || !std::isfinite(m.grad_norm))
+    fail_hint("lower optim.lr or objective.beta, check the pair cache (pairs validate), then --resume latest",
+              "{}: step {}: non-finite {} (loss {}, gradient norm {}); training stopped before this update, the "
+              "adapters and the checkpoints in {}/checkpoints are unchanged",
+              cfg_.file, step_ + 1, std::isfinite(global_loss) ? "gradient" : "loss", global_loss, m.grad_norm,
+              cfg_.run.out_dir);
   opt_->step(m.lr);
   settle();
   m.seconds_optimizer = seconds_since(phase_began);
   ++step_;
   heartbeat();
-  // Metrics over all ranks.
-  sums = comm_.all_reduce_sum(sums);
   const double n = static_cast<double>(cfg_.data.global_batch);
   m.step = step_;
   m.loss = sums[0] / n;

@@ -80,6 +80,12 @@ struct TrainConfig {
   static TrainConfig from(simu::config::Reader& r);
 };
 
+// Outputs of an earlier run in cfg.run.out_dir (checkpoints/, adapter/, metrics.jsonl, tensorboard/):
+// a fresh run (not resuming) refuses them unless overwrite (simu::Error naming the config, out_dir
+// and what is there); with overwrite the lead process removes them first. Also refuses an empty
+// data.cache (naming the config file and key).
+void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead);
+
 // One preference pair as the trainer sees it.
 struct Pair {
   int64_t id = 0;      // stable record index in the cache (seeds its noise)

@@ -1,6 +1,7 @@
 // File helpers: remove_tree removes nested trees without following links; atomic_write replaces whole files.
 #include "common/fs.h"
 
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <filesystem>
@@ -48,4 +49,54 @@ TEST(Fs, RemoveTreeFailureNamesEntry) {
   }
   stdfs::permissions(dir + "/ro", stdfs::perms::owner_all);
   simu::fs::remove_tree(dir);
+}
+
+// Temporaries of a dead writer ("<name>.tmp-<pid>", "<name>.old-<pid>") are removed by the next run;
+// those of a live process, of this process and unrelated names stay.
+TEST(Fs, StaleTempsOfDeadWritersAreRemoved) {
+  const std::string dir = simu::testing::temp_dir("fs_stale");
+  // A pid that is surely dead: a child that has exited and been reaped.
+  const pid_t dead = ::fork();
+  if (dead == 0) ::_exit(0);
+  int status = 0;
+  ::waitpid(dead, &status, 0);
+  const std::string target = dir + "/adapter";
+  stdfs::create_directories(target + ".tmp-" + std::to_string(dead) + "/sub");
+  std::ofstream(target + ".old-" + std::to_string(dead)) << "x";
+  stdfs::create_directories(target + ".tmp-" + std::to_string(::getppid()));  // alive
+  stdfs::create_directories(target + ".tmp-" + std::to_string(::getpid()));   // this process
+  std::ofstream(target + ".tmp-notapid") << "x";
+  std::ofstream(dir + "/other.tmp-" + std::to_string(dead)) << "x";
+  EXPECT_EQ(simu::fs::remove_stale_temps(target), 2);
+  EXPECT_FALSE(stdfs::exists(target + ".tmp-" + std::to_string(dead)));
+  EXPECT_FALSE(stdfs::exists(target + ".old-" + std::to_string(dead)));
+  EXPECT_TRUE(stdfs::exists(target + ".tmp-" + std::to_string(::getppid())));
+  EXPECT_TRUE(stdfs::exists(target + ".tmp-" + std::to_string(::getpid())));
+  EXPECT_TRUE(stdfs::exists(target + ".tmp-notapid"));
+  EXPECT_TRUE(stdfs::exists(dir + "/other.tmp-" + std::to_string(dead)));
+}
+
+// replace_dir puts a finished directory in place whole; check_overwrite refuses an existing output.
+TEST(Fs, ReplaceDirAndOverwriteCheck) {
+  const std::string dir = simu::testing::temp_dir("fs_replace");
+  const std::string target = dir + "/out", tmp = dir + "/out.tmp-1";
+  stdfs::create_directories(tmp);
+  std::ofstream(tmp + "/a.txt") << "new";
+  simu::fs::replace_dir(tmp, target);  // fresh
+  EXPECT_EQ(simu::fs::read_file(target + "/a.txt"), "new");
+  stdfs::create_directories(tmp);
+  std::ofstream(tmp + "/b.txt") << "newer";
+  simu::fs::replace_dir(tmp, target);  // replaces the whole directory
+  EXPECT_FALSE(stdfs::exists(target + "/a.txt"));
+  EXPECT_EQ(simu::fs::read_file(target + "/b.txt"), "newer");
+  EXPECT_FALSE(stdfs::exists(tmp));
+  try {
+    simu::fs::check_overwrite(target, false, "output directory");
+    ADD_FAILURE() << "no error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("output directory '" + target + "' already exists"), std::string::npos);
+    EXPECT_NE(e.hint().find("--overwrite"), std::string::npos);
+  }
+  EXPECT_NO_THROW(simu::fs::check_overwrite(target, true, "output directory"));
+  EXPECT_NO_THROW(simu::fs::check_overwrite(dir + "/absent", false, "output directory"));
 }

@@ -125,4 +125,32 @@ TEST(SafeTensors, TruncatingAValidFileIsDetected) {
   EXPECT_NE(error_of([&] { SafeTensorsFile::open(p); }).find("outside the data buffer"), std::string::npos);
 }
 
+// Sizes from the header are checked before anything is allocated: an element count whose byte size
+// overflows 64 bits, a header length past the format's limit, a directory, offsets that are not
+// integers -- each a named error (never std::bad_alloc).
+TEST(SafeTensors, HostileHeadersAreNamedErrorsBeforeAllocation) {
+  const auto dir = simu::testing::temp_dir("st_hostile");
+  const std::string p = dir + "/h.safetensors";
+  write_raw(p, R"({"big":{"dtype":"F32","shape":[4294967296,4294967296],"data_offsets":[0,0]}})", "");
+  auto msg = error_of([&] { SafeTensorsFile::open(p); });
+  EXPECT_NE(msg.find("tensor 'big': shape [4294967296,4294967296] of F32 overflows"), std::string::npos) << msg;
+  write_raw(p, R"({"z":{"dtype":"F32","shape":[0,4611686018427387904],"data_offsets":[0,0]}})", "");
+  EXPECT_NO_THROW(SafeTensorsFile::open(p));  // zero elements: valid, nothing allocated
+  write_raw(p, R"({"n":{"dtype":"F32","shape":[-1],"data_offsets":[0,4]}})", std::string(4, '\0'));
+  msg = error_of([&] { SafeTensorsFile::open(p); });
+  EXPECT_NE(msg.find("tensor 'n': shape is [-1], expected non-negative integers"), std::string::npos) << msg;
+  write_raw(p, R"({"o":{"dtype":"F32","shape":[1],"data_offsets":[0,"4"]}})", std::string(4, '\0'));
+  msg = error_of([&] { SafeTensorsFile::open(p); });
+  EXPECT_NE(msg.find("tensor 'o': data_offsets is [0,\"4\"]"), std::string::npos) << msg;
+  write_raw(p, "{\"\xff\":1}", "");
+  msg = error_of([&] { SafeTensorsFile::open(p); });
+  EXPECT_NE(msg.find("invalid UTF-8"), std::string::npos) << msg;
+  EXPECT_EQ(msg.find("json.exception"), std::string::npos) << msg;
+  write_raw(p, std::string(5000, '[') + std::string(5000, ']'), "");
+  msg = error_of([&] { SafeTensorsFile::open(p); });
+  EXPECT_NE(msg.find("nested deeper"), std::string::npos) << msg;
+  msg = error_of([&] { SafeTensorsFile::open(dir); });
+  EXPECT_NE(msg.find("is not a regular file"), std::string::npos) << msg;
+}
+
 }  // namespace

@@ -2,7 +2,11 @@
 // fixture adapter lora_small/), checked against independent math and the PEFT fixture files.
 #include <fmt/format.h>
 
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <cmath>
+#include <limits>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -507,4 +511,81 @@ TEST(Lora, PeftNames) {
   EXPECT_EQ(simu::lora::model_name_from_peft(simu::lora::peft_param_key(n)), n);
   EXPECT_EQ(simu::lora::model_name_from_peft(simu::lora::peft_file_key(n)), n);
   EXPECT_THROW(simu::lora::model_name_from_peft("base_model.model.x.lora_magnitude_vector.default"), simu::Error);
+}
+
+// export_adapter / load_peft refuse what would silently produce a broken adapter: NaN/Inf values,
+// non-float dtypes, a lora_A without its lora_B (and back), mixed ranks; each error names the tensor.
+TEST(Lora, AdapterTensorChecksNameTheTensor) {
+  const std::string a = "base_model.model.blocks.0.to_q.lora_A.weight";
+  const std::string b = "base_model.model.blocks.0.to_q.lora_B.weight";
+  auto good = [&] {
+    return std::map<std::string, torch::Tensor>{{a, torch::randn({4, 8})}, {b, torch::zeros({6, 4})}};
+  };
+  EXPECT_NO_THROW(simu::lora::check_adapter_tensors(good(), 4, "src"));
+  auto err = [&](std::map<std::string, torch::Tensor> t, int64_t r = 4) {
+    try {
+      simu::lora::check_adapter_tensors(t, r, "src");
+    } catch (const simu::Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  auto t = good();
+  t[a][1][2] = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_NE(err(t).find("src: tensor '" + a + "' holds NaN or Inf (1 non-finite"), std::string::npos) << err(t);
+  t = good();
+  t[b] = torch::full({6, 4}, std::numeric_limits<float>::infinity());
+  EXPECT_NE(err(t).find("'" + b + "' holds NaN or Inf"), std::string::npos) << err(t);
+  t = good();
+  t[a] = torch::ones({4, 8}, torch::kInt32);
+  EXPECT_NE(err(t).find("'" + a + "' has dtype Int, expected a float type"), std::string::npos) << err(t);
+  t = good();
+  t[a] = torch::ones({4, 8}, torch::kBool);
+  EXPECT_NE(err(t).find("expected a float type"), std::string::npos) << err(t);
+  t = good();
+  t.erase(b);
+  EXPECT_NE(err(t).find("'" + a + "' has no lora_B partner"), std::string::npos) << err(t);
+  t = good();
+  t.erase(a);
+  EXPECT_NE(err(t).find("'" + b + "' has no lora_A partner"), std::string::npos) << err(t);
+  t = good();
+  EXPECT_NE(err(t, 8).find("which is not rank 8"), std::string::npos) << err(t, 8);
+  t = good();
+  t["base_model.model.x.weight"] = torch::ones({2, 2});
+  EXPECT_NE(err(t).find("'base_model.model.x.weight' is not a LoRA A/B weight"), std::string::npos) << err(t);
+  t = good();
+  t[a] = torch::ones({4, 8, 1});
+  EXPECT_NE(err(t).find("expected a non-empty 2-D matrix"), std::string::npos) << err(t);
+}
+
+// save_peft_tensors builds the directory beside the target and swaps it in whole: a refused export
+// leaves the previous adapter untouched; a dead writer's temporary directory is removed.
+TEST(Lora, PeftExportIsAtomicAndRefusesBadTensors) {
+  const std::string dir = simu::testing::temp_dir("peft_atomic");
+  const std::string out = dir + "/adapter";
+  LoraConfig cfg;
+  cfg.r = 4;
+  cfg.alpha = 8;
+  cfg.target_suffixes = {"to_q"};
+  const std::string a = "base_model.model.blocks.0.to_q.lora_A.weight";
+  const std::string b = "base_model.model.blocks.0.to_q.lora_B.weight";
+  std::map<std::string, torch::Tensor> t{{a, torch::randn({4, 8})}, {b, torch::randn({6, 4})}};
+  simu::lora::save_peft_tensors(out, t, cfg, "test");
+  const auto first = simu::data::load_safetensors(out + "/adapter_model.safetensors");
+  auto bad = t;
+  bad[b] = torch::full({6, 4}, std::numeric_limits<float>::quiet_NaN());
+  EXPECT_THROW(simu::lora::save_peft_tensors(out, bad, cfg, "test"), simu::Error);
+  const auto kept = simu::data::load_safetensors(out + "/adapter_model.safetensors");
+  EXPECT_TRUE(torch::equal(kept.at(b), first.at(b)));
+  // A dead writer's leftover is cleaned by the next export; nothing else is left beside the target.
+  const pid_t dead = ::fork();
+  if (dead == 0) ::_exit(0);
+  int status = 0;
+  ::waitpid(dead, &status, 0);
+  std::filesystem::create_directories(out + ".tmp-" + std::to_string(dead));
+  simu::lora::save_peft_tensors(out, t, cfg, "test");
+  int entries = 0;
+  for (const auto& e : std::filesystem::directory_iterator(dir)) entries += e.path() != out;
+  EXPECT_EQ(entries, 0);
+  EXPECT_EQ(simu::lora::read_peft_config(out).r, 4);
 }

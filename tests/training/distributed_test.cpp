@@ -1,4 +1,7 @@
 // Distributed plumbing with plain tensors: TCPStore rendezvous on loopback, averaging, dead-rank errors.
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <cstdlib>
 #include <future>
 #include <thread>
@@ -215,5 +218,48 @@ TEST(Distributed, GlooHungRankIsNamedAfterTimeout) {
   EXPECT_NE(msg.find("gloo barrier"), std::string::npos) << msg;
   EXPECT_NE(msg.find("waiting for rank(s) 1"), std::string::npos) << msg;
   EXPECT_GE(s, 1.0) << "failed before the timeout: " << msg;
+  EXPECT_LT(s, 10.0) << msg;
+}
+
+// Child side of GlooRankZeroDeathIsNamedPlainly: rank 0 in its own process (it hosts the store),
+// one collective with rank 1, then it dies at once (_exit: no clean shutdown).
+TEST(DistributedChild, RankZeroDies) {
+  const char* port = std::getenv("SIMU_TEST_RANK0_PORT");
+  if (!port) GTEST_SKIP() << "helper for Distributed.GlooRankZeroDeathIsNamedPlainly";
+  auto comm = cpu_rank(0, std::atoi(port), std::chrono::seconds(20));
+  comm->all_reduce_sum({1.0});
+  ::_exit(0);
+}
+
+// When rank 0 (the store's host) dies, rank 1 says so plainly and at once: "rank 0 is gone", no C++
+// backtrace, not "timeout", and it never lists itself among the ranks it waits for.
+TEST(Distributed, GlooRankZeroDeathIsNamedPlainly) {
+  ASSERT_TRUE(have_gloo()) << "this build has no gloo headers";
+  const int port = free_port();
+  const pid_t pid = ::fork();
+  ASSERT_GE(pid, 0);
+  if (pid == 0) {
+    ::setenv("SIMU_TEST_RANK0_PORT", std::to_string(port).c_str(), 1);
+    ::execl("/proc/self/exe", "test_training", "--gtest_filter=DistributedChild.RankZeroDies", nullptr);
+    ::_exit(127);
+  }
+  auto comm = cpu_rank(1, port, std::chrono::seconds(20));
+  comm->all_reduce_sum({1.0});
+  int status = 0;
+  ::waitpid(pid, &status, 0);  // rank 0 is gone now
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string msg = "no error";
+  try {
+    comm->barrier();
+  } catch (const simu::Error& e) {
+    msg = e.what();
+  }
+  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  EXPECT_NE(msg.find("rank 1: gloo barrier"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("rank 0 is gone"), std::string::npos) << msg;
+  EXPECT_EQ(msg.find("timed out"), std::string::npos) << msg;
+  EXPECT_EQ(msg.find("0, 1"), std::string::npos) << msg;
+  EXPECT_EQ(msg.find("Exception raised from"), std::string::npos) << msg;  // c10's backtrace
+  EXPECT_EQ(msg.find('\n'), std::string::npos) << msg;
   EXPECT_LT(s, 10.0) << msg;
 }

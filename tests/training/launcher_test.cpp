@@ -1,4 +1,5 @@
 // The local launcher: a rank that dies or hangs ends the whole job with an error naming it.
+#include <signal.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -29,7 +30,14 @@ TEST(LauncherChild, Rank) {
     ::_exit(omp && std::atoi(omp) == want ? 0 : 4);
   }
   if (rank == 1 && m == "die") ::_exit(3);
+  // "stop": rank 1 stops itself (SIGSTOP: it cannot act on SIGTERM). "stop-wait": the same, and rank 0
+  // gives up after 2 s as a collective timing out on it would (exit 5).
+  if (rank == 1 && (m == "stop" || m == "stop-wait")) {
+    heartbeat();
+    ::raise(SIGSTOP);
+  }
   for (int i = 0; i < 300; ++i) {
+    if (rank == 0 && m == "stop-wait" && i == 20) ::_exit(5);
     if (rank == 0) heartbeat();
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
@@ -79,4 +87,21 @@ TEST(Launcher, HungRankEndsJobNamingIt) {
   const auto err = launch("hang", 6, s);
   EXPECT_NE(err.find("rank 1 made no progress for 6 s"), std::string::npos) << err;
   EXPECT_LT(s, 20.0);
+}
+
+// A stopped rank (SIGSTOP) ends the job within the hang limit: SIGKILL at once, no 5 s SIGTERM wait.
+TEST(Launcher, StoppedRankIsKilledWithinTheLimit) {
+  double s = 0;
+  const auto err = launch("stop", 4, s);
+  EXPECT_NE(err.find("rank 1 made no progress for 4 s (stopped by a signal)"), std::string::npos) << err;
+  EXPECT_LT(s, 4 + 3.0) << err;  // was limit + 5 s (SIGTERM ignored by a stopped process)
+}
+
+// A rank that fails waiting for a stopped one: the stopped rank is named as the cause.
+TEST(Launcher, FailureCausedByAStoppedRankNamesIt) {
+  double s = 0;
+  const auto err = launch("stop-wait", 20, s);
+  EXPECT_NE(err.find("rank(s) 1 stopped (hung) and rank 0 exited with status 5 waiting for it"), std::string::npos)
+      << err;
+  EXPECT_LT(s, 10.0) << err;
 }

@@ -4,6 +4,7 @@
 #include <fstream>
 #include <thread>
 #include <future>
+#include <limits>
 #include <map>
 
 #include "common/error.h"
@@ -378,6 +379,111 @@ TEST(TrainConfig, BadConfigsAreClearErrors) {
   } catch (const simu::Error& e) {
     EXPECT_NE(std::string(e.what()).find("global_batch 6 is not divisible by micro_batch 4"), std::string::npos) << e.what();
   }
+}
+
+// Values outside their domain are refused at load (they trained to a NaN loss and exported a NaN
+// adapter with exit 0 before), each error naming the config file and the key; the lora: section's
+// errors name the training config, not the model's.
+TEST(TrainConfig, OutOfDomainValuesAreRefusedAtLoad) {
+  const std::string dir = simu::testing::temp_dir("domain");
+  const std::string file = dir + "/train.yaml";
+  std::ofstream(file) << "model: {config: model.json}\nlora: {r: 2}\ndata: {cache: p.h5}\n";
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"optim.lr=1e308", "key 'optim.lr'"},
+      {"optim.lr=.nan", "key 'optim.lr'"},
+      {"optim.lr=-1", "key 'optim.lr'"},
+      {"optim.eps=.inf", "key 'optim.eps'"},
+      {"optim.betas=[0.9, 1.5]", "key 'optim.betas'"},
+      {"optim.weight_decay=-0.1", "key 'optim.weight_decay'"},
+      {"optim.min_lr_ratio=2", "key 'optim.min_lr_ratio'"},
+      {"optim.clip_grad_norm=.nan", "key 'optim.clip_grad_norm'"},
+      {"objective.beta=.inf", "key 'objective.beta'"},
+      {"objective.beta=0", "key 'objective.beta'"},
+      {"objective.weight_completion=-1", "key 'objective.weight_completion'"},
+      {"objective.t_std=.nan", "key 'objective.t_std'"},
+      {"lora.alpha=9223372036854775807", "key 'lora.alpha'"},
+      {"lora.alpha=.inf", "key 'lora.alpha'"},
+      {"lora.r=0", "key 'lora.r'"},
+      {"lora.target_modules=(?=x)", "key 'lora.target_modules'"},
+      {"lora.rr=3", "unknown key 'lora.rr'"},
+      {"dist.timeout_s=.inf", "key 'dist.timeout_s'"},
+      {"data.prefetch=100000", "key 'data.prefetch'"},
+  };
+  for (const auto& [set, needle] : cases) {
+    try {
+      TrainConfig::load(file, {set});
+      ADD_FAILURE() << "no error for --set " << set;
+    } catch (const simu::Error& e) {
+      const std::string msg = e.what();
+      EXPECT_EQ(msg.rfind(file, 0), 0u) << set << " -> " << msg;
+      EXPECT_NE(msg.find(needle), std::string::npos) << set << " -> " << msg;
+    }
+  }
+  EXPECT_NO_THROW(TrainConfig::load(file, {"optim.lr=1", "objective.beta=5000", "lora.alpha=1e6"}));
+}
+
+// Outputs of an earlier run are not overwritten by a fresh run unless --overwrite; data.cache unset
+// is named.
+TEST(TrainConfig, EarlierRunIsRefusedUnlessOverwrite) {
+  const std::string out = simu::testing::temp_dir("prep");
+  auto cfg = toy_config(out, 1, 4, 4);
+  auto msg = [&](const std::function<void()>& f) {
+    try {
+      f();
+    } catch (const simu::Error& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  EXPECT_NE(msg([&] { prepare_out_dir(cfg, false, false, true); }).find("key 'data.cache' is missing"), std::string::npos);
+  cfg.data.cache = "p.h5";
+  EXPECT_EQ(msg([&] { prepare_out_dir(cfg, false, false, true); }), "");  // nothing there yet
+  std::filesystem::create_directories(out + "/checkpoints/step_00000001");
+  std::ofstream(out + "/metrics.jsonl") << "{}\n";
+  const auto m = msg([&] { prepare_out_dir(cfg, false, false, true); });
+  EXPECT_NE(m.find("already holds an earlier run (checkpoints, metrics.jsonl)"), std::string::npos) << m;
+  EXPECT_EQ(msg([&] { prepare_out_dir(cfg, true, false, true); }), "");  // --resume continues it
+  EXPECT_EQ(msg([&] { prepare_out_dir(cfg, false, true, false); }), "");  // other ranks leave it to rank 0
+  EXPECT_TRUE(std::filesystem::exists(out + "/checkpoints"));
+  EXPECT_EQ(msg([&] { prepare_out_dir(cfg, false, true, true); }), "");
+  EXPECT_FALSE(std::filesystem::exists(out + "/checkpoints"));
+  EXPECT_FALSE(std::filesystem::exists(out + "/metrics.jsonl"));
+}
+
+// A non-finite loss stops training with an error naming the step, before the update: the adapters
+// keep their values and the last checkpoint stays the newest.
+TEST(Trainer, NonFiniteLossStopsBeforeTheUpdate) {
+  auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 21);
+  SoloComm comm;
+  const std::string out = simu::testing::temp_dir("nonfinite");
+  ToyPolicy m(C, Cc, R, 6);
+  auto cfg = toy_config(out, 6, 8, 8);  // every step sees all 8 pairs
+  std::shared_ptr<std::vector<Pair>> poisoned = std::make_shared<std::vector<Pair>>(*pairs);
+  Trainer tr(cfg, m, [&](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
+    return std::make_unique<MemoryPairSource>(poisoned, rank, world, gb, seed, pos);
+  }, comm, torch::kCPU);
+  tr.step();
+  tr.step();
+  const auto dir = tr.save();  // checkpoint at step 2
+  // From now on one pair holds NaN (as a corrupt cache or an overflowing objective would produce).
+  (*poisoned)[3].x_pos = (*poisoned)[3].x_pos.clone();
+  (*poisoned)[3].x_pos[0][0] = std::numeric_limits<float>::quiet_NaN();
+  const auto before = adapter_values(m);
+  std::string msg;
+  try {
+    tr.step();
+  } catch (const simu::Error& e) {
+    msg = e.what();
+  }
+  EXPECT_NE(msg.find("step 3: non-finite loss"), std::string::npos) << msg;
+  EXPECT_NE(msg.find(cfg.file), std::string::npos) << msg;
+  EXPECT_EQ(tr.steps_done(), 2);
+  const auto after = adapter_values(m);
+  EXPECT_TRUE(torch::equal(before[0], after[0]));
+  EXPECT_TRUE(torch::equal(before[1], after[1]));
+  const auto cks = list_checkpoints(out + "/checkpoints");
+  ASSERT_FALSE(cks.empty());
+  EXPECT_EQ(load_checkpoint(cks.back()).step, 2);
 }
 
 #if __has_include("data/pair_cache.h")
