@@ -78,20 +78,9 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
         results[i].has_crop_box = true;
         ResampleRequest r;
         r.inputs = prepared.tensors;
-        // Points far nearer than the object (normalised z <= -1) have no image under the embedder's
-        // "exp" remap (log1p(z)) and would put NaN into the whole condition: mark them invalid (NaN
-        // = the invalid-point token), as points without depth are.
-        for (const char* key : {"pointmap", "rgb_pointmap"}) {
-          auto it = r.inputs.find(key);
-          if (it == r.inputs.end()) continue;
-          auto pm = it->second.clone();  // [1, 3, P, P] or [3, P, P]
-          const auto near = pm.select(-3, 2) <= -1.0;  // [.., P, P]
-          const int64_t count = near.sum().item<int64_t>();
-          if (count == 0) continue;
-          pm.masked_fill_(near.unsqueeze(-3).expand_as(pm), NAN);
-          it->second = pm;
-          log::debug("object '{}': {} {} points with normalised z <= -1 marked invalid", rq.object_id, count, key);
-        }
+        // Points nearer than the object (normalised z <= -1) go to the embedder as they are: with the
+        // released `linear` remap they are ordinary values (as in the official code); PointPatchEmbed
+        // itself handles the `exp` remap's domain (models/point_patch_embed.h).
         if (prepared.pointmap_scale.defined()) {
           r.scene_scale = prepared.pointmap_scale.reshape({-1})[0].item<double>();
           for (int k = 0; k < 3; ++k) r.scene_shift[k] = prepared.pointmap_shift.reshape({-1})[k].item<double>();

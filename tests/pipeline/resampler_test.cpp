@@ -124,6 +124,7 @@ TEST(Resampler, EmbedsConditionInputs) {
   ResamplerConfig cfg = small_config();
   cfg.generator_config = simu::testing::source_dir() + "/configs/stage1_small.yaml";
   cfg.generator_weights = "";  // random init (fixture embedder gives 64 channels)
+  cfg.random_weights = true;
   cfg.generator_overrides = {"flow_model.cond_channels=64"};
   cfg.embedder_config = simu::testing::fixture("cond_embedder_small.json");
   cfg.embedder_weights = simu::testing::fixture("cond_embedder_small.safetensors");
