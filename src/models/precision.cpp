@@ -1,5 +1,7 @@
 #include "models/precision.h"
 
+#include <ATen/autocast_mode.h>
+
 #include "common/error.h"
 
 namespace simu::models {

@@ -3,6 +3,8 @@
 // condition embedder forward, flow model forward, decoder forward, and a CFG sample with the official
 // inference settings. Prints every measured error (max |got - want| / max |want|) for the record;
 // asserts fp16 closer than bf16 and loose upper bounds (the stated tolerances come from these prints).
+#include <ATen/autocast_mode.h>
+
 #include <cstdio>
 
 #include "data/safetensors.h"

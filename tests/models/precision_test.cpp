@@ -1,5 +1,7 @@
 // Precision names and defaults (models/precision.h): fp16 on CUDA, fp32 on the CPU; low precision on
 // the CPU is an error naming the flag; Autocast(fp32) and CPU autocast requests change nothing.
+#include <ATen/autocast_mode.h>
+
 #include "common/error.h"
 #include "models/precision.h"
 #include "test_util.h"
