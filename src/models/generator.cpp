@@ -152,7 +152,7 @@ std::string describe_sampler(const SampleOptions& o, const GeneratorConfig& c, c
                                   : "no d (FlowMatching)";
   return fmt::format(
       "steps {} ({}), rescale_t {} ({}), cfg {} on t*{} in [{}, {}] ({}{}), unconditional {}, {} ({}), solver {} ({}), "
-      "reversed_timestamp {} (config), precision {} on CUDA",
+      "reversed_timestamp {} (config), precision {} on CUDA (CPU: fp32)",
       o.steps, src(user.steps.has_value(), "official inference"), o.rescale_t,
       src(user.rescale_t.has_value(), "official inference"), o.cfg_strength, c.time_scale, o.cfg_interval.first,
       o.cfg_interval.second, src(user.cfg_strength.has_value(), "official inference"),

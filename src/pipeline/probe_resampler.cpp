@@ -57,8 +57,16 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
     std::vector<ProbeResampleResult> results(requests.size());
 #ifdef SIMU_HAVE_OPENCV
     // Condition inputs per object; failures are reported per object.
+    // An unreadable depth file fails every object with the file's name (not the whole call).
     torch::Tensor pointmap;
-    if (!scene.depth_path.empty()) pointmap = pointmap_from_depth_file(scene.depth_path, scene.camera);
+    std::string depth_error;
+    if (!scene.depth_path.empty()) {
+      try {
+        pointmap = pointmap_from_depth_file(scene.depth_path, scene.camera);
+      } catch (const std::exception& e) {
+        depth_error = e.what();
+      }
+    }
     std::vector<ResampleRequest> batch;
     std::vector<size_t> batch_index;
     for (size_t i = 0; i < requests.size(); ++i) {
@@ -69,6 +77,7 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
         const auto rgb = data::read_image_rgb(image);
         const auto modal = mask_tensor(rq.modal_mask);
         const auto aux = rq.aux_mask.empty() ? torch::Tensor() : mask_tensor(rq.aux_mask);
+        SIMU_CHECK(depth_error.empty(), "object '{}': {}", rq.object_id, depth_error);
         SIMU_CHECK(pointmap.defined(), "object '{}': the scene has no depth (depth_path), needed for the point map",
                    rq.object_id);
         auto prepared = data::prepare_condition_inputs(rgb, modal, pointmap, options.preprocess, aux);

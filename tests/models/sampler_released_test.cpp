@@ -148,7 +148,7 @@ TEST(SamplerReleased, SampleStage1CliRecordsOfficialValues) {
   if (!std::filesystem::exists(exe)) GTEST_SKIP() << "build the sample_stage1 target first (" << exe << ")";
   const auto dir = simu::testing::temp_dir("sample_stage1_released");
   const auto io = simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"));
-  simu::data::save_safetensors(dir + "/cond.safetensors", {{"cond", io.at("in.cond")}});
+  simu::data::save_safetensors(dir + "/cond.safetensors", std::map<std::string, torch::Tensor>{{"cond", io.at("in.cond")}});
   const std::string cmd = exe + " --config " + data("ss_generator_small_released_sampler.yaml") + " --weights " +
                           simu::testing::fixture("ss_generator_small.safetensors") + " --cond " + dir +
                           "/cond.safetensors --steps 3 --device cpu --out " + dir + "/lat.safetensors > " + dir +
