@@ -72,12 +72,12 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
     for (size_t i = 0; i < requests.size(); ++i) {
       const auto& rq = requests[i];
       try {
+        SIMU_CHECK(depth_error.empty(), "object '{}': {}", rq.object_id, depth_error);
         const std::string image = rq.image_path.empty() ? scene.image_path : rq.image_path;
         SIMU_CHECK(!image.empty(), "object '{}': the scene has no image", rq.object_id);
         const auto rgb = data::read_image_rgb(image);
         const auto modal = mask_tensor(rq.modal_mask);
         const auto aux = rq.aux_mask.empty() ? torch::Tensor() : mask_tensor(rq.aux_mask);
-        SIMU_CHECK(depth_error.empty(), "object '{}': {}", rq.object_id, depth_error);
         SIMU_CHECK(pointmap.defined(), "object '{}': the scene has no depth (depth_path), needed for the point map",
                    rq.object_id);
         auto prepared = data::prepare_condition_inputs(rgb, modal, pointmap, options.preprocess, aux);
@@ -98,7 +98,9 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
         batch_index.push_back(i);
       } catch (const std::exception& e) {
         results[i].ok = false;
-        results[i].message = e.what();
+        // Every message names the object.
+        const std::string m = e.what();
+        results[i].message = m.rfind("object '", 0) == 0 ? m : fmt::format("object '{}': {}", rq.object_id, m);
       }
     }
     if (batch.empty()) return results;

@@ -3,6 +3,7 @@
 // condition embedder forward, flow model forward, decoder forward, and a CFG sample with the official
 // inference settings. Prints every measured error (max |got - want| / max |want|) for the record;
 // asserts fp16 closer than bf16 and loose upper bounds (the stated tolerances come from these prints).
+#include <ATen/CPUGeneratorImpl.h>
 #include <ATen/autocast_mode.h>
 
 #include <cstdio>
@@ -137,4 +138,45 @@ TEST(PrecisionGpu, AutocastNestsAndRestores) {
     EXPECT_EQ(at::autocast::get_autocast_dtype(at::kCUDA), at::kBFloat16);
   }
   EXPECT_FALSE(at::autocast::is_autocast_enabled(at::kCUDA));
+}
+
+// Real size (configs/stage1_real.yaml: 1024 channels, 24 blocks; 7,528 condition tokens of 1,024
+// channels), random weights: fp16 and bf16 against fp32 on the same GPU, one forward and a 25-step CFG
+// sample with the official inference settings. Prints the errors (the real-size table).
+TEST(PrecisionGpu, RealSizeForwardAndSampleAgainstFp32) {
+  SIMU_REQUIRE_CUDA();
+  const torch::Device dev(torch::kCUDA);
+  torch::NoGradGuard ng;
+  torch::manual_seed(0);
+  auto gen = sm::load_generator(simu::testing::source_dir() + "/configs/stage1_real.yaml", "", dev);
+  const int64_t L = 7528;
+  auto g = at::make_generator<at::CPUGeneratorImpl>(5);
+  const auto cond = torch::randn({1, L, gen->config().backbone.cond_channels}, g).to(dev);
+  const auto x0 = gen->noise(1, g, dev);
+  const auto t = torch::full({1}, 300.0, torch::TensorOptions().device(dev));
+  const c10::optional<torch::Tensor> d = torch::zeros({1}, torch::TensorOptions().device(dev));
+  auto fwd = [&](sm::Precision p) {
+    sm::Autocast ac(p);
+    sm::Latents y = gen->backbone()->forward(x0, t, cond, d);
+    for (auto& [k, v] : y) v = v.to(torch::kFloat32);
+    return y;
+  };
+  auto err = [](const sm::Latents& a, const sm::Latents& ref) {
+    double e = 0;
+    for (const auto& [k, v] : ref) e = std::max(e, simu::testing::rel_err(a.at(k), v));
+    return e;
+  };
+  const auto y32 = fwd(sm::Precision::kFp32);
+  const double f16 = err(fwd(sm::Precision::kFp16), y32), fbf = err(fwd(sm::Precision::kBf16), y32);
+  report("real-size forward vs fp32", 0.0, f16, fbf);
+  EXPECT_LT(f16, fbf);
+  auto sample = [&](sm::Precision p) {
+    auto o = sm::official_inference_options(gen->config());
+    o.precision = p;
+    return gen->sample(cond, x0, o);
+  };
+  const auto s32 = sample(sm::Precision::kFp32);
+  const double s16 = err(sample(sm::Precision::kFp16), s32), sbf = err(sample(sm::Precision::kBf16), s32);
+  report("real-size 25-step CFG sample vs fp32", 0.0, s16, sbf);
+  EXPECT_LT(s16, sbf);
 }
