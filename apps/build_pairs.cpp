@@ -25,20 +25,30 @@ int main(int argc, char** argv) {
   simu::pipeline::PairBuilderConfig cfg;
   auto& rc = cfg.resampler;
   bool overwrite = false;
+  std::string preprocess_preset = "released";
   app.add_option("--manifest", manifest, "JSON lines, one pair per line (keys in docs/pair_cache.md)")->required();
   app.add_option("--out", cfg.out, "pair cache (.h5); an existing one is extended (resume)")->required();
   app.add_flag("--overwrite", overwrite, "replace an existing --out instead of skipping the pairs it holds");
   app.add_option("--generator-config", rc.generator_config, "Stage-1 generator config")->capture_default_str();
-  app.add_option("--generator-weights", rc.generator_weights, "generator safetensors (empty: random init)");
+  app.add_option("--generator-weights", rc.generator_weights, "generator safetensors (checkpoints/README.md)");
   app.add_option("--generator-set", rc.generator_overrides, "generator config override a.b=v (repeatable)");
   app.add_option("--embedder-config", rc.embedder_config, "condition embedder config")->required();
-  app.add_option("--embedder-weights", rc.embedder_weights, "condition embedder safetensors (empty: random init)");
+  app.add_option("--embedder-weights", rc.embedder_weights, "condition embedder safetensors");
+  app.add_flag("--random-weights", rc.random_weights,
+               "allow missing --*-weights: random init with a RANDOM WEIGHTS banner (tests, benchmarks)");
+  app.add_option("--precision", rc.precision, "fp16 | bf16 | fp32 | auto (fp16 on CUDA as released, fp32 on CPU)")
+      ->capture_default_str();
   app.add_option("--adapter", rc.adapter_dir, "PEFT LoRA adapter on the generator (default: the base model)");
   app.add_option("--decoder-config", rc.decoder_config, "sparse-structure decoder config (loaded, unused)")
       ->capture_default_str();
-  app.add_option("--steps", rc.steps, "Stage-1 sampling steps")->capture_default_str();
-  app.add_option("--cfg-strength", rc.cfg_strength, "classifier-free guidance strength")->capture_default_str();
+  app.add_option("--steps", rc.steps, "Stage-1 sampling steps (official inference: 25)")->capture_default_str();
+  app.add_option("--cfg-strength", rc.cfg_strength, "classifier-free guidance strength (official inference: 7)")
+      ->capture_default_str();
   app.add_option("--device", rc.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
+  app.add_option("--preprocess", preprocess_preset,
+                 "Stage-1 preprocessing preset: released (the released pipeline.yaml) | default (data/preprocess.h)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"released", "default"}));
   app.add_option("--batch", cfg.batch, "pairs per batched embedder + sampling call")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
@@ -58,6 +68,7 @@ int main(int argc, char** argv) {
     else
       simu::fail("--dtype must be f16 or f32, got '{}'", dtype);
     cfg.resume = !overwrite;
+    cfg.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
     // Ctrl-C / SIGTERM: finish the current batch, commit, exit.
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);

@@ -67,18 +67,27 @@ int main(int argc, char** argv) {
   simu::pipeline::ResamplerConfig rcfg;
   bool resample = false;
   uint64_t seed = 0;
+  std::string preprocess_preset = "released";
   app.add_flag("--resample", resample, "resample objects with rho >= threshold in-process (else write the hand-off)");
   app.add_option("--generator-config", rcfg.generator_config, "Stage-1 generator config")->capture_default_str();
-  app.add_option("--generator-weights", rcfg.generator_weights, "generator safetensors (empty: random init)");
+  app.add_option("--generator-weights", rcfg.generator_weights, "generator safetensors (checkpoints/README.md)");
   app.add_option("--decoder-config", rcfg.decoder_config, "sparse-structure decoder config")->capture_default_str();
-  app.add_option("--decoder-weights", rcfg.decoder_weights, "decoder safetensors (empty: random init)");
+  app.add_option("--decoder-weights", rcfg.decoder_weights, "decoder safetensors");
   app.add_option("--embedder-config", rcfg.embedder_config, "condition embedder config");
   app.add_option("--embedder-weights", rcfg.embedder_weights, "condition embedder safetensors");
   app.add_option("--adapter", rcfg.adapter_dir, "PEFT LoRA adapter directory");
   app.add_option("--num-samples", rcfg.num_samples, "shapes drawn per object")->capture_default_str();
-  app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps")->capture_default_str();
+  app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps (official inference: 25)")->capture_default_str();
+  app.add_option("--precision", rcfg.precision, "fp16 | bf16 | fp32 | auto (fp16 on CUDA as released, fp32 on CPU)")
+      ->capture_default_str();
+  app.add_flag("--random-weights", rcfg.random_weights,
+               "allow missing --*-weights: random init with a RANDOM WEIGHTS banner (demos, benchmarks)");
   app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--seed", seed, "sampling seed")->capture_default_str();
+  app.add_option("--preprocess", preprocess_preset,
+                 "Stage-1 preprocessing preset: released (the released pipeline.yaml) | default (data/preprocess.h)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"released", "default"}));
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -100,8 +109,11 @@ int main(int argc, char** argv) {
       if (rcfg.embedder_config.empty())
         simu::fail_hint("pass --embedder-config (and --embedder-weights)", "--resample needs the condition embedder");
       resampler = std::make_unique<simu::pipeline::Resampler>(rcfg);
-      simu::log::info("resampler loaded on {}{}", resampler->device().str(),
+      simu::log::info("resampler loaded on {} ({}){}", resampler->device().str(),
+                      simu::models::precision_name(resampler->precision()),
                       resampler->has_adapter() ? " with adapter " + rcfg.adapter_dir : "");
+      if (!resampler->random_weights_banner().empty())
+        fmt::print(stderr, "\n*** {} ***\n\n", resampler->random_weights_banner());
     }
     std::mutex model_mu;  // one model, scenes in threads: resampling calls take turns
     const bool many = scenes.size() > 1;
@@ -124,6 +136,7 @@ int main(int argc, char** argv) {
           if (resampler) {
             simu::pipeline::ProbeResamplerOptions ropt;
             ropt.seed = seed;
+            ropt.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
             auto inner = simu::pipeline::make_probe_resample_fn(*resampler, scene, ropt);
             fn = [inner, &model_mu](const std::vector<simu::pipeline::ProbeResampleRequest>& rq) {
               std::lock_guard<std::mutex> lock(model_mu);

@@ -50,7 +50,8 @@ int main(int argc, char** argv) {
     simu::pipeline::ResamplerConfig cfg;  // official sampling defaults, real-size configs
     cfg.device = device;
     cfg.steps = steps;
-    cfg.bf16 = !fp32;
+    cfg.random_weights = true;  // timing only
+    cfg.precision = fp32 ? "fp32" : "bf16";  // this benchmark's recorded figures are bf16
     if (small) {
       cfg.generator_config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml";
       cfg.decoder_config = std::string(SIMU_SOURCE_DIR) + "/configs/ss_decoder_small.yaml";
@@ -65,7 +66,7 @@ int main(int argc, char** argv) {
                "rescale_t {}, CFG {} on [{}, {}]; {}; condition {} tokens\n",
                dev.str(), cfg.generator_config, mc.model_channels, mc.num_blocks, mc.num_heads, mc.cond_channels,
                fmt::join(dc.channels, ", "), cfg.steps, cfg.rescale_t, cfg.cfg_strength, cfg.cfg_interval.first,
-               cfg.cfg_interval.second, cfg.bf16 && dev.is_cuda() ? "bf16 autocast" : "fp32", cond_len);
+               cfg.cfg_interval.second, dev.is_cuda() ? cfg.precision + " autocast" : std::string("fp32"), cond_len);
 
     struct Row {
       int64_t batch;

@@ -9,7 +9,8 @@ Usage: python3 scripts/convert_checkpoint.py IN.ckpt OUT.safetensors [--prefix P
 - --prefix keeps only keys starting with P (names unchanged), e.g. `_base_models.generator.`.
 - The C++ loader strips `_base_models.generator.` itself; nothing is renamed here.
 Needs only PyTorch (the safetensors file is written directly: 8-byte header length, JSON header,
-raw little-endian data), atomically (temporary file + rename).
+raw little-endian data), atomically (temporary file + rename), one tensor at a time. Prints the tensor
+and element counts per `_base_models.<component>.` prefix.
 """
 import argparse
 import json
@@ -48,16 +49,31 @@ def tensor_bytes(t):
     return t.numpy().tobytes()
 
 
+def nbytes(t):
+    return t.numel() * t.element_size()
+
+
+def is_expanded_zero(t):
+    """True for a tensor whose (smaller) storage is all zeros, e.g. torch.zeros(()).expand(shape): its
+    bytes are written as a hole (sparse file) instead of materialising it. Never true for ordinary
+    (full-storage) tensors, whose bytes are always written."""
+    st = t.untyped_storage()
+    if st.nbytes() >= nbytes(t) or t.numel() == 0:
+        return False
+    flat = torch.empty(0, dtype=torch.uint8).set_(st)
+    return not bool(flat.any())
+
+
 def save_safetensors(path, tensors):
-    header, offset, blobs = {}, 0, []
-    for name in sorted(tensors):
+    """Streams tensors one at a time (memory: the largest tensor, not the checkpoint)."""
+    header, offset, names = {}, 0, sorted(tensors)
+    for name in names:
         t = tensors[name]
         if t.dtype not in DTYPES:
             sys.exit(f"error: tensor {name}: unsupported dtype {t.dtype}")
-        b = tensor_bytes(t)
-        header[name] = {"dtype": DTYPES[t.dtype], "shape": list(t.shape), "data_offsets": [offset, offset + len(b)]}
-        offset += len(b)
-        blobs.append(b)
+        n = nbytes(t)
+        header[name] = {"dtype": DTYPES[t.dtype], "shape": list(t.shape), "data_offsets": [offset, offset + n]}
+        offset += n
     header["__metadata__"] = {"format": "pt", "source": "scripts/convert_checkpoint.py"}
     h = json.dumps(header, separators=(",", ":")).encode()
     h += b" " * ((8 - len(h) % 8) % 8)
@@ -65,8 +81,13 @@ def save_safetensors(path, tensors):
     with open(tmp, "wb") as f:
         f.write(struct.pack("<Q", len(h)))
         f.write(h)
-        for b in blobs:
-            f.write(b)
+        for name in names:
+            t = tensors[name]
+            if is_expanded_zero(t):
+                f.seek(nbytes(t), os.SEEK_CUR)  # zeros: a hole
+            else:
+                f.write(tensor_bytes(t))
+        f.truncate(8 + len(h) + offset)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -96,7 +117,15 @@ def main():
         sys.exit(f"error: {a.input}: no tensors to write (prefix '{a.prefix}')")
     save_safetensors(a.output, out)
     n = sum(v.numel() for v in out.values())
+    prefixes = {}
+    for k, v in out.items():
+        p = ".".join(k.split(".")[:2]) + "." if k.startswith("_base_models.") else "(no _base_models prefix)"
+        c = prefixes.setdefault(p, [0, 0])
+        c[0] += 1
+        c[1] += v.numel()
     print(f"wrote {a.output}: {len(out)} tensors, {n} elements")
+    for p, (nt, ne) in sorted(prefixes.items()):
+        print(f"  {p}: {nt} tensors, {ne} elements")
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 "$BUILD/probe" --scene "$scene" --out "$OUT/probe" --resample --device cpu --steps 4 --seed 1 --num-samples 4 \
   --generator-config "$FIX/ss_generator_small.json" --generator-weights "$FIX/ss_generator_small.safetensors" \
   --decoder-config configs/ss_decoder_small.yaml --decoder-weights "$FIX/ss_decoder_small.safetensors" \
-  --embedder-config configs/demo_embedder_small.json --adapter "$OUT/adapter" --no-coacd
+  --embedder-config configs/demo_embedder_small.json --random-weights --adapter "$OUT/adapter" --no-coacd
 # The demo's point: the cut object must have been replaced by the resampled mesh.
 "$PY" - "$OUT/probe/report.json" <<'PYEOF'
 import json, sys

@@ -18,8 +18,23 @@ namespace simu::data {
 
 namespace F = torch::nn::functional;
 
+PreprocessConfig PreprocessConfig::preset_named(const std::string& name) {
+  PreprocessConfig c;  // the released pipeline.yaml ss_preprocessor
+  if (name == "released") return c;
+  if (name == "default") {
+    c.preset = name;
+    c.image_interpolation = "bicubic";
+    c.box_size_factor = 1.0;
+    c.padding_factor = 0.1;
+    c.remove_background = true;
+    c.full_pointmap_pad_nan = true;
+    return c;
+  }
+  fail("preprocess preset '{}' is unknown (expected released or default)", name);
+}
+
 PreprocessConfig PreprocessConfig::from(config::Reader& r) {
-  PreprocessConfig c;
+  PreprocessConfig c = preset_named(r.get<std::string>("preset", "released"));
   r.field("image_size", c.image_size);
   r.field("image_interpolation", c.image_interpolation);
   r.field("image_antialias", c.image_antialias);
@@ -27,6 +42,7 @@ PreprocessConfig PreprocessConfig::from(config::Reader& r) {
   r.field("box_size_factor", c.box_size_factor);
   r.field("padding_factor", c.padding_factor);
   r.field("remove_background", c.remove_background);
+  r.field("full_pointmap_pad_nan", c.full_pointmap_pad_nan);
   r.field("normalize_pointmap", c.normalize_pointmap);
   r.field("scale_mode", c.scale_mode);
   r.field("quantile_drop_threshold", c.quantile_drop_threshold);
@@ -94,8 +110,8 @@ torch::Tensor image_transform(const torch::Tensor& img, const PreprocessConfig& 
 torch::Tensor mask_transform(const torch::Tensor& m, const PreprocessConfig& c) {
   return resize_square(pad_to_square_centered(m, 0.f), c.image_size, "nearest", false);
 }
-torch::Tensor pointmap_transform(const torch::Tensor& p, const PreprocessConfig& c) {
-  auto sq = pad_to_square_centered(p, kNaN);
+torch::Tensor pointmap_transform(const torch::Tensor& p, const PreprocessConfig& c, float pad_value) {
+  auto sq = pad_to_square_centered(p, pad_value);
   return c.pointmap_size > 0 ? resize_square(sq, c.pointmap_size, "nearest", false) : sq;
 }
 
@@ -104,7 +120,9 @@ torch::Tensor pointmap_transform(const torch::Tensor& p, const PreprocessConfig&
 torch::Tensor pointmap_from_opencv_camera(const torch::Tensor& pointmap) {
   SIMU_CHECK(pointmap.dim() == 3 && pointmap.size(0) == 3, "pointmap: shape {} expected [3, H, W]", shape(pointmap));
   auto flip = torch::tensor({-1.f, -1.f, 1.f}, pointmap.options()).view({3, 1, 1});
-  return pointmap * flip;
+  // The official 4x4 product sums every coordinate (times 0 off the diagonal): one NaN/inf -> all NaN.
+  const auto valid = torch::isfinite(pointmap).all(0, /*keepdim=*/true);  // [1, H, W]
+  return torch::where(valid, pointmap * flip, torch::full_like(pointmap, kNaN));
 }
 
 CropBox compute_mask_bbox(const torch::Tensor& mask_in, double box_size_factor) {
@@ -257,8 +275,9 @@ ConditionInputs prepare_condition_inputs(const torch::Tensor& rgb_in, const torc
   out.tensors["rgb_image"] = image_transform(rgb, c).unsqueeze(0);
   out.tensors["rgb_image_mask"] = mask_transform(mask.unsqueeze(0), c).unsqueeze(0);
   if (pm_c.defined()) {
-    out.tensors["pointmap"] = pointmap_transform(pm_c, c).unsqueeze(0);
-    out.tensors["rgb_pointmap"] = pointmap_transform(pm_norm, c).unsqueeze(0);
+    // The crop is square already (its NaN padding is in pm_c); the full frame is padded here.
+    out.tensors["pointmap"] = pointmap_transform(pm_c, c, kNaN).unsqueeze(0);
+    out.tensors["rgb_pointmap"] = pointmap_transform(pm_norm, c, c.full_pointmap_pad_nan ? kNaN : 0.f).unsqueeze(0);
   }
   return out;
 }

@@ -4,26 +4,39 @@
 // sam3d_objects/pipeline/inference_pipeline_pointmap.py::preprocess_image) does:
 //
 //   1. point map normalisation on the full map (ObjectCentricSSI): shift = per-axis nanmedian of the
-//      points under the mask; scale = nanmedian over all pixels of max(|p - shift|) (scene scale)
-//      times scale_factor; p' = (p - shift) / scale;
+//      points under the mask (> 0.5; torch's lower median); scale = nanmedian over all pixels of
+//      max(|p - shift|) (scene scale) times scale_factor; p' = (p - shift) / scale;
 //   2. object crop (crop_around_mask_with_padding): square box of side int(max(w, h, 2) * box_size_factor)
-//      centred on the mask's bounding box (w, h = max - min pixel index; both must be >= 2), cut
-//      with zero fill outside the image, padded to a square, then extended by int(side * padding_factor)
+//      centred on the mask's bounding box (w, h = max - min pixel index; both must be >= 2; corners by
+//      int() truncation), cut with ZERO fill outside the image (image, mask and point map alike),
+//      padded to a square (0; NaN for the point map), then extended by int(side * padding_factor)
 //      on each side (zeros; NaN for the point map);
-//   3. background removal in the crop (rembg): image * mask, point map NaN where mask == 0;
-//   4. per-tensor transforms: pad to a centred square (0; NaN for point maps), resize to image_size
-//      (image: bicubic with antialias = torchvision Resize on tensors; mask: nearest; point map:
-//      nearest to pointmap_size).
-//   The full-image versions (rgb_image, rgb_image_mask, rgb_pointmap) get only step 4 (and step 1).
+//   3. background removal in the crop (rembg; only in the "default" preset): image * mask, point map
+//      NaN where mask == 0;
+//   4. per-tensor transforms: pad to a centred square (0, the official pad_to_square_centered default,
+//      also for the full-frame point map in the released preset), resize to image_size (image:
+//      bilinear or bicubic with antialias = torchvision Resize on float tensors; mask and point map:
+//      F.interpolate "nearest", not "nearest-exact").
+//   The full-image versions (rgb_image, rgb_image_mask, rgb_pointmap) get only step 4 (and step 1,
+//   with the crop's scale and shift, as allow_scale_and_shift_override does).
+//
+// Presets (PreprocessConfig::preset, YAML key `preset`):
+//   "released" (the default everywhere): the `ss_preprocessor` block of the released
+//       checkpoints/hf/pipeline.yaml: bilinear + antialias resize to 518, box_size_factor 1.2,
+//       padding_factor 0, no background removal, full point map padded with 0. Proven against
+//       ../shared/fixtures/preprocess_released_case{0,1,2}.safetensors (tests/data/preprocess_test.cpp).
+//   "default": the repository's get_default_preprocessor() style used before the release was read:
+//       bicubic, box_size_factor 1.0, padding_factor 0.1, background removal, full point map padded
+//       with NaN.
+// Any field given after the preset in YAML overrides it.
 //
 // Amodal resampling: with `crop_mask` (the auxiliary mask M' of the paper), the crop box is computed
-// from crop_mask and the background is removed with crop_mask (the amodal crop image I_{M'}), while
-// the `mask` / `rgb_image_mask` channels stay the modal mask and the point map is normalised with it.
+// from crop_mask and (when remove_background) the background is removed with crop_mask (the amodal
+// crop image I_{M'}), while the `mask` / `rgb_image_mask` channels stay the modal mask and the point
+// map is normalised with it.
 //
-// Choices where the released pipeline.yaml could not be read (see README notes in the report):
-// the point map of the full image is normalised with the crop's scale/shift (the official code
-// recomputes them from the resized full mask, which is the same for square images); a point map of
-// another size than the image is first resized to it with nearest sampling (as compute_pointmap does).
+// A point map of another size than the image is first resized to it with nearest sampling (as the
+// official compute_pointmap does for a given point map).
 #pragma once
 
 #include <torch/torch.h>
@@ -35,14 +48,17 @@
 
 namespace simu::data {
 
+// Defaults = the "released" preset (see the file comment).
 struct PreprocessConfig {
+  std::string preset = "released";              // name of the preset the fields started from
   int64_t image_size = 518;                     // image and mask outputs: image_size x image_size
-  std::string image_interpolation = "bicubic";  // "bicubic" or "bilinear"
+  std::string image_interpolation = "bilinear"; // "bicubic" or "bilinear"
   bool image_antialias = true;                  // torchvision >= 0.17 Resize default on tensors
   int64_t pointmap_size = 518;                  // 0: keep the padded crop's size
-  double box_size_factor = 1.0;
-  double padding_factor = 0.1;
-  bool remove_background = true;                // rembg in the crop
+  double box_size_factor = 1.2;
+  double padding_factor = 0.0;
+  bool remove_background = false;               // rembg in the crop
+  bool full_pointmap_pad_nan = false;           // pad value of the full-frame point map: NaN (true) or 0
   bool normalize_pointmap = true;               // false: points unchanged, scale/shift still returned
   // ObjectCentricSSI: "scene" (use_scene_scale true), "object_quantile" (false: 2 x spread between the
   // quantile_drop_threshold quantiles of |p - shift| over the mask), "object_norm_median".
@@ -50,6 +66,9 @@ struct PreprocessConfig {
   double quantile_drop_threshold = 0.1;
   double scale_factor = 1.0;
   double clip_beyond_scale = 0.0;               // > 0: points with |p'| beyond it become NaN
+  // A named preset: "released" or "default". Throws naming the known ones otherwise.
+  static PreprocessConfig preset_named(const std::string& name);
+  // Keys: `preset` (read first; default "released"), then every field above by its name.
   static PreprocessConfig from(config::Reader& r);
 };
 
@@ -73,7 +92,8 @@ struct ConditionInputs {
 
 // SAM 3D reads point maps in the PyTorch3D camera frame (x left, y up, z forward). Depth models such
 // as MoGe give OpenCV-frame points (x right, y down, z forward); the official pipeline rotates them by
-// diag(-1, -1, 1) (camera_to_pytorch3d_camera). This does that: pointmap [3,H,W] -> (-x, -y, z).
+// diag(-1, -1, 1) (camera_to_pytorch3d_camera) as a 4x4 homogeneous product, so a point with any
+// NaN/inf coordinate becomes NaN in all three. This does the same: pointmap [3,H,W] -> (-x, -y, z).
 torch::Tensor pointmap_from_opencv_camera(const torch::Tensor& pointmap);
 
 // compute_mask_bbox: box around mask != 0 (see step 2). Throws for an empty mask or a box thinner

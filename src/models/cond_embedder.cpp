@@ -163,6 +163,7 @@ CondEmbedderEntry read_official_embedder(const YAML::Node& node, const std::stri
     r.field("remap_output", e.point.remap_output);
     r.field("dropout_prob", e.point.dropout_prob);
     r.field("force_dropout_always", e.point.force_dropout_always);
+    r.field("exp_near_points", e.point.exp_near_points);  // project key (not in the official yaml)
   } else {
     fail("{}: {}._target_ '{}' is not a supported condition embedder (expected ...dino.Dino or "
          "...pointmap.PointPatchEmbed)", file, path, target);

@@ -129,6 +129,40 @@ SampleOptions SampleOptions::from(const GeneratorConfig& c) {
   return o;
 }
 
+SampleOptions official_inference_options(const GeneratorConfig& c, const SamplerOverrides& user) {
+  SampleOptions o = SampleOptions::from(c);  // time grid direction and solver stay the config's
+  o.steps = user.steps.value_or(25);
+  o.rescale_t = user.rescale_t.value_or(3.0);
+  o.cfg_interval = user.cfg_interval.value_or(std::pair<double, double>{0.0, 500.0});
+  o.unconditional_handling = "add_flag";
+  o.precision = Precision::kFp16;  // on CUDA (the released pipeline's dtype); CPU runs fp32
+  o.shortcut = c.is_shortcut() && user.shortcut.value_or(false);
+  // Distillation (shortcut) mode samples without CFG unless the user asks for it.
+  o.cfg_strength = user.cfg_strength.value_or(o.shortcut ? 0.0 : 7.0);
+  if (user.solver) o.solver = *user.solver;
+  SIMU_CHECK(o.steps > 0, "sampler: steps must be positive, got {}", o.steps);
+  SIMU_CHECK(!user.shortcut.value_or(false) || c.is_shortcut(),
+             "sampler: shortcut mode needs a ShortCut generator (this one is {})", c.kind);
+  return o;
+}
+
+std::string describe_sampler(const SampleOptions& o, const GeneratorConfig& c, const SamplerOverrides& user) {
+  auto src = [](bool given, const char* otherwise) { return given ? std::string("user") : std::string(otherwise); };
+  std::string d = c.is_shortcut() ? (o.shortcut ? fmt::format("d = 1/{} (shortcut)", o.steps) : "d = 0 (no_shortcut)")
+                                  : "no d (FlowMatching)";
+  return fmt::format(
+      "steps {} ({}), rescale_t {} ({}), cfg {} on t*{} in [{}, {}] ({}{}), unconditional {}, {} ({}), solver {} ({}), "
+      "reversed_timestamp {} (config), precision {} on CUDA (CPU: fp32)",
+      o.steps, src(user.steps.has_value(), "official inference"), o.rescale_t,
+      src(user.rescale_t.has_value(), "official inference"), o.cfg_strength, c.time_scale, o.cfg_interval.first,
+      o.cfg_interval.second, src(user.cfg_strength.has_value(), "official inference"),
+      user.cfg_interval ? ", interval user" : "",
+      o.unconditional_handling.empty() ? c.unconditional_handling : o.unconditional_handling, d,
+      src(user.shortcut.has_value(), "official inference"), o.solver, src(user.solver.has_value(), "config"),
+      o.reversed_timestamp,
+      precision_name(o.precision.value_or(o.bf16_autocast ? Precision::kBf16 : Precision::kFp32)));
+}
+
 // ---------------------------------------------------------------------------------------------
 // CUDA graphs
 
@@ -333,11 +367,20 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
   auto tp = [&](double v) { return f32 ? static_cast<double>(static_cast<float>(v)) : v; };
   c10::optional<double> d;
   if (c.is_shortcut()) d = (o.shortcut ? 1.0 / o.steps : 0.0) * c.time_scale;
-  Bf16Autocast autocast(o.bf16_autocast && cond.is_cuda());
+  const Precision precision = o.precision.value_or(o.bf16_autocast ? Precision::kBf16 : Precision::kFp32);
+  Autocast autocast(precision, cond.is_cuda());
 
   Latents x;
   for (const auto& [k, v] : x0) x[k] = v.to(torch::kFloat32);
+  // The unconditional handling of these options (official inference forces add_flag), for this call.
+  const std::string saved_handling = reverse_fn->unconditional_handling;
+  if (!o.unconditional_handling.empty()) {
+    SIMU_CHECK(o.unconditional_handling == "add_flag" || o.unconditional_handling == "zeros",
+               "sampling: unconditional_handling must be add_flag or zeros, got '{}'", o.unconditional_handling);
+    reverse_fn->unconditional_handling = o.unconditional_handling;
+  }
   auto pc = reverse_fn->prepare(cond, o.cache_condition);
+  reverse_fn->unconditional_handling = saved_handling;
   pc.graphs = o.cuda_graphs && o.cache_condition && cond.is_cuda();
   // Velocity at time t (in [0, 1]).
   auto velocity = [&](const Latents& xt, double t) {

@@ -21,10 +21,12 @@
 #include <torch/torch.h>
 
 #include <functional>
+#include <optional>
 #include <string>
 #include <utility>
 
 #include "models/flow_model.h"
+#include "models/precision.h"
 
 namespace simu::models {
 
@@ -65,7 +67,10 @@ struct SampleOptions {
   // FlowMatching generators.
   bool shortcut = false;
   std::string solver = "euler";  // euler | midpoint | rk4
-  // On CUDA: run the backbone under bf16 autocast (official inference). Ignored on CPU.
+  // On CUDA: the autocast precision of the backbone. When set it decides (fp16 = the released
+  // pipeline, bf16, fp32 = none); unset: bf16 autocast when bf16_autocast (the training recipe).
+  // Ignored on CPU (fp32).
+  std::optional<Precision> precision;
   bool bf16_autocast = true;
   // Compute the condition's cross-attention keys/values once and reuse them at every step (same
   // result up to rounding order: none, the same ops run once instead of per step).
@@ -77,12 +82,44 @@ struct SampleOptions {
   // happens per sample() call and costs more than 25 steps save (H100, bench_stage1: 808 ms with
   // graphs vs 725 ms eager at 2,800 condition tokens); it pays for long solves (many steps, rk4).
   bool cuda_graphs = false;
+  // Unconditional branch for CFG: "" keeps the generator config's, else "add_flag" or "zeros" (the
+  // official inference forces "add_flag").
+  std::string unconditional_handling;
   // Called after each solver step with (step index from 1, steps).
   std::function<void(int, int)> on_step;
 
-  // Defaults from the config (inference_steps, CFG strength/interval, rescale_t, !no_shortcut, solver).
+  // Defaults from the config (inference_steps, CFG strength/interval, rescale_t, !no_shortcut, solver):
+  // the TRAINING-time values of a released ss_generator.yaml (2 steps, rescale_t 1, CFG 2, shortcut).
+  // Inference entry points use official_inference_options() instead.
   static SampleOptions from(const GeneratorConfig& c);
 };
+
+// Sampler values a user gave explicitly (command line or config); unset ones take the official
+// inference values (official_inference_options).
+struct SamplerOverrides {
+  std::optional<int> steps;
+  std::optional<double> rescale_t;
+  std::optional<double> cfg_strength;
+  std::optional<std::pair<double, double>> cfg_interval;  // time_scale units
+  std::optional<bool> shortcut;                           // true: d = 1/steps and (unless cfg given) no CFG
+  std::optional<std::string> solver;
+};
+
+// The official inference values (sam3d_objects/pipeline/inference_pipeline.py: InferencePipeline
+// defaults ss_inference_steps 25, ss_rescale_t 3, ss_cfg_strength 7, ss_cfg_interval [0, 500];
+// override_ss_generator_cfg_config forces unconditional_handling "add_flag"; sample_sparse_structure
+// sets no_shortcut = true, i.e. d = 0 for a ShortCut generator; precision fp16 on CUDA, the released
+// pipeline.yaml dtype). They replace the training-time values
+// a released ss_generator.yaml carries (inference_steps 2, rescale_t 1, strength 2.0, no no_shortcut).
+// Kept from the config: time_scale, reversed_timestamp, solver (solver_method; euler when absent).
+// `user` overrides single values; user.shortcut = true is the official use_distillation path
+// (d = 1/steps, CFG strength 0 unless user.cfg_strength is set).
+SampleOptions official_inference_options(const GeneratorConfig& c, const SamplerOverrides& user = {});
+
+// One line naming every sampler value and where it came from, e.g. "steps 25 (official inference),
+// rescale_t 3 (official inference), cfg 7 on t*1000 in [0, 500] (official inference), unconditional
+// add_flag, d = 0 (no_shortcut), solver euler (config)"; values the user set are marked "(user)".
+std::string describe_sampler(const SampleOptions& o, const GeneratorConfig& c, const SamplerOverrides& user = {});
 
 // A condition prepared for repeated guided evaluations: the conditional/unconditional pair built once,
 // and (when `cache`) the cross-attention keys/values of both computed on first use and reused.

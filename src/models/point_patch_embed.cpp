@@ -78,6 +78,9 @@ PointPatchEmbedConfig PointPatchEmbedConfig::from(config::Reader& r) {
   r.field("remap_output", c.remap_output);
   r.field("dropout_prob", c.dropout_prob);
   r.field("force_dropout_always", c.force_dropout_always);
+  r.field("exp_near_points", c.exp_near_points);
+  SIMU_CHECK(c.exp_near_points == "invalid" || c.exp_near_points == "nan",
+             "{}: exp_near_points '{}' (expected invalid or nan)", r.file(), c.exp_near_points);
   r.field("num_heads", c.num_heads);
   r.field("block_heads", c.num_heads);
   r.field("mlp_ratio", c.mlp_ratio);
@@ -109,12 +112,11 @@ torch::Tensor PointPatchEmbedImpl::window_pos_embed(int64_t h, int64_t w, torch:
   return pe.permute({0, 2, 3, 1}).reshape({1, h * w, config.embed_dim}).to(dtype);
 }
 
-torch::Tensor PointPatchEmbedImpl::forward(const torch::Tensor& xyz_in, const torch::Tensor& valid_in) {
+torch::Tensor PointPatchEmbedImpl::embed_points(const torch::Tensor& xyz_in, const torch::Tensor& valid_in) {
   SIMU_CHECK(xyz_in.dim() == 4 && xyz_in.size(1) == 3, "PointPatchEmbed: input [{}] expected [B, 3, H, W]",
              fmt::join(xyz_in.sizes(), ", "));
-  const int64_t p = config.patch_size, D = config.embed_dim;
+  const int64_t D = config.embed_dim;
   torch::Tensor x, valid;
-  int64_t B, H, W;
   {
     torch::NoGradGuard no_grad;
     // Nearest resize to input_size x input_size, channels last: [B, S, S, 3].
@@ -123,16 +125,25 @@ torch::Tensor PointPatchEmbedImpl::forward(const torch::Tensor& xyz_in, const to
                                           .mode(torch::kNearest))
                    .permute({0, 2, 3, 1});
     valid = valid_in.defined() ? valid_in.to(torch::kBool) : torch::isfinite(xyz).all(-1);  // [B, S, S]
-    B = xyz.size(0), H = xyz.size(1), W = xyz.size(2);
-    SIMU_CHECK(valid.sizes() == torch::IntArrayRef({B, H, W}), "PointPatchEmbed: valid_mask [{}] expected [{}, {}, {}]",
-               fmt::join(valid.sizes(), ", "), B, H, W);
+    SIMU_CHECK(valid.sizes() == torch::IntArrayRef({xyz.size(0), xyz.size(1), xyz.size(2)}),
+               "PointPatchEmbed: valid_mask [{}] expected [{}, {}, {}]", fmt::join(valid.sizes(), ", "), xyz.size(0),
+               xyz.size(1), xyz.size(2));
+    // exp remap: z <= -1 is outside log1p's domain (see exp_near_points).
+    if (point_remapper.type() == PointRemapper::Type::kExp && config.exp_near_points == "invalid")
+      valid = valid & (xyz.select(-1, 2) > -1);
     // Invalid points to 0 before remapping so nothing non-finite propagates.
     auto safe = torch::where(valid.unsqueeze(-1), xyz, torch::zeros_like(xyz));
     x = point_remapper.forward(safe);
   }
   // Point projection; invalid points take the invalid token: [B, S, S, D].
   x = point_proj(x);
-  x = torch::where(valid.unsqueeze(-1), x, invalid_xyz_token.to(x.dtype()).view({1, 1, 1, D}));
+  return torch::where(valid.unsqueeze(-1), x, invalid_xyz_token.to(x.dtype()).view({1, 1, 1, D}));
+}
+
+torch::Tensor PointPatchEmbedImpl::forward(const torch::Tensor& xyz_in, const torch::Tensor& valid_in) {
+  const int64_t p = config.patch_size, D = config.embed_dim;
+  torch::Tensor x = embed_points(xyz_in, valid_in);  // [B, S, S, D]
+  const int64_t B = x.size(0), H = x.size(1), W = x.size(2);
 
   // Windows: [B, h, p, w, p, D] -> [B*h*w, p*p, D]
   const int64_t h = H / p, w = W / p;

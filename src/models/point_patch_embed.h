@@ -48,13 +48,23 @@ struct PointPatchEmbedConfig {
   double mlp_ratio = 2.0;           // fixed to 2.0 in the official code
   double dropout_prob = 0.0;        // > 0 adds dropped_xyz_token
   bool force_dropout_always = false;
-  // Reads input_size, patch_size, embed_dim, remap_output, dropout_prob, force_dropout_always and the
+  // `exp` remap only: points with z <= -1 (nearer than the object by more than the scene scale; the
+  // domain of log1p ends there). The official code has no case for them: log1p gives NaN/-inf, the
+  // window's token becomes NaN and, through cross-attention, so does every generated latent.
+  //   "invalid" (default): they take invalid_xyz_token, as points without depth do; every other point
+  //       is embedded exactly as the official code does;
+  //   "nan": the official arithmetic, NaN included.
+  // Other remaps have no such domain (linear: near points are ordinary values).
+  std::string exp_near_points = "invalid";
+  // Reads input_size, patch_size, embed_dim, remap_output, dropout_prob, force_dropout_always,
+  // exp_near_points and the
   // fixture's block_heads / block_mlp_ratio (also accepted as num_heads / mlp_ratio).
   static PointPatchEmbedConfig from(config::Reader& r);
 };
 
 // PointPatchEmbed: xyz [B, 3, H, W] -> [B, (S/p)^2, D].
-//  1. nearest resize to S = input_size; invalid = any non-finite coordinate (or the given mask);
+//  1. nearest resize to S = input_size; invalid = any non-finite coordinate (or the given mask), and
+//     for the exp remap z <= -1 (see exp_near_points);
 //  2. invalid points set to 0, PointRemapper, point_proj; invalid points take invalid_xyz_token;
 //  3. per p x p window: [cls_token, p*p point tokens] + pos_embed_window -> one timm Block;
 //  4. window cls tokens + pos_embed (bilinear resize of the [1, D, n, n] grid to the window grid);
@@ -64,6 +74,8 @@ class PointPatchEmbedImpl : public torch::nn::Module {
   explicit PointPatchEmbedImpl(const PointPatchEmbedConfig& config);
   // valid_mask: optional [B, H', W'] bool at input_size resolution (after the resize).
   torch::Tensor forward(const torch::Tensor& xyz, const torch::Tensor& valid_mask = {});
+  // Steps 1-2 alone (official embed_pointmap_windows): per-point features [B, S, S, D].
+  torch::Tensor embed_points(const torch::Tensor& xyz, const torch::Tensor& valid_mask = {});
   int64_t embed_dim() const { return config.embed_dim; }
   int64_t num_tokens() const {
     const int64_t n = config.input_size / config.patch_size;

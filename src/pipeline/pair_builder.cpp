@@ -406,6 +406,7 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
              manifest_path);
   auto rc = cfg.resampler;
   rc.num_samples = 1;
+  rc.use_decoder = false;  // latents only
   Resampler resampler(rc);
   return build_pairs(manifest_path, cfg, resampler, progress, stop);
 }

@@ -77,7 +77,7 @@ uint64_t pair_noise_seed(uint64_t seed, const std::string& id);
 
 struct PairBuilderConfig {
   ResamplerConfig resampler;          // models and sampling (num_samples is ignored: one per side)
-  data::PreprocessConfig preprocess;  // official Stage-1 preprocessing
+  data::PreprocessConfig preprocess;  // Stage-1 preprocessing; default: the released pipeline.yaml preset
   std::string out;                    // the cache (.h5); written atomically
   torch::ScalarType dtype = torch::kFloat16;  // storage of latents and cond (float16 | float32)
   int64_t batch = 4;                  // pairs embedded and sampled per batched call

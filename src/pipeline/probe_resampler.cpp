@@ -57,13 +57,22 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
     std::vector<ProbeResampleResult> results(requests.size());
 #ifdef SIMU_HAVE_OPENCV
     // Condition inputs per object; failures are reported per object.
+    // An unreadable depth file fails every object with the file's name (not the whole call).
     torch::Tensor pointmap;
-    if (!scene.depth_path.empty()) pointmap = pointmap_from_depth_file(scene.depth_path, scene.camera);
+    std::string depth_error;
+    if (!scene.depth_path.empty()) {
+      try {
+        pointmap = pointmap_from_depth_file(scene.depth_path, scene.camera);
+      } catch (const std::exception& e) {
+        depth_error = e.what();
+      }
+    }
     std::vector<ResampleRequest> batch;
     std::vector<size_t> batch_index;
     for (size_t i = 0; i < requests.size(); ++i) {
       const auto& rq = requests[i];
       try {
+        SIMU_CHECK(depth_error.empty(), "object '{}': {}", rq.object_id, depth_error);
         const std::string image = rq.image_path.empty() ? scene.image_path : rq.image_path;
         SIMU_CHECK(!image.empty(), "object '{}': the scene has no image", rq.object_id);
         const auto rgb = data::read_image_rgb(image);
@@ -78,20 +87,9 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
         results[i].has_crop_box = true;
         ResampleRequest r;
         r.inputs = prepared.tensors;
-        // Points far nearer than the object (normalised z <= -1) have no image under the embedder's
-        // "exp" remap (log1p(z)) and would put NaN into the whole condition: mark them invalid (NaN
-        // = the invalid-point token), as points without depth are.
-        for (const char* key : {"pointmap", "rgb_pointmap"}) {
-          auto it = r.inputs.find(key);
-          if (it == r.inputs.end()) continue;
-          auto pm = it->second.clone();  // [1, 3, P, P] or [3, P, P]
-          const auto near = pm.select(-3, 2) <= -1.0;  // [.., P, P]
-          const int64_t count = near.sum().item<int64_t>();
-          if (count == 0) continue;
-          pm.masked_fill_(near.unsqueeze(-3).expand_as(pm), NAN);
-          it->second = pm;
-          log::debug("object '{}': {} {} points with normalised z <= -1 marked invalid", rq.object_id, count, key);
-        }
+        // Points nearer than the object (normalised z <= -1) go to the embedder as they are: with the
+        // released `linear` remap they are ordinary values (as in the official code); PointPatchEmbed
+        // itself handles the `exp` remap's domain (models/point_patch_embed.h).
         if (prepared.pointmap_scale.defined()) {
           r.scene_scale = prepared.pointmap_scale.reshape({-1})[0].item<double>();
           for (int k = 0; k < 3; ++k) r.scene_shift[k] = prepared.pointmap_shift.reshape({-1})[k].item<double>();
@@ -100,7 +98,9 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
         batch_index.push_back(i);
       } catch (const std::exception& e) {
         results[i].ok = false;
-        results[i].message = e.what();
+        // Every message names the object.
+        const std::string m = e.what();
+        results[i].message = m.rfind("object '", 0) == 0 ? m : fmt::format("object '{}': {}", rq.object_id, m);
       }
     }
     if (batch.empty()) return results;

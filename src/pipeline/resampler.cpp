@@ -41,6 +41,7 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   r.field("generator_overrides", c.generator_overrides);
   r.field("embedder_config", c.embedder_config);
   r.field("embedder_weights", c.embedder_weights);
+  r.field("random_weights", c.random_weights);
   r.field("device", c.device);
   r.field("steps", c.steps);
   r.field("rescale_t", c.rescale_t);
@@ -52,7 +53,12 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   }
   r.field("shortcut", c.shortcut);
   r.field("solver", c.solver);
-  r.field("bf16", c.bf16);
+  SIMU_CHECK(c.solver.empty() || c.solver == "euler" || c.solver == "midpoint" || c.solver == "rk4",
+             "{}: solver must be euler, midpoint or rk4 (or absent: the generator config's), got '{}'", r.file(), c.solver);
+  r.field("precision", c.precision);
+  if (r.has("bf16")) {  // the earlier switch: bf16 true -> bf16, false -> fp32
+    c.precision = r.require<bool>("bf16") ? "bf16" : "fp32";
+  }
   r.field("num_samples", c.num_samples);
   r.field("decode_batch", c.decode_batch);
   r.field("pose_convention", c.pose_convention);
@@ -64,6 +70,23 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
 
 Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
     : config_(std::move(config)), device_(pick_device(config_.device)) {
+  precision_ = models::parse_precision(config_.precision, device_, "resampler precision");
+  models::check_precision(precision_, device_, "resampler precision");
+  // Weights: a missing file is an error naming its flag, unless random weights were asked for.
+  std::vector<std::string> missing;
+  if (config_.generator_weights.empty()) missing.push_back("--generator-weights (generator_weights)");
+  if (config_.decoder_weights.empty() && config_.use_decoder) missing.push_back("--decoder-weights (decoder_weights)");
+  if (!config_.embedder_config.empty() && config_.embedder_weights.empty())
+    missing.push_back("--embedder-weights (embedder_weights)");
+  if (!missing.empty()) {
+    if (!config_.random_weights)
+      fail_hint("convert the released checkpoints (checkpoints/README.md) and pass them; --random-weights runs "
+                "without them (benchmarks and demos only: the shapes are meaningless)",
+                "resampler: no weights given for {}", fmt::join(missing, ", "));
+    random_banner_ = fmt::format("RANDOM WEIGHTS (--random-weights): {} not given; outputs are meaningless",
+                                 fmt::join(missing, ", "));
+    simu::log::warn("{}", random_banner_);
+  }
   // Generator (official names), then the adapter on top of the base weights.
   generator_ = models::load_generator(config_.generator_config, config_.generator_weights, device_,
                                       config_.generator_overrides);
@@ -99,30 +122,43 @@ Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
   SIMU_CHECK(shape.in_channels == decoder_->config().latent_channels,
              "resampler: generator shape latent has {} channels, decoder {} expects {}", shape.in_channels,
              config_.decoder_config, decoder_->config().latent_channels);
-  simu::log::info("resampler ready on {} (generator {}, decoder {}{})", device_.str(), config_.generator_config,
-                  config_.decoder_config, has_adapter_ ? ", adapter " + config_.adapter_dir : "");
+  simu::log::info("resampler ready on {} in {} (generator {}, decoder {}{})", device_.str(),
+                  models::precision_name(precision_), config_.generator_config, config_.decoder_config,
+                  has_adapter_ ? ", adapter " + config_.adapter_dir : "");
+  simu::log::info("resampler sampler: {}",
+                  models::describe_sampler(sample_options(), generator_->config(), sampler_overrides()));
+}
+
+models::SamplerOverrides Resampler::sampler_overrides() const {
+  // The config's sampler fields default to the official inference values; the ones that differ are
+  // the user's explicit choices (a released ss_generator.yaml's training-time values never enter).
+  const ResamplerConfig official;
+  models::SamplerOverrides u;
+  if (config_.steps != official.steps) u.steps = config_.steps;
+  if (config_.rescale_t != official.rescale_t) u.rescale_t = config_.rescale_t;
+  if (config_.cfg_strength != official.cfg_strength) u.cfg_strength = config_.cfg_strength;
+  if (config_.cfg_interval != official.cfg_interval) u.cfg_interval = config_.cfg_interval;
+  if (config_.shortcut != official.shortcut) u.shortcut = config_.shortcut;
+  if (!config_.solver.empty()) u.solver = config_.solver;
+  return u;
 }
 
 models::SampleOptions Resampler::sample_options() const {
-  models::SampleOptions o = models::SampleOptions::from(generator_->config());
-  o.steps = config_.steps;
-  o.rescale_t = config_.rescale_t;
+  models::SampleOptions o = models::official_inference_options(generator_->config(), sampler_overrides());
+  // With shortcut on, the CFG strength is the configured one (7 unless changed), as before.
   o.cfg_strength = config_.cfg_strength;
-  o.cfg_interval = config_.cfg_interval;
-  o.shortcut = config_.shortcut;
-  o.solver = config_.solver;
-  o.bf16_autocast = config_.bf16;
+  o.precision = precision_;
   return o;
 }
 
 torch::Tensor Resampler::decode_logits(const torch::Tensor& shape_latent) {
   torch::NoGradGuard no_grad;
-  // Tokens -> grid as the official pipeline, then the decoder in chunks (bf16 autocast on CUDA).
+  // Tokens -> grid as the official pipeline, then the decoder in chunks (autocast in the precision).
   const auto grid = models::shape_tokens_to_grid(shape_latent.to(device_, torch::kFloat32));  // [B, 8, k, k, k]
   std::vector<torch::Tensor> out;
   for (int64_t i = 0; i < grid.size(0); i += config_.decode_batch) {
     const auto chunk = grid.slice(0, i, std::min<int64_t>(i + config_.decode_batch, grid.size(0)));
-    models::Bf16Autocast autocast(config_.bf16 && device_.is_cuda());
+    models::Autocast autocast(precision_, device_.is_cuda());
     out.push_back(decoder_->forward(chunk).to(torch::kFloat32));
   }
   return torch::cat(out, 0);  // [B, 1, R, R, R]
@@ -203,7 +239,7 @@ std::vector<torch::Tensor> Resampler::conditions(const std::vector<ResampleReque
     }
     batch[name] = torch::cat(parts, 0).to(device_, torch::kFloat32);
   }
-  models::Bf16Autocast autocast(config_.bf16 && device_.is_cuda());
+  models::Autocast autocast(precision_, device_.is_cuda());
   const auto tokens = embedder_->forward(batch).to(torch::kCPU, torch::kFloat32);  // [n, L, C]
   for (size_t k = 0; k < to_embed.size(); ++k) conds[to_embed[k]] = tokens[static_cast<int64_t>(k)];
   return conds;

@@ -47,15 +47,27 @@ struct ResamplerConfig {
   std::vector<std::string> generator_overrides;  // "a.b=v" edits of the generator config
   std::string embedder_config;    // condition embedder config; "" = requests must carry tokens
   std::string embedder_weights;   // its safetensors (official prefix stripped when present)
+  // Missing weight files are an error naming the flag (--generator-weights, --decoder-weights,
+  // --embedder-weights) unless this is set: then those modules keep their random init and a
+  // RANDOM WEIGHTS banner is logged (random_weights_banner(), for reports). Benchmarks and demos only.
+  bool random_weights = false;
+  // false: the decoder is built but never run (build_pairs stores latents only): its weights are not
+  // required.
+  bool use_decoder = true;
   std::string device = "auto";    // auto (CUDA when present, else CPU) | cpu | cuda | cuda:N
-  // Stage-1 sampling, official inference defaults (inference_pipeline.py).
+  // Stage-1 sampling: defaults = the official inference values (models::official_inference_options:
+  // inference_pipeline.py overrides the training-time values of a released ss_generator.yaml), also
+  // unconditional_handling add_flag; a value changed here is logged as the user's. The values used
+  // are logged when the Resampler is made.
   int steps = 25;
   double rescale_t = 3.0;
   double cfg_strength = 7.0;
   std::pair<double, double> cfg_interval{0.0, 500.0};
   bool shortcut = false;  // official default: no_shortcut (d = 0)
-  std::string solver = "euler";
-  bool bf16 = true;       // bf16 autocast on CUDA (ignored on CPU)
+  std::string solver;     // "" = the generator config's solver_method (euler in the released yaml)
+  // Inference precision of embedder, generator and decoder (models/precision.h): auto = fp16 on CUDA
+  // (the released pipeline.yaml dtype), fp32 on CPU; fp16 | bf16 need CUDA; fp32.
+  std::string precision = "auto";
   int num_samples = 1;    // shapes drawn per object
   int decode_batch = 8;   // objects per decoder forward
   std::string pose_convention = "ScaleShiftInvariant";  // see models::PoseDecodeOptions
@@ -121,17 +133,25 @@ class Resampler {
   // Condition tokens of every request [L, C] (embedding the ones given as inputs, batched).
   std::vector<torch::Tensor> conditions(const std::vector<ResampleRequest>& requests);
   const torch::Device& device() const { return device_; }
+  models::Precision precision() const { return precision_; }
   const ResamplerConfig& config() const { return config_; }
   bool has_adapter() const { return has_adapter_; }
+  // Non-empty when some module runs on random weights (random_weights): a one-line banner naming them,
+  // to print in outputs and reports.
+  const std::string& random_weights_banner() const { return random_banner_; }
+  // The sampler options every resample() call uses, and the values among them the config changed.
   models::SampleOptions sample_options() const;
+  models::SamplerOverrides sampler_overrides() const;
 
  private:
   ResamplerConfig config_;
   torch::Device device_;
+  models::Precision precision_ = models::Precision::kFp32;
   models::Generator generator_{nullptr};
   models::SparseStructureDecoder decoder_{nullptr};
   models::CondEmbedder embedder_{nullptr};
   bool has_adapter_ = false;
+  std::string random_banner_;
 };
 
 // Meshes one occupancy logit grid [R, R, R] (or [1, 1, R, R, R]): marching cubes at iso 0, official

@@ -2,12 +2,18 @@
 // back) through preprocess and the condition embedder, checked against expectations computed here
 // by hand from the documented algorithm (crop box, padding, token counts, normalised ranges).
 #include <algorithm>
+#include <array>
+#include <cstdio>
+#include <filesystem>
 #include <cmath>
 #include <vector>
 
 #include "common/error.h"
 #include "data/preprocess.h"
 #include "models/cond_embedder.h"
+#include "models/pose.h"
+#include "data/safetensors.h"
+#include "common/config.h"
 #include "models/weights.h"
 #include "test_util.h"
 
@@ -81,7 +87,8 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
 #else
   const auto files = write_scene(simu::testing::temp_dir("preprocess_scene"));
   const auto pm = make_pointmap();
-  sd::PreprocessConfig cfg;  // 518 px, box factor 1.0, padding 0.1, bicubic
+  // The "default" preset: 518 px, box factor 1.0, padding 0.1, bicubic, background removal.
+  const auto cfg = sd::PreprocessConfig::preset_named("default");
   auto out = sd::prepare_condition_inputs_from_files(files.image, files.mask, pm, cfg);
 
   // Crop box by hand: w = 199-100 = 99, h = 119-60 = 59 -> side int(99 * 1.0) = 99, half 49;
@@ -183,7 +190,8 @@ TEST(Preprocess, CropMaskDefinesTheCropButNotTheMaskChannel) {
   GTEST_SKIP() << "built without OpenCV";
 #else
   const auto files = write_scene(simu::testing::temp_dir("preprocess_crop_mask"));
-  auto out = sd::prepare_condition_inputs_from_files(files.image, files.mask, make_pointmap(), {}, files.crop_mask);
+  auto out = sd::prepare_condition_inputs_from_files(files.image, files.mask, make_pointmap(),
+                                                    sd::PreprocessConfig::preset_named("default"), files.crop_mask);
   // M': x 100..199, y 60..179 -> w 99, h 119 -> side 119, half 59; centre (149.5, 119.5)
   // -> x [int(90.5), int(208.5)) = [90, 208), y [int(60.5), int(178.5)) = [60, 178); extend int(118*0.1) = 11.
   EXPECT_EQ(out.crop_box.x1, 90);
@@ -251,7 +259,8 @@ TEST(Preprocess, CropPastTheImageEdge) {
   EXPECT_EQ(b.x2, 5);
   EXPECT_EQ(b.y1, 0);
   EXPECT_EQ(b.y2, 8);
-  sd::PreprocessConfig cfg;
+  auto cfg = sd::PreprocessConfig::preset_named("default");
+  cfg.box_size_factor = 1.0;
   cfg.padding_factor = 0;
   cfg.image_size = 7;  // 7 x 8 crop -> padded to 8 x 8 -> resized to 7
   cfg.remove_background = false;
@@ -273,4 +282,122 @@ TEST(Preprocess, OpenCvToPyTorch3dPoints) {
   EXPECT_EQ(q[0][0][0].item<float>(), -1.f);
   EXPECT_EQ(q[1][0][0].item<float>(), -2.f);
   EXPECT_EQ(q[2][0][0].item<float>(), 3.f);
+}
+
+// ---------------------------------------------------------------------------------------------
+// The released pipeline.yaml `ss_preprocessor`, against the official code's tensors
+// (../shared/fixtures/preprocess_released_case{0,1,2}.safetensors, README "preprocess_released"):
+// raw uint8 image, 0/1 mask (alpha / 255) and OpenCV point map in; every tensor the condition
+// embedder receives out, and the pose decode with the scene scale/shift.
+namespace {
+
+// max |a - b| over the positions where both are finite; also checks NaN positions are identical.
+::testing::AssertionResult same_with_nan(const torch::Tensor& got, const torch::Tensor& want, double tol,
+                                         const std::string& what, double* err_out = nullptr) {
+  if (got.sizes() != want.sizes())
+    return ::testing::AssertionFailure() << what << ": shape " << got.sizes() << " vs expected " << want.sizes();
+  const auto g = got.to(torch::kFloat64), w = want.to(torch::kFloat64);
+  const auto gn = torch::isnan(g), wn = torch::isnan(w);
+  const int64_t nan_diff = (gn != wn).sum().item<int64_t>();
+  if (nan_diff != 0)
+    return ::testing::AssertionFailure() << what << ": NaN at " << nan_diff << " positions that differ (got "
+                                         << gn.sum().item<int64_t>() << " NaN, expected " << wn.sum().item<int64_t>() << ")";
+  if (!torch::isfinite(w.masked_select(~wn)).all().item<bool>())
+    return ::testing::AssertionFailure() << what << ": expected tensor has inf";
+  const double e = (g - w).masked_fill(wn, 0).abs().max().item<double>();
+  if (err_out) *err_out = e;
+  if (e > tol) return ::testing::AssertionFailure() << what << ": max abs error " << e << " > " << tol;
+  return ::testing::AssertionSuccess();
+}
+
+void check_released_case(int k) {
+  const auto path = simu::testing::fixture("preprocess_released_case" + std::to_string(k) + ".safetensors");
+  if (!std::filesystem::exists(path)) GTEST_SKIP() << "fixture missing: " << path;
+  const auto f = simu::data::load_safetensors(path);
+  // Inputs as the official pipeline reads them: rgb = uint8 / 255 (in float64, then float32),
+  // mask = alpha / 255 with alpha = mask * 255, point map converted from the OpenCV camera.
+  const auto rgb = (f.at("in.image").to(torch::kFloat64) / 255.0).to(torch::kFloat32).permute({2, 0, 1});  // [3,H,W]
+  const auto mask = (f.at("in.mask").to(torch::kFloat64) * 255.0 / 255.0).to(torch::kFloat32);           // [H,W]
+  const auto pm = sd::pointmap_from_opencv_camera(f.at("in.pointmap").permute({2, 0, 1}).contiguous());  // [3,H,W]
+  // The frame conversion itself (a NaN/inf coordinate makes the whole point NaN).
+  EXPECT_TRUE(same_with_nan(pm, f.at("mid.pointmap"), 0.0, "mid.pointmap"));
+
+  // Default config = the released preset.
+  const sd::PreprocessConfig cfg;
+  ASSERT_EQ(cfg.preset, "released");
+  const auto out = sd::prepare_condition_inputs(rgb, mask, pm, cfg);
+
+  // Images and point maps <= 1e-5 max abs; masks exact; NaN positions exact.
+  double err = 0;
+  for (const char* key : {"image", "rgb_image"}) {
+    EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), 1e-5, key, &err));
+    std::printf("case%d %-15s max abs error %.3g\n", k, key, err);
+  }
+  for (const char* key : {"mask", "rgb_image_mask"})
+    EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), 0.0, key));
+  for (const char* key : {"pointmap", "rgb_pointmap"}) {
+    EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), 1e-5, key, &err));
+    std::printf("case%d %-15s max abs error %.3g\n", k, key, err);
+  }
+  // Scale / shift <= 1e-6 relative (the full-frame pair is the same).
+  for (const char* prefix : {"out.", "out.rgb_"}) {
+    const auto want_scale = f.at(std::string(prefix) + "pointmap_scale").reshape({3});
+    const auto want_shift = f.at(std::string(prefix) + "pointmap_shift").reshape({3});
+    EXPECT_TRUE(simu::testing::close(out.pointmap_scale, want_scale, 1e-6, std::string(prefix) + "pointmap_scale"));
+    EXPECT_TRUE(simu::testing::close(out.pointmap_shift, want_shift, 1e-6, std::string(prefix) + "pointmap_shift"));
+  }
+
+  // Pose decode with the scene scale/shift of this preprocessing (ScaleShiftInvariant, the released
+  // pose_decoder_name).
+  simu::models::PoseDecodeOptions po;
+  po.convention = "ScaleShiftInvariant";
+  po.scene_scale = out.pointmap_scale[0].item<double>();
+  for (int i = 0; i < 3; ++i) po.scene_shift[i] = out.pointmap_shift[i].item<double>();
+  std::map<std::string, torch::Tensor> lat;
+  for (const char* n : {"6drotation_normalized", "scale", "translation", "translation_scale"})
+    lat[n] = f.at(std::string("pose.in.") + n);
+  const auto pose = simu::models::decode_pose(lat, po);
+  EXPECT_TRUE(same_with_nan(pose.quaternion, f.at("pose.out.rotation"), 1e-5, "pose rotation"));
+  EXPECT_TRUE(same_with_nan(pose.translation, f.at("pose.out.translation"), 1e-5, "pose translation"));
+  EXPECT_TRUE(same_with_nan(pose.scale, f.at("pose.out.scale"), 1e-5, "pose scale"));
+}
+
+}  // namespace
+
+TEST(PreprocessReleased, Case0ObjectInsideFrame) { check_released_case(0); }
+TEST(PreprocessReleased, Case1CropLeavesTheImageSingleCoordinateNaN) { check_released_case(1); }
+TEST(PreprocessReleased, Case2LargeImageNearPoleInfInvalid) { check_released_case(2); }
+
+// The crop box of each case is the official one (json: crop_bbox_x1y1x2y2).
+TEST(PreprocessReleased, CropBoxes) {
+  const std::vector<std::array<int64_t, 4>> want = {{74, 21, 170, 117}, {-27, 63, 83, 173}, {76, -19, 640, 544}};
+  for (int k = 0; k < 3; ++k) {
+    const auto path = simu::testing::fixture("preprocess_released_case" + std::to_string(k) + ".safetensors");
+    if (!std::filesystem::exists(path)) GTEST_SKIP() << "fixture missing: " << path;
+    const auto f = simu::data::SafeTensorsFile::open(path);
+    const auto b = sd::compute_mask_bbox(f.get("in.mask"), sd::PreprocessConfig{}.box_size_factor);
+    EXPECT_EQ((std::array<int64_t, 4>{b.x1, b.y1, b.x2, b.y2}), want[k]) << "case" << k;
+  }
+}
+
+// Presets by name from YAML: `preset` first, then field overrides; an unknown name is an error.
+TEST(PreprocessReleased, PresetsByName) {
+  auto released = sd::PreprocessConfig::preset_named("released");
+  EXPECT_EQ(released.image_interpolation, "bilinear");
+  EXPECT_DOUBLE_EQ(released.box_size_factor, 1.2);
+  EXPECT_DOUBLE_EQ(released.padding_factor, 0.0);
+  EXPECT_FALSE(released.remove_background);
+  auto def = sd::PreprocessConfig::preset_named("default");
+  EXPECT_EQ(def.image_interpolation, "bicubic");
+  EXPECT_DOUBLE_EQ(def.box_size_factor, 1.0);
+  EXPECT_TRUE(def.remove_background);
+  YAML::Node n = YAML::Load("{preset: default, padding_factor: 0.2}");
+  simu::config::Reader r(n, "test.yaml");
+  auto c = sd::PreprocessConfig::from(r);
+  EXPECT_EQ(c.preset, "default");
+  EXPECT_DOUBLE_EQ(c.padding_factor, 0.2);
+  EXPECT_EQ(c.image_interpolation, "bicubic");
+  YAML::Node bad = YAML::Load("{preset: bogus}");
+  simu::config::Reader rb(bad, "test.yaml");
+  EXPECT_THROW(sd::PreprocessConfig::from(rb), simu::Error);
 }

@@ -51,6 +51,7 @@ ResamplerConfig small_models(const std::string& embedder_weights) {
   c.decoder_weights = simu::testing::fixture("ss_decoder_small.safetensors");
   c.embedder_config = embedder_config();
   c.embedder_weights = embedder_weights;
+  c.random_weights = embedder_weights.empty();
   c.device = "cpu";
   c.steps = 2;  // official defaults otherwise (rescale_t 3, CFG 7 on [0, 500])
   c.num_samples = 1;

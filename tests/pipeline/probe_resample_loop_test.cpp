@@ -59,12 +59,13 @@ std::array<int, 4> projected_pixel_bbox(const Vec3& lo, const Vec3& hi) {
   return {int(std::ceil(u0)), int(std::ceil(v0)), int(std::floor(u1)), int(std::floor(v1))};
 }
 
-// The official crop rule (crop_around_mask_with_padding / compute_mask_bbox, box_size_factor 1) applied
-// to an inclusive pixel bbox: square of side max(w, h) centred on it.
+// The official crop rule (crop_around_mask_with_padding / compute_mask_bbox) with the released
+// pipeline.yaml's box_size_factor 1.2, applied to an inclusive pixel bbox: square of side
+// int(max(w, h, 2) * 1.2) centred on it.
 std::array<int, 4> official_crop(const std::array<int, 4>& b) {
   const int w = b[2] - b[0], h = b[3] - b[1];
   const double cx = (b[0] + b[2]) / 2.0, cy = (b[1] + b[3]) / 2.0;
-  const int half = std::max({w, h, 2}) / 2;
+  const int half = static_cast<int>(std::max({w, h, 2}) * 1.2) / 2;
   return {int(std::trunc(cx - half)), int(std::trunc(cy - half)), int(std::trunc(cx + half)), int(std::trunc(cy + half))};
 }
 
@@ -116,6 +117,7 @@ TEST(ProbeResampleLoop, CutObjectIsResampledPlacedAndSettled) {
   rc.decoder_config = simu::testing::fixture("ss_decoder_small.json");
   rc.decoder_weights = simu::testing::fixture("ss_decoder_small.safetensors");
   rc.embedder_config = simu::testing::source_dir() + "/configs/demo_embedder_small.json";
+  rc.random_weights = true;  // the demo-size embedder has no weight file
   rc.device = "cpu";
   rc.steps = 2;
   rc.num_samples = 2;
@@ -206,15 +208,11 @@ TEST(ProbeResampleLoop, CutObjectIsResampledPlacedAndSettled) {
     const auto prep = simu::data::prepare_condition_inputs(rgb, modal_t, pm, {}, aux_t);
     ResampleRequest q;
     q.inputs = prep.tensors;
-    // The occluder's points (normalised z <= -1) are invalid points (NaN) for the embedder.
+    // The occluder's points (normalised z <= -1) go in unchanged (the probe no longer masks them; the
+    // demo embedder's `exp` remap handles them inside PointPatchEmbed).
     int64_t near_points = 0;
-    for (const char* key : {"pointmap", "rgb_pointmap"}) {
-      auto pm = q.inputs.at(key).clone();
-      const auto near = pm.select(-3, 2) <= -1.0;
-      near_points += near.sum().item<int64_t>();
-      pm.masked_fill_(near.unsqueeze(-3).expand_as(pm), NAN);
-      q.inputs[key] = pm;
-    }
+    for (const char* key : {"pointmap", "rgb_pointmap"})
+      near_points += (q.inputs.at(key).select(-3, 2) <= -1.0).sum().item<int64_t>();
     EXPECT_GT(near_points, 0);  // the case is exercised
     q.scene_scale = prep.pointmap_scale.reshape({-1})[0].item<double>();
     for (int k = 0; k < 3; ++k) q.scene_shift[k] = prep.pointmap_shift.reshape({-1})[k].item<double>();

@@ -1,8 +1,13 @@
 // Resampler on the small fixture generator + decoder: batching, seeding, decode chain, pose, meshes.
 #include <ATen/CPUGeneratorImpl.h>
 
+#ifdef SIMU_HAVE_OPENCV
+#include <opencv2/core.hpp>
+#endif
+
 #include "common/error.h"
 #include "data/safetensors.h"
+#include "pipeline/probe_resampler.h"
 #include "pipeline/resampler.h"
 #include "test_util.h"
 
@@ -124,6 +129,7 @@ TEST(Resampler, EmbedsConditionInputs) {
   ResamplerConfig cfg = small_config();
   cfg.generator_config = simu::testing::source_dir() + "/configs/stage1_small.yaml";
   cfg.generator_weights = "";  // random init (fixture embedder gives 64 channels)
+  cfg.random_weights = true;
   cfg.generator_overrides = {"flow_model.cond_channels=64"};
   cfg.embedder_config = simu::testing::fixture("cond_embedder_small.json");
   cfg.embedder_weights = simu::testing::fixture("cond_embedder_small.safetensors");
@@ -156,4 +162,45 @@ TEST(Resampler, RejectsWrongConditionWidth) {
   } catch (const simu::Error& e) {
     EXPECT_NE(std::string(e.what()).find("request 1"), std::string::npos) << e.what();
   }
+}
+
+// probe --resample with an unreadable depth file: every object fails with the file named (and the
+// call returns normally), instead of a later "too few results".
+TEST(Resampler, ProbeBadDepthFileIsAPerObjectErrorNamingTheFile) {
+#ifndef SIMU_HAVE_OPENCV
+  GTEST_SKIP() << "needs OpenCV";
+#else
+  Resampler rs(small_config());
+  Scene scene;
+  scene.image_path = "/nonexistent/image.png";
+  scene.depth_path = "/nonexistent/depth.png";
+  ProbeResampleRequest rq;
+  rq.object_id = "cup";
+  rq.modal_mask = cv::Mat::zeros(8, 8, CV_8UC1);
+  auto fn = make_probe_resample_fn(rs, scene);
+  const auto out = fn({rq, rq});
+  ASSERT_EQ(out.size(), 2u);
+  for (const auto& r : out) {
+    EXPECT_FALSE(r.ok);
+    EXPECT_NE(r.message.find("/nonexistent/depth.png"), std::string::npos) << r.message;
+    EXPECT_NE(r.message.find("cup"), std::string::npos) << r.message;
+  }
+#endif
+}
+
+// Missing weight files are an error naming the flag unless random weights are asked for (with a banner).
+TEST(Resampler, MissingWeightsNameTheFlag) {
+  ResamplerConfig c = small_config();
+  c.decoder_weights = "";
+  try {
+    Resampler rs(c);
+    FAIL() << "expected an error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("--decoder-weights"), std::string::npos) << e.what();
+  }
+  c.random_weights = true;
+  Resampler rs(c);
+  EXPECT_NE(rs.random_weights_banner().find("RANDOM WEIGHTS"), std::string::npos);
+  EXPECT_NE(rs.random_weights_banner().find("--decoder-weights"), std::string::npos);
+  EXPECT_TRUE(Resampler(small_config()).random_weights_banner().empty());
 }
