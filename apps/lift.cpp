@@ -4,6 +4,7 @@
 // scene.json the probe reads. Exit 1 when any object failed (the others are written).
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 

@@ -17,6 +17,7 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
+#include "data/depth_io.h"
 #include "pipeline/lift.h"
 
 namespace {

@@ -3,6 +3,8 @@
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
+#include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
@@ -153,6 +155,7 @@ torch::ScalarType npy_storage_dtype(const std::string& path, const std::string& 
       break;
   }
   unsupported();
+  return torch::kFloat32;  // not reached
 }
 
 }  // namespace

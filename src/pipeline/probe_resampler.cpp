@@ -3,6 +3,8 @@
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
+#include <filesystem>
+
 #include "common/error.h"
 #include "common/log.h"
 #include "pipeline/lift.h"
@@ -31,6 +33,10 @@ torch::Tensor pointmap_from_depth_file(const std::string& path, const Camera& ca
 }
 
 ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, ProbeResamplerOptions options) {
+  // The scene's image and depth files must exist: an error naming the file before any probing.
+  for (const auto& [path, what] : {std::pair<std::string, const char*>{scene.image_path, "image"},
+                                   std::pair<std::string, const char*>{scene.depth_path, "depth"}})
+    SIMU_CHECK(path.empty() || std::filesystem::exists(path), "{}: the scene's {} file is not found", path, what);
   return [&resampler, scene, options](const std::vector<ProbeResampleRequest>& requests) {
     std::vector<ProbeResampleResult> results(requests.size());
 #ifdef SIMU_HAVE_OPENCV

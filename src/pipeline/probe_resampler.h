@@ -25,6 +25,7 @@ torch::Tensor pointmap_from_depth_file(const std::string& path, const Camera& ca
 // A ResampleFn for run_probe that uses `resampler` (which must outlive it) for the objects of `scene`,
 // through the lift path (pipeline/lift.h lift_objects: the same preprocessing, batching and pose
 // conversion as the `lift` program).
+// Throws when the scene names an image or depth file that does not exist.
 // Objects whose inputs cannot be prepared (missing image, empty mask...) come back not ok with the
 // reason; the others are resampled together. The result reports the crop box taken from M'. With
 // num_samples > 1 every usable sample becomes a candidate (ProbeResampleResult::candidates) and the

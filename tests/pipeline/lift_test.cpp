@@ -237,6 +237,26 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
                                dir + "/probe.log");
   EXPECT_EQ(qrc, 0) << qlog;
   EXPECT_TRUE(std::filesystem::exists(dir + "/probe/scene.xml")) << qlog;
+  // probe --resample on a scene whose depth file is missing: an error naming the file, exit 1.
+  {
+    auto sj = read_json(out + "/scene.json");
+    EXPECT_EQ(sj.at("depth").get<std::string>(), photo.depth);  // lift records its geometry input
+    sj["depth"] = dir + "/gone.png";
+    std::ofstream(dir + "/bad_scene.json") << sj.dump();
+    // (mesh paths are relative to the scene file: put it beside the outputs)
+    std::filesystem::copy_file(dir + "/bad_scene.json", out + "/bad_scene.json");
+    const auto fix = [](const std::string& n) { return simu::testing::fixture(n); };
+    const auto [brc, blog] =
+        run(simu::testing::build_dir() + "/probe --scene " + out + "/bad_scene.json --out " + dir +
+                "/probe_bad --no-coacd --resample --device cpu --generator-config " + fix("ss_generator_small.json") +
+                " --generator-weights " + fix("ss_generator_small.safetensors") + " --decoder-config " +
+                fix("ss_decoder_small.json") + " --decoder-weights " + dec + " --embedder-config " +
+                simu::testing::source_dir() + "/configs/demo_embedder_small.json",
+            dir + "/probe_bad.log");
+    EXPECT_EQ(brc, 1) << blog;
+    EXPECT_NE(blog.find(dir + "/gone.png: the scene's depth file is not found"), std::string::npos) << blog;
+    std::filesystem::remove(out + "/bad_scene.json");
+  }
   // The output directory exists now: refused without --overwrite, replaced with it.
   const auto [rc2, log2] = run(lift_cmd(dec) + " --image " + photo.rgb + " --masks " + photo.labels + " --depth " +
                                    photo.depth + " --intrinsics " + photo.K + " --out " + out + " --random-weights",
@@ -263,7 +283,7 @@ TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   EXPECT_FALSE(std::filesystem::exists(out + "/stale.txt"));
   const auto report = read_json(out + "/report.json");
   std::map<std::string, json> by_id;
-  for (const auto& o : report.at("objects")) by_id[o.at("id")] = o;
+  for (const auto& o : report.at("objects")) by_id[o.at("id").get<std::string>()] = o;
   ASSERT_EQ(by_id.size(), 5u) << report.dump(1);
   EXPECT_EQ(report.at("failed"), 3);
   for (const char* good : {"a_box", "b_border"}) {
