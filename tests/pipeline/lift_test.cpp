@@ -277,7 +277,7 @@ TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   std::filesystem::create_directories(out);  // exists: --overwrite replaces it
   std::ofstream(out + "/stale.txt") << "old run";
   const auto [rc, log] = run(lift_cmd(dec) + " --image " + photo.rgb + " --masks " + photo.masks_dir + " --pointmap " +
-                                 photo.pointmap + " --out " + out + " --random-weights --overwrite --samples 2",
+                                 photo.pointmap + " --out " + out + " --random-weights --overwrite --samples 2 --steps 4",
                              dir + "/lift.log");
   EXPECT_EQ(rc, 1) << log;
   EXPECT_FALSE(std::filesystem::exists(out + "/stale.txt"));
