@@ -222,7 +222,8 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
     EXPECT_TRUE(std::filesystem::exists(so.mask_path)) << so.mask_path;
     const auto pose = read_json(out + "/" + report.at("objects").at(i).at("samples").at(0).at("dir").get<std::string>() +
                                 "/pose.json");
-    EXPECT_LT((so.R - mat(pose.at("scene").at("R"))).cwiseAbs().maxCoeff(), 1e-9);
+    // (the scene reader projects R onto the nearest rotation: equal to float precision)
+    EXPECT_LT((so.R - mat(pose.at("scene").at("R"))).cwiseAbs().maxCoeff(), 1e-6);
     EXPECT_LT((so.t - vec(pose.at("scene").at("t"))).cwiseAbs().maxCoeff(), 1e-9);
   }
   // Numpy opens the occupancy as uint8 [8, 8, 8].
