@@ -57,6 +57,9 @@ int main(int argc, char** argv) {
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
+    if (!common.sets.empty())
+      simu::fail_hint("use the --*-config files and flags", "lift reads no config file: --set {} would be ignored",
+                      common.sets.front());
     const auto t_start = std::chrono::steady_clock::now();
     // Weights first (cheap), then every input file, then the models.
     const std::string banner = simu::pipeline::check_lift_weights(rcfg, random_weights);
