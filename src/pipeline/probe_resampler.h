@@ -18,11 +18,14 @@ struct ProbeResamplerOptions {
   uint64_t seed = 0;                  // sampling noise seed
 };
 
-// Back-projects a depth image (16-bit PNG in millimetres, or 32-bit float metres; 0/inf = invalid)
-// through the scene camera into a point map [3, H, W] in the PyTorch3D camera frame (NaN = invalid).
+// The scene's depth or point map file (read_scene_pointmap: depth npy/PNG/EXR through the scene
+// camera, or a point map npy) as a point map [3, H, W] in the PyTorch3D camera frame (NaN = invalid).
 torch::Tensor pointmap_from_depth_file(const std::string& path, const Camera& camera);
 
-// A ResampleFn for run_probe that uses `resampler` (which must outlive it) for the objects of `scene`.
+// A ResampleFn for run_probe that uses `resampler` (which must outlive it) for the objects of `scene`,
+// through the lift path (pipeline/lift.h lift_objects: the same preprocessing, batching and pose
+// conversion as the `lift` program).
+// Throws when the scene names an image or depth file that does not exist.
 // Objects whose inputs cannot be prepared (missing image, empty mask...) come back not ok with the
 // reason; the others are resampled together. The result reports the crop box taken from M'. With
 // num_samples > 1 every usable sample becomes a candidate (ProbeResampleResult::candidates) and the
