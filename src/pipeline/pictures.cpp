@@ -134,9 +134,12 @@ cv::Point centroid(const BinaryMask& m, int k) {
   return n ? cv::Point(int(sx / n * k), int(sy / n * k)) : cv::Point(-1, -1);
 }
 
+// The short tag drawn on the object in the views; the legend pairs it with the object's id.
+std::string tag(size_t i) { return std::to_string(i); }
+
 std::string legend_line(const ProbeResult& r, size_t i) {
   const auto& d = r.diagnostics[i];
-  std::string s = fmt::format("{}: {}", r.scene.objects[i].id, to_string(d.branch));
+  std::string s = fmt::format("{} {}: {}", tag(i), r.scene.objects[i].id, to_string(d.branch));
   if (d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample) s += fmt::format(" rho {:.2f}", d.rho);
   if (d.branch == ProbeBranch::Resample) s += d.resampled ? " (replaced)" : " (NOT replaced)";
   if (!d.evaluation.physics_disabled) s += fmt::format(", moves {:.1f} mm in 5 s", 1000 * d.evaluation.displacement);
@@ -194,11 +197,11 @@ std::vector<std::string> write_probe_pictures(const ProbeResult& r, const std::s
     cv::Mat right = shaded_view(cam, obj_ptrs, colors, env_ptrs, cv::Scalar(70, 60, 50));
     const LabelImage lab = render_labels(cam, obj_ptrs);
     for (size_t i = 0; i < n; ++i) {
-      if (left_at[i].x >= 0) label(left, s.objects[i].id, left_at[i], cv::Scalar(255, 255, 255), fs);
+      if (left_at[i].x >= 0) label(left, tag(i), left_at[i], cv::Scalar(255, 255, 255), fs);
       const auto it = std::find(colors.begin(), colors.end(), int(i));
       if (it == colors.end()) continue;
       const cv::Point at = centroid(lab.mask_of(int(it - colors.begin())), 1);
-      if (at.x >= 0) label(right, s.objects[i].id, at, cv::Scalar(255, 255, 255), fs);
+      if (at.x >= 0) label(right, tag(i), at, cv::Scalar(255, 255, 255), fs);
     }
     label(left, "input masks", cv::Point(8, int(34 * fs)), cv::Scalar(255, 255, 255), fs);
     label(right, "final scene (shaded meshes)", cv::Point(8, int(34 * fs)), cv::Scalar(255, 255, 255), fs);
@@ -225,15 +228,21 @@ std::vector<std::string> write_probe_pictures(const ProbeResult& r, const std::s
     f -= f.dot(gdir) * gdir;               // ... made horizontal
     if (f.norm() < 1e-6) f = gdir.unitOrthogonal();
     f.normalize();
-    const Vec3 c = 0.5 * (g.lo + g.hi);
-    double radius = 0;
+    // Framed on the objects (the bases and the floor are drawn around them), seen from far away so
+    // the view is nearly orthographic and the support surfaces are edge-on at the objects' height.
+    Vec3 olo = Vec3::Constant(1e300), ohi = Vec3::Constant(-1e300);
     for (const auto& m : g.objects)
-      for (Eigen::Index v = 0; v < m.V.rows(); ++v) radius = std::max(radius, (m.V.row(v).transpose() - c).norm());
-    radius = std::max(radius, 0.05);
+      if (!m.empty()) {
+        olo = olo.cwiseMin(m.V.colwise().minCoeff().transpose());
+        ohi = ohi.cwiseMax(m.V.colwise().maxCoeff().transpose());
+      }
+    if (!(olo.array() <= ohi.array()).all()) olo = g.lo, ohi = g.hi;
+    const Vec3 c = 0.5 * (olo + ohi);
+    const double radius = std::max(0.5 * (ohi - olo).norm(), 0.05);
     Camera side;
-    side.width = 4 * kMinHeight / 3, side.height = kMinHeight;
-    const double dist = 4 * radius;
-    side.fx = side.fy = 0.5 * side.height * dist / (1.3 * radius);
+    side.width = 2 * kMinHeight, side.height = 3 * kMinHeight / 2;
+    const double dist = 10 * radius;
+    side.fx = side.fy = 0.5 * side.height * dist / (1.25 * radius);
     side.cx = 0.5 * (side.width - 1), side.cy = 0.5 * (side.height - 1);
     Mat3 R;
     R.col(2) = f, R.col(1) = gdir, R.col(0) = gdir.cross(f);  // x = y cross z (OpenCV axes)
@@ -244,10 +253,13 @@ std::vector<std::string> write_probe_pictures(const ProbeResult& r, const std::s
     const double sfs = side.height / 900.0 + 0.25;
     for (size_t j = 0; j < obj_ptrs.size(); ++j) {
       const cv::Point at = centroid(lab.mask_of(int(j)), 1);
-      if (at.x >= 0) label(img, s.objects[colors[j]].id, at, cv::Scalar(255, 255, 255), sfs);
+      if (at.x >= 0) label(img, tag(colors[j]), at, cv::Scalar(255, 255, 255), sfs);
     }
-    label(img, "final scene, side view (gravity down; floor edge-on)", cv::Point(8, int(34 * sfs)),
-          cv::Scalar(255, 255, 255), sfs);
+    label(img, "final scene from the side (gravity down)", cv::Point(8, int(34 * sfs)), cv::Scalar(255, 255, 255), sfs);
+    // Legend: tag -> id.
+    for (size_t j = 0; j < obj_ptrs.size(); ++j)
+      label(img, tag(colors[j]) + " " + s.objects[colors[j]].id, cv::Point(8, int((34 + 34 * (j + 1)) * sfs)),
+            color_of(colors[j]), sfs * 0.8);
     write_png(dir + "/side_view.png", img);
     written.push_back(dir + "/side_view.png");
   }
