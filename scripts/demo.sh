@@ -40,7 +40,7 @@ ckpt="$(ls -d "$OUT"/train/checkpoints/step_* | sort -V | tail -1)"
 "$BUILD/export_adapter" "$ckpt" "$OUT/adapter" --config configs/tiny.yaml
 
 echo "== 4/5 synthetic scene: a hovering object (stretch), a bottom-cut one (resample), a wall-hung one (anchored)"
-"$BUILD/synth_bench" --scenes 1 --seed "${DEMO_SEED:-3}" --config configs/demo_scene.yaml --write "$OUT/scenes" >/dev/null
+"$BUILD/synth_bench" --scenes 1 --seed "${DEMO_SEED:-21}" --config configs/demo_scene.yaml --write "$OUT/scenes" >/dev/null
 scene="$(ls "$OUT"/scenes/*/scene.json | head -1)"
 
 echo "== 5/5 physics probe with in-process resampling (best of 4), final settle, metrics, MJCF, report, pictures"

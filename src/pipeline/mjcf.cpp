@@ -13,6 +13,7 @@
 #include "common/log.h"
 
 #include <cstdlib>
+#include <map>
 #include <mutex>
 
 namespace simu::pipeline {
@@ -123,7 +124,21 @@ std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg, bool dete
 }
 
 namespace {
-void mujoco_warning(const char* msg) { log::warn("MuJoCo: {}", msg); }
+// MuJoCo 2.2 repeats a warning at every step while its cause lasts: the first few of each kind are
+// logged, then one line says the rest are suppressed.
+void mujoco_warning(const char* msg) {
+  static std::mutex mu;
+  static std::map<std::string, int> seen;
+  std::string kind(msg);
+  if (const auto p = kind.find(" Time ="); p != std::string::npos) kind.resize(p);
+  int count;
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    count = ++seen[kind];
+  }
+  if (count <= 3) log::warn("MuJoCo: {}", msg);
+  else if (count == 4) log::warn("MuJoCo: further warnings '{}' are not shown", kind);
+}
 [[noreturn]] void mujoco_error(const char* msg) {
   // MuJoCo's errors are fatal by contract (the default handler exits); say so through the logger.
   log::error("MuJoCo fatal error: {}", msg);

@@ -1,5 +1,5 @@
 // The probe's scene.xml is simulation-ready in every MuJoCo a user opens it in: for each committed
-// scene (tests/data/scenes/*) and the demo scene (configs/demo_scene.yaml, seed 3, as scripts/demo.sh
+// scene (tests/data/scenes/*) and the demo scene (configs/demo_scene.yaml, seed 21, as scripts/demo.sh
 // makes it), the written file is stepped 5 s from its written state and every free object must move
 // less than 2 mm without a MuJoCo warning, both in MuJoCo 2.2 (the library we link) and in the PyPI
 // `mujoco` of the project's venv (tests/pipeline/mjcf_rest_check.py). The last test writes the file
@@ -42,7 +42,7 @@ std::vector<std::string> scenes(const std::string& dir) {
   simu::config::Reader r(node, "configs/demo_scene.yaml");
   auto syn_r = r.child("synthetic");
   const SyntheticConfig syn = SyntheticConfig::from(syn_r);
-  const SyntheticScene s = generate_scene(syn, 3, "synth_0000");  // synth_bench --scenes 1 --seed 3
+  const SyntheticScene s = generate_scene(syn, 21, "synth_0000");  // synth_bench --scenes 1 --seed 21 (scripts/demo.sh)
   write_scene_dir(s, dir + "/demo_scene");
   out.push_back(dir + "/demo_scene/scene.json");
   return out;
@@ -102,7 +102,7 @@ TEST(MjcfRest, ProbeOutputRestsInMuJoCo22AndCurrentMuJoCo) {
   const ProbeConfig cfg = config();
   std::vector<std::string> xmls;
   for (const auto& scene : scenes(dir)) {
-    const std::string out = dir + "/" + std::filesystem::path(scene).parent_path().filename().string();
+    const std::string out = dir + "/out_" + std::filesystem::path(scene).parent_path().filename().string();
     const ProbeResult r = run_probe(load_scene(scene), cfg, out);
     const std::string xml = out + "/scene.xml";
     ASSERT_TRUE(std::filesystem::exists(xml)) << scene;
