@@ -20,22 +20,46 @@ namespace stdfs = std::filesystem;
 std::vector<std::string> probe_output_dirs(const std::vector<std::string>& scenes, const std::string& out) {
   SIMU_CHECK(!scenes.empty(), "no scene given");
   if (scenes.size() == 1) return {out};
-  std::map<std::string, int> stems;
-  for (const auto& p : scenes) ++stems[stdfs::path(p).stem().string()];
-  std::vector<std::string> dirs;
-  std::map<std::string, std::string> taken;  // folder -> input
+  // The same file twice would write one folder twice: refused.
+  std::map<std::string, std::string> seen;
   for (const auto& p : scenes) {
-    const stdfs::path path(p);
-    std::string name = path.stem().string();
-    if (stems[name] > 1) {
-      const std::string parent = stdfs::absolute(path).parent_path().filename().string();
-      name = (parent.empty() ? std::string("root") : parent) + "_" + name;
+    const std::string key = stdfs::weakly_canonical(stdfs::absolute(p)).string();
+    const auto it = seen.find(key);
+    if (it != seen.end())
+      fail_hint("give each scene once", "--scenes: {} and {} are the same file; both would write into one folder",
+                it->second, p);
+    seen[key] = p;
+  }
+  // Name = file stem, prefixed with as many parent folder names as it takes to tell the inputs apart.
+  const size_t n = scenes.size();
+  std::vector<std::vector<std::string>> parts(n);  // stem, parent, grandparent, ...
+  for (size_t i = 0; i < n; ++i) {
+    stdfs::path p = stdfs::absolute(scenes[i]).lexically_normal();
+    parts[i].push_back(p.stem().string());
+    for (p = p.parent_path(); !p.empty() && p != p.root_path(); p = p.parent_path()) parts[i].push_back(p.filename().string());
+  }
+  std::vector<size_t> depth(n, 1);
+  std::vector<std::string> names(n);
+  for (int round = 0; round < 64; ++round) {
+    for (size_t i = 0; i < n; ++i) {
+      std::string name;
+      for (size_t d = std::min(depth[i], parts[i].size()); d-- > 0;) name += (name.empty() ? "" : "_") + parts[i][d];
+      names[i] = name;
     }
-    const auto it = taken.find(name);
-    if (it != taken.end())
-      fail_hint("give each scene once, or run them into separate --out folders",
-                "--scenes: {} and {} would both write into {}/{}", it->second, p, out, name);
-    taken[name] = p;
+    std::map<std::string, std::vector<size_t>> groups;
+    for (size_t i = 0; i < n; ++i) groups[names[i]].push_back(i);
+    bool clash = false;
+    for (const auto& [name, idx] : groups)
+      if (idx.size() > 1)
+        for (size_t i : idx)
+          if (depth[i] < parts[i].size()) ++depth[i], clash = true;
+    if (!clash) break;
+  }
+  std::map<std::string, int> used;
+  std::vector<std::string> dirs;
+  for (size_t i = 0; i < n; ++i) {
+    std::string name = names[i];
+    if (used[name]++) name += "_" + std::to_string(i);  // still equal (e.g. links): numbered
     dirs.push_back(out + "/" + name);
   }
   return dirs;

@@ -11,9 +11,9 @@
 
 namespace simu::pipeline {
 
-// Output folder of each input scene: one scene -> out; several -> out/<file stem>, and where stems
-// collide (every committed scene is scene.json) out/<parent folder>_<stem>. Throws simu::Error naming
-// both inputs when two of them would still share a folder (e.g. the same file given twice).
+// Output folder of each input scene: one scene -> out; several -> out/<file stem>, prefixed where stems
+// collide with as many parent folder names as tell them apart (every committed scene is scene.json:
+// out/synth_0000_scene, ...). Throws simu::Error naming both inputs when the same file is given twice.
 std::vector<std::string> probe_output_dirs(const std::vector<std::string>& scenes, const std::string& out);
 
 // Makes the resample function of one scene (the resampler lives outside the physics library);

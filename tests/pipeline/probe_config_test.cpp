@@ -175,8 +175,12 @@ TEST(ProbeConfig, ScenesWithTheSameFileNameGetDistinctFolders) {
   EXPECT_EQ(dirs[1], "OUT/synth_0001_scene");
   EXPECT_EQ(dirs[2], "OUT/a");
   EXPECT_EQ(probe_output_dirs({"x/scene.json"}, "OUT")[0], "OUT");
-  const std::string err = error_of([&] { probe_output_dirs({in[0], in[0]}, "OUT"); });
-  EXPECT_NE(err.find("would both write"), std::string::npos) << err;
+  // Same parent folder name in two places: one more level tells them apart.
+  const auto deeper = probe_output_dirs({"/a/s1/synth_0000/scene.json", "/b/s2/synth_0000/scene.json"}, "OUT");
+  EXPECT_EQ(deeper[0], "OUT/s1_synth_0000_scene");
+  EXPECT_EQ(deeper[1], "OUT/s2_synth_0000_scene");
+  const std::string err = error_of([&] { probe_output_dirs({in[0], "./" + in[0]}, "OUT"); });
+  EXPECT_NE(err.find("same file"), std::string::npos) << err;
 }
 
 // The program on the three committed scenes writes three folders, each with its own report.
