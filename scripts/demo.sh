@@ -26,6 +26,12 @@ cd "$ROOT"
 rm -rf "$OUT" && mkdir -p "$OUT"
 export SIMU_HULL_CACHE="$OUT/hull-cache"
 
+cat <<'NOTE'
+== This demo runs on RANDOM weights (small test fixtures; no trained SAM 3D weights are downloaded).
+   It shows that every stage runs end to end, not results: the training loss means nothing, and any
+   shape the resampler produces is an arbitrary blob. The physics probe (stretch, anchoring, checks,
+   metrics) is real; a resampled candidate is kept only if it passes the probe's checks.
+NOTE
 echo "== 1/5 synthetic pair cache"
 "$BUILD/pairs" make --out "$OUT/pairs.h5" --n 16 --tokens 64 --channels 8 --cond-len 10 --cond-channels 48 --seed 1
 "$BUILD/pairs" validate "$OUT/pairs.h5"
@@ -62,11 +68,11 @@ rep = json.load(open(sys.argv[1]))
 branches = {o["branch"] for o in rep["objects"]}
 missing = {"stretch", "resample", "anchored"} - branches
 print("\nper-object summary (displacement in the 5 s evaluation settle; before = the input scene settled the same way)")
-print(f"  {'object':<12} {'branch':<9} {'rho':>6} {'before':>10} {'after':>10}  flags")
+print(f"  {'object':<16} {'branch':<9} {'rho':>6} {'before':>10} {'after':>10}  flags")
 for o in rep["objects"]:
     mm = lambda r: "-" if r is None or r["physics_disabled"] else f"{1000 * r['displacement']:.1f} mm"
     rho = "-" if o["branch"] == "disabled" else f"{o['rho']:.3f}"
-    print(f"  {o['id']:<12} {o['branch']:<9} {rho:>6} {mm(o.get('evaluation_input')):>10} {mm(o['evaluation']):>10}  "
+    print(f"  {o['id']:<16} {o['branch']:<9} {rho:>6} {mm(o.get('evaluation_input')):>10} {mm(o['evaluation']):>10}  "
           + (",".join(o["flags"]) or "-"))
     if o["branch"] == "resample":
         r = o.get("resample", {})

@@ -291,7 +291,7 @@ std::vector<std::string> write_probe_pictures(const ProbeResult& r, const std::s
       std::string what = fmt::format("#{} ", c) + (cd.ok ? fmt::format("moved {:.1f} mm", 1000 * cd.displacement) : "FAILED");
       label(t, what, cv::Point(8, int(34 * fs)), kept ? cv::Scalar(80, 255, 80) : cv::Scalar(255, 255, 255), fs);
       if (!cd.ok && !cd.message.empty())
-        label(t, cd.message.substr(0, 48), cv::Point(8, int(70 * fs)), cv::Scalar(200, 200, 255), fs * 0.6);
+        label(t, cd.message.substr(0, 40), cv::Point(8, int(75 * fs)), cv::Scalar(200, 200, 255), fs * 0.85);
       if (kept) {
         cv::rectangle(t, cv::Rect(0, 0, t.cols, t.rows), cv::Scalar(80, 255, 80), std::max(4, 3 * k));
         label(t, "KEPT", cv::Point(8, t.rows - int(14 * fs)), cv::Scalar(80, 255, 80), fs * 1.5);
