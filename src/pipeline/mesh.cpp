@@ -14,6 +14,8 @@
 #include "common/error.h"
 #include "common/fs.h"
 
+#include <map>
+
 namespace simu::pipeline {
 
 Mesh read_mesh(const std::string& path) {
@@ -99,6 +101,18 @@ Aabb mesh_aabb(const Mesh& mesh) {
   b.min = mesh.V.colwise().minCoeff().transpose();
   b.max = mesh.V.colwise().maxCoeff().transpose();
   return b;
+}
+
+int nonmanifold_edges(const Mesh& mesh) {
+  std::map<std::pair<int, int>, int> uses;
+  for (Eigen::Index f = 0; f < mesh.F.rows(); ++f)
+    for (int k = 0; k < 3; ++k) {
+      const int a = mesh.F(f, k), b = mesh.F(f, (k + 1) % 3);
+      ++uses[{std::min(a, b), std::max(a, b)}];
+    }
+  int n = 0;
+  for (const auto& [e, c] : uses) n += c > 2;
+  return n;
 }
 
 std::string mesh_problem(const Mesh& mesh) {

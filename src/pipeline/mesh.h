@@ -33,6 +33,9 @@ Mesh clean_mesh(const Mesh& mesh, double area_eps = 1e-14);
 // Moves the AABB centre to the origin and scales the longest side to 1 (SAM3D canonical frame).
 // Returns the factor applied (new = (old - centre) * factor).
 double canonicalize(Mesh& mesh);
+// Number of undirected edges shared by more than two faces (non-manifold edges; open boundaries,
+// used by one face, are not counted).
+int nonmanifold_edges(const Mesh& mesh);
 // Signed volume by the divergence theorem (positive for outward-wound closed meshes).
 double signed_volume(const Mesh& mesh);
 // An axis-aligned box mesh with the given half extents centred at the origin (outward winding).

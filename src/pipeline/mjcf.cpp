@@ -10,6 +10,11 @@
 #include <sstream>
 
 #include "common/error.h"
+#include "common/log.h"
+
+#include <cstdlib>
+#include <map>
+#include <mutex>
 
 namespace simu::pipeline {
 
@@ -42,7 +47,9 @@ std::string esc(const std::string& s) {
 
 }  // namespace
 
-std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg) {
+std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg, bool detect) {
+  const double margin = detect ? cfg.detect_margin : cfg.margin;
+  const double gap = detect ? cfg.detect_margin : cfg.gap;
   std::ostringstream x;
   x << "<mujoco model=\"simuscene\">\n";
   // Compiler: explicit inertials (MuJoCo's mesh inertia is wrong for open meshes).
@@ -51,15 +58,19 @@ std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg) {
     << cfg.integrator << "\">\n";
   x << "    <flag multiccd=\"" << (cfg.multiccd ? "enable" : "disable") << "\"/>\n  </option>\n";
   x << "  <size nconmax=\"" << cfg.nconmax << "\" njmax=\"" << cfg.njmax << "\"/>\n";
-  // Contact defaults of the paper.
+  // Contact defaults of the paper; collision hulls in group 3 (hidden by default in the viewer),
+  // visual meshes in group 2 without contacts.
   x << "  <default>\n    <geom condim=\"" << cfg.condim << "\" friction=\"" << v3(cfg.friction) << "\" solref=\""
-    << num(cfg.solref_timeconst) << " " << num(cfg.solref_dampratio) << "\" margin=\"" << num(cfg.margin) << "\" gap=\""
-    << num(cfg.gap) << "\"/>\n";
-  x << "    <equality solref=\"" << num(cfg.eq_timeconst) << " " << num(cfg.eq_dampratio) << "\"/>\n  </default>\n";
-  // Mesh assets, inline.
+    << num(cfg.solref_timeconst) << " " << num(cfg.solref_dampratio) << "\" margin=\"" << num(margin) << "\" gap=\""
+    << num(gap) << "\"/>\n";
+  x << "    <equality solref=\"" << num(cfg.eq_timeconst) << " " << num(cfg.eq_dampratio) << "\"/>\n";
+  x << "    <default class=\"collision\">\n      <geom group=\"3\"/>\n    </default>\n";
+  x << "    <default class=\"visual\">\n      <geom group=\"2\" contype=\"0\" conaffinity=\"0\"/>\n    </default>\n";
+  x << "  </default>\n";
+  // Mesh assets: hulls inline, visual meshes from OBJ files.
   x << "  <asset>\n";
   for (const auto& b : scene.bodies) {
-    for (size_t k = 0; k < b.hulls.size(); ++k) {
+    for (size_t k = 0; k < b.hulls.size() && b.collide; ++k) {
       const Mesh& h = b.hulls[k];
       x << "    <mesh name=\"" << esc(b.name) << "/" << k << "\" vertex=\"";
       for (Eigen::Index i = 0; i < h.V.rows(); ++i) x << (i ? " " : "") << v3(h.V.row(i).transpose());
@@ -67,6 +78,9 @@ std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg) {
       for (Eigen::Index i = 0; i < h.F.rows(); ++i) x << (i ? " " : "") << h.F(i, 0) << " " << h.F(i, 1) << " " << h.F(i, 2);
       x << "\"/>\n";
     }
+    if (!b.visual_file.empty())
+      x << "    <mesh name=\"" << esc(b.name) << "/visual\" file=\"" << esc(b.visual_file) << "\" scale=\""
+        << v3(b.visual_scale) << "\"/>\n";
   }
   x << "  </asset>\n  <worldbody>\n";
   // Planes: floor and walls; size is only for drawing.
@@ -85,9 +99,12 @@ std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg) {
         << num(I(0, 0)) << " " << num(I(1, 1)) << " " << num(I(2, 2)) << " " << num(I(0, 1)) << " " << num(I(0, 2)) << " "
         << num(I(1, 2)) << "\"/>\n";
     }
-    for (size_t k = 0; k < b.hulls.size(); ++k)
-      x << "      <geom name=\"" << esc(b.name) << "/" << k << "\" type=\"mesh\" mesh=\"" << esc(b.name) << "/" << k
-        << "\" rgba=\"" << b.rgba << "\"/>\n";
+    for (size_t k = 0; k < b.hulls.size() && b.collide; ++k)
+      x << "      <geom name=\"" << esc(b.name) << "/" << k << "\" class=\"collision\" type=\"mesh\" mesh=\""
+        << esc(b.name) << "/" << k << "\" rgba=\"" << b.rgba << "\"/>\n";
+    if (!b.visual_file.empty())
+      x << "      <geom name=\"" << esc(b.name) << "/visual\" class=\"visual\" type=\"mesh\" mesh=\"" << esc(b.name)
+        << "/visual\" rgba=\"" << b.rgba << "\"/>\n";
     x << "    </body>\n";
   }
   x << "  </worldbody>\n";
@@ -106,7 +123,39 @@ std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg) {
   return x.str();
 }
 
+namespace {
+// MuJoCo 2.2 repeats a warning at every step while its cause lasts: the first few of each kind are
+// logged, then one line says the rest are suppressed.
+void mujoco_warning(const char* msg) {
+  static std::mutex mu;
+  static std::map<std::string, int> seen;
+  std::string kind(msg);
+  if (const auto p = kind.find(" Time ="); p != std::string::npos) kind.resize(p);
+  int count;
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    count = ++seen[kind];
+  }
+  if (count <= 3) log::warn("MuJoCo: {}", msg);
+  else if (count == 4) log::warn("MuJoCo: further warnings '{}' are not shown", kind);
+}
+[[noreturn]] void mujoco_error(const char* msg) {
+  // MuJoCo's errors are fatal by contract (the default handler exits); say so through the logger.
+  log::error("MuJoCo fatal error: {}", msg);
+  std::exit(1);
+}
+}  // namespace
+
+void install_mujoco_log_handlers() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    mju_user_warning = mujoco_warning;
+    mju_user_error = mujoco_error;
+  });
+}
+
 MjModelPtr load_mjcf_string(const std::string& xml, const std::string& name) {
+  install_mujoco_log_handlers();
   // mjVFS is ~2 MB: keep it on the heap.
   auto vfs = std::make_unique<mjVFS>();
   mj_defaultVFS(vfs.get());
@@ -122,6 +171,7 @@ MjModelPtr load_mjcf_string(const std::string& xml, const std::string& name) {
 }
 
 MjModelPtr load_mjcf_file(const std::string& path) {
+  install_mujoco_log_handlers();
   SIMU_CHECK(std::filesystem::exists(path), "MJCF file {} does not exist", path);
   char err[1000] = "";
   mjModel* m = mj_loadXML(path.c_str(), nullptr, err, sizeof(err));

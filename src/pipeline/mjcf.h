@@ -1,11 +1,20 @@
-// MJCF writer for MuJoCo 2.2 and in-memory model loading.
+// MJCF writer and in-memory model loading (MuJoCo 2.2, the version we link).
 //
-// The paper's physics defaults: timestep 1/480 s, contacts with time constant 0.01 s and damping
-// ratio 2.0 (solref), friction (sliding, torsional, rolling) = (1.0, 0.95, 0.01), condim 4,
-// implicit integrator, multiccd enabled (a single mesh-mesh contact point lets a resting cube sink
-// ~4 mm). Floor and walls are planes. Every geom has margin = gap, so contacts are reported
-// (dist >= 0, no force) before penetration and the probe sees first contact.
-// Meshes are written inline (vertex/face attributes): the file loads standalone.
+// The paper's physics defaults (supplementary "Physics-mode parameters"): timestep 1/480 s, contacts
+// with time constant 0.01 s and damping ratio 2.0 (solref), friction (sliding, torsional, rolling) =
+// (1.0, 0.95, 0.01), condim 4, implicit integrator; multiccd enabled (a single mesh-mesh contact
+// point lets a resting cube sink ~4 mm). Floor and walls are planes.
+//
+// The file handed to users (scene.xml) has margin = gap = 0: MuJoCo 2.2 sums the two geoms' gaps and
+// subtracts them from the summed margins, current MuJoCo (3.x, 4.x) does not combine them the same
+// way, so any non-zero margin/gap pair makes resting objects behave differently between versions
+// (MuJoCo 4.0 lifted every resting object 8 mm with margin = gap = 0.004). The probe's own diagnostic
+// models use detect_margin (margin = gap, no force) so the first contact of a fall is seen before it
+// penetrates; those models are compiled by MuJoCo 2.2 only and never written out.
+//
+// Each body's collision hulls are written inline (vertex/face) in group 3 (hidden in MuJoCo's viewer
+// by default); its reconstructed mesh, when given, is a visual geom (group 2, no contacts, no mass)
+// read from an OBJ file beside the MJCF, which both MuJoCo 2.2 and current MuJoCo read.
 #pragma once
 
 #include <memory>
@@ -26,10 +35,11 @@ struct PhysicsConfig {
   double solref_dampratio = 2.0;
   Vec3 friction = Vec3(1.0, 0.95, 0.01);  // sliding, torsional, rolling
   int condim = 4;
-  double margin = 0.004;  // m: contacts are reported this far before touching ...
-  double gap = 0.004;     // ... and stay inactive (no force) until they touch
+  double margin = 0.0;          // m: written in every model's geom defaults (0: same in every MuJoCo version)
+  double gap = 0.0;             // m
+  double detect_margin = 0.004; // m: margin = gap in the probe's diagnostic models only (write_mjcf's `detect`)
   bool multiccd = true;
-  std::string integrator = "Euler";  // MuJoCo's default (semi-implicit); "implicit" is ~2x slower here
+  std::string integrator = "implicit";  // paper; "Euler" = MuJoCo's semi-implicit default
   int nconmax = 2000;   // upper bounds; the probe sizes each model to its dynamic bodies
   int njmax = 5000;     // (mjData holds an njmax x njmax matrix: 5000 -> 200 MB)
   // Equality (pin) constraint softness: stiff but critically damped.
@@ -47,6 +57,11 @@ struct MjBody {
   MassProps mass;           // body frame (dynamic bodies)
   std::vector<Vec3> pins;   // body-frame points held at their current world position (connect)
   std::string rgba = "0.7 0.7 0.7 1";
+  // Visual geom: the reconstructed mesh as an OBJ file (path relative to the MJCF's folder) scaled
+  // per axis into the body frame. Empty: no visual geom (the hulls are drawn instead).
+  std::string visual_file;
+  Vec3 visual_scale = Vec3::Ones();
+  bool collide = true;      // false: no collision hulls are written (a visual-only body)
 };
 
 struct MjScene {
@@ -55,8 +70,12 @@ struct MjScene {
   std::vector<MjBody> bodies;         // geom names "<body>/<k>"
 };
 
-// The MJCF text of a scene.
-std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg);
+// The MJCF text of a scene. detect: a probe-internal diagnostic model (margin = gap = detect_margin).
+std::string write_mjcf(const MjScene& scene, const PhysicsConfig& cfg, bool detect = false);
+
+// Routes MuJoCo's warnings and errors to simu::log instead of stderr and MUJOCO_LOG.TXT in the
+// working directory (called by every loader; idempotent).
+void install_mujoco_log_handlers();
 
 // Owning handles of a compiled model and its data.
 struct MjModelDeleter {

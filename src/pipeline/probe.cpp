@@ -20,11 +20,14 @@
 #include <numeric>
 #include <thread>
 
+#include <unistd.h>
+
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
 #include "pipeline/mesh.h"
 #include "pipeline/overlay.h"
+#include "pipeline/pictures.h"
 #include "pipeline/raster.h"
 
 namespace simu::pipeline {
@@ -129,6 +132,7 @@ struct Obj {
   CollisionShape shape;
   Vec3 t, s;
   Mat3 R;
+  bool visual_ok = false;       // its mesh can be a visual geom of scene.xml
   std::vector<Vec3> pins_body;  // object-frame pins (anchored)
   int wall = -1;                // index into scene.walls (anchored)
 };
@@ -155,7 +159,16 @@ struct Ctx {
   std::vector<std::vector<Mesh>> base_hulls;  // scaled, base frame
 };
 
-MjBody object_body(const Ctx& c, int i, bool dynamic, bool pins) {
+std::string safe_name(const std::string& id);
+
+// The object's colour in the MJCF (the same palette as the pictures: overlay_color).
+std::string object_rgba(int i, double alpha = 1.0) {
+  const auto bgr = overlay_color(i);
+  return fmt::format("{:.3f} {:.3f} {:.3f} {:.2f}", bgr[2] / 255.0, bgr[1] / 255.0, bgr[0] / 255.0, alpha);
+}
+
+// visual: the reconstructed mesh is a visual geom read from meshes/<id>.obj beside the MJCF.
+MjBody object_body(const Ctx& c, int i, bool dynamic, bool pins, bool visual = false) {
   const Obj& o = c.objs[i];
   MjBody b;
   b.name = fmt::format("obj{}", i);
@@ -165,13 +178,21 @@ MjBody object_body(const Ctx& c, int i, bool dynamic, bool pins) {
   b.dynamic = dynamic;
   if (dynamic) b.mass = mass_properties(b.hulls, c.scene.objects[i].density);
   if (pins) b.pins = o.pins_body;
-  b.rgba = c.scene.objects[i].dof == PoseDof::Free ? "0.8 0.5 0.3 1" : "0.3 0.5 0.8 1";
+  b.rgba = object_rgba(i);
+  if (visual && o.visual_ok) {
+    b.visual_file = "meshes/" + safe_name(c.scene.objects[i].id) + ".obj";
+    b.visual_scale = o.s;
+  }
   return b;
 }
 
 // Builds and compiles a world: planes, bases, static objects, dynamic objects (pins optional).
+// detect: a diagnostic model (contacts reported detect_margin before touching, no force there).
+// visuals: the final file's visual geoms (OBJ files under meshes/); such a model is not compiled here
+// (its mesh files do not exist yet): the world returned is compiled from the same text without them.
 World build_world(const Ctx& c, const std::vector<int>& statics, const std::vector<int>& dynamics, bool pins,
-                  std::string* xml_out = nullptr, const std::vector<int>& visual_only = {}, int buffer_factor = 1) {
+                  std::string* xml_out = nullptr, const std::vector<int>& visual_only = {}, int buffer_factor = 1,
+                  bool detect = false, bool visuals = false) {
   MjScene ms;
   ms.gravity = c.scene.gravity * c.scene.gravity_magnitude;
   if (c.scene.floor) {
@@ -196,28 +217,29 @@ World build_world(const Ctx& c, const std::vector<int>& statics, const std::vect
   const int ndyn = static_cast<int>(dynamics.size());
   pc.nconmax = std::min(pc.nconmax, (100 + 25 * ndyn) * buffer_factor);
   pc.njmax = std::min(pc.njmax, (300 + 60 * ndyn) * buffer_factor);
-  std::string xml = write_mjcf(ms, pc);
-  // Visual-only bodies (disabled objects in the final file): no collisions.
-  if (!visual_only.empty()) {
-    MjScene vs = ms;
-    for (int i : visual_only) {
-      MjBody b = object_body(c, i, false, false);
-      b.rgba = "0.9 0.2 0.2 0.5";
-      vs.bodies.push_back(std::move(b));
-    }
-    xml = write_mjcf(vs, pc);
-    // contype/conaffinity 0 for the visual-only geoms.
-    for (int i : visual_only) {
-      const std::string key = fmt::format("name=\"obj{}/", i);
-      size_t pos = 0;
-      while ((pos = xml.find(key, pos)) != std::string::npos) {
-        const size_t line_start = xml.rfind('\n', pos);
-        if (xml.compare(line_start + 1, 11, "      <geom") == 0) xml.insert(pos, "contype=\"0\" conaffinity=\"0\" ");
-        pos += key.size() + 30;
+  const std::string xml = write_mjcf(ms, pc, detect);
+  if (xml_out) {
+    if (visuals) {
+      MjScene vs = ms;
+      // Visual-only bodies (disabled objects in the final file): their mesh, half transparent, no contacts.
+      for (int i : visual_only) {
+        MjBody b = object_body(c, i, false, false, true);
+        b.collide = false;
+        b.rgba = object_rgba(i, 0.4);
+        if (!b.visual_file.empty()) vs.bodies.push_back(std::move(b));
       }
+      for (auto& b : vs.bodies) {
+        const int i = b.name.rfind("obj", 0) == 0 ? std::stoi(b.name.substr(3)) : -1;
+        if (i >= 0 && b.visual_file.empty() && c.objs[i].visual_ok) {
+          b.visual_file = "meshes/" + safe_name(c.scene.objects[i].id) + ".obj";
+          b.visual_scale = c.objs[i].s;
+        }
+      }
+      *xml_out = write_mjcf(vs, pc, detect);
+    } else {
+      *xml_out = xml;
     }
   }
-  if (xml_out) *xml_out = xml;
   World w;
   {
     std::lock_guard<std::mutex> lock(compile_mutex());
@@ -837,6 +859,11 @@ void load_inputs(Ctx& c, std::vector<Diagnostics>& diags) {
       o.canonical = read_mesh(so.mesh_path);
       const std::string p = mesh_problem(o.canonical);
       SIMU_CHECK(p.empty(), "{}: {}", so.mesh_path, p);
+      if (const int bad = nonmanifold_edges(o.canonical); bad > 0)
+        add_flag(d, "non_manifold", fmt::format("{}: {} edges shared by more than two faces; simulated by its convex "
+                                                "collision hulls", so.mesh_path, bad));
+      // Visual geom in scene.xml only for a mesh current MuJoCo compiles (>= 4 vertices, a volume).
+      o.visual_ok = o.canonical.V.rows() >= 4 && std::abs(signed_volume(o.canonical)) * so.scale.prod() > 1e-9;
       const auto b = mesh_aabb(o.canonical);
       if (std::abs(b.size().maxCoeff() - 1.0) > 0.02 || b.center().norm() > 0.02)
         add_flag(d, "not_canonical", fmt::format("mesh AABB longest side {:.3f}, centre offset {:.3f} (expected 1, 0)",
@@ -920,6 +947,121 @@ void load_inputs(Ctx& c, std::vector<Diagnostics>& diags) {
 
 }
 
+// Writes every output of a probe run into `dir` (which exists and is empty): meshes, scene.json
+// (mesh paths relative, valid once dir is moved to final_dir), scene.xml (checked by compiling it from
+// disk with MuJoCo 2.2; without its visual meshes when they do not compile), hand-off, report, pictures.
+void write_outputs_into(ProbeResult& res, const std::vector<Obj>& objs, const std::string& dir,
+                        const std::string& final_dir) {
+  Scene& scene = res.scene;
+  const size_t n = scene.objects.size();
+  stdfs::create_directories(dir + "/meshes");
+  for (size_t i = 0; i < n; ++i) {
+    if (!objs[i].usable) continue;
+    const std::string name = "meshes/" + safe_name(scene.objects[i].id) + ".obj";
+    try {
+      write_mesh(objs[i].canonical, dir + "/" + name);
+      scene.objects[i].mesh_path = (stdfs::absolute(final_dir) / name).lexically_normal().string();
+    } catch (const std::exception& e) {
+      add_flag(res.diagnostics[i], "write_failed", e.what());
+    }
+  }
+  fs::atomic_write(dir + "/scene.json", scene_to_json(scene, stdfs::absolute(final_dir).string()).dump(2) + "\n");
+  if (!res.mjcf.empty()) {
+    fs::atomic_write(dir + "/scene.xml", res.mjcf);
+    try {
+      std::lock_guard<std::mutex> lock(compile_mutex());
+      load_mjcf_file(dir + "/scene.xml");
+    } catch (const std::exception& e) {
+      // A visual mesh MuJoCo cannot compile must not cost the user the scene: drop the visual geoms.
+      log::warn("scene.xml with visual meshes does not compile ({}); written without them", e.what());
+      std::string xml = res.mjcf;
+      for (size_t p; (p = xml.find("/visual\"")) != std::string::npos;) {
+        const size_t start = xml.rfind('\n', p), end = xml.find('\n', p);
+        xml.erase(start, end - start);
+      }
+      res.mjcf = xml;
+      fs::atomic_write(dir + "/scene.xml", res.mjcf);
+    }
+  }
+  // Resample hand-off files (masks and target OBB).
+  for (const auto& r : res.resample_requests) {
+    const std::string rdir = dir + "/resample/" + safe_name(r.object_id);
+    stdfs::create_directories(rdir);
+    json j = {{"object_index", r.object_index}, {"object_id", r.object_id}, {"image", r.image_path},
+              {"mask", r.mask_path}, {"target_obb", box_j(r.target_obb)},
+              {"translation", vec_j(r.target_obb.center)}};
+#ifdef SIMU_HAVE_OPENCV
+    if (!r.aux_mask.empty()) {
+      cv::imwrite(rdir + "/aux_mask.png", r.aux_mask);
+      j["aux_mask"] = "aux_mask.png";
+    }
+#endif
+    fs::atomic_write(rdir + "/request.json", j.dump(2) + "\n");
+  }
+  fs::atomic_write(dir + "/report.json", report_json(res).dump(2) + "\n");
+  // Pictures for a person to look at (need OpenCV's PNG codec and a camera).
+#ifdef SIMU_HAVE_OPENCV
+  if (scene.camera.valid()) {
+    try {
+      write_overlay(res, objs, dir + "/overlay.png");
+    } catch (const std::exception& e) {
+      log::warn("overlay.png not written: {}", e.what());
+    }
+    try {
+      for (const auto& f : write_probe_pictures(res, dir))
+        res.pictures.push_back((stdfs::path(final_dir) / stdfs::path(f).filename()).string());
+    } catch (const std::exception& e) {
+      log::warn("pictures not written: {}", e.what());
+    }
+  } else {
+    log::info("pictures skipped: the scene has no valid camera");
+  }
+#else
+  log::info("pictures skipped: built without OpenCV (SIMU_WITH_OPENCV=OFF)");
+#endif
+}
+
+void write_outputs(ProbeResult& res, const std::vector<Obj>& objs, const std::string& out_dir, const ProbeConfig& cfg) {
+  const stdfs::path final_dir = stdfs::absolute(out_dir).lexically_normal();
+  const stdfs::path parent = final_dir.parent_path();
+  const std::string base = final_dir.filename().string();
+  stdfs::create_directories(parent);
+  // Staging folders of writers that died (their pid is gone) are removed.
+  const std::string prefix = "." + base + ".staging-";
+  for (const auto& e : stdfs::directory_iterator(parent)) {
+    const std::string name = e.path().filename().string();
+    if (name.rfind(prefix, 0) != 0) continue;
+    const std::string pid = name.substr(prefix.size());
+    if (!pid.empty() && pid.find_first_not_of("0123456789") == std::string::npos &&
+        !stdfs::exists("/proc/" + pid)) fs::remove_tree(e.path().string());
+  }
+  if (stdfs::exists(final_dir) && !cfg.overwrite)
+    fail_hint("pass --overwrite (probe) or choose another --out", "output folder {} already exists; not overwritten",
+              final_dir.string());
+  const std::string staging = (parent / (prefix + std::to_string(::getpid()))).string();
+  fs::remove_tree(staging);
+  try {
+    write_outputs_into(res, objs, staging, final_dir.string());
+    if (stdfs::exists(final_dir)) {
+      // Replace: swap atomically where the filesystem can, else move the old one aside first.
+      if (!fs::atomic_exchange(staging, final_dir.string())) {
+        const std::string old = (parent / ("." + base + ".old-" + std::to_string(::getpid()))).string();
+        fs::atomic_rename(final_dir.string(), old);
+        fs::atomic_rename(staging, final_dir.string());
+        fs::remove_tree(old);
+      } else {
+        fs::remove_tree(staging);  // now holds the previous output
+      }
+    } else {
+      fs::atomic_rename(staging, final_dir.string());
+    }
+  } catch (...) {
+    try { fs::remove_tree(staging); } catch (...) {}
+    throw;
+  }
+  // The corrected scene's mesh paths point into the final folder.
+}
+
 }  // namespace
 
 nlohmann::json report_json(const ProbeResult& r) {
@@ -959,6 +1101,8 @@ nlohmann::json report_json(const ProbeResult& r) {
     e["reverted"] = d.reverted;
     e["final_settle"] = settle_json(d.final_settle);
     e["evaluation"] = settle_json(d.evaluation);
+    if (r.input_evaluation.ran && i < r.input_evaluation.objects.size())
+      e["evaluation_input"] = settle_json(r.input_evaluation.objects[i]);  // the input scene, settled the same way
     // What changed: OBB extents before / after, displacement of the OBB centre.
     e["change"] = {{"obb_extents_before", vec_j(d.obb_pre.extents)},
                    {"obb_extents_after", vec_j(d.obb_final.extents)},
@@ -986,11 +1130,105 @@ nlohmann::json report_json(const ProbeResult& r) {
   metrics["settle_time"] = r.evaluation.simulated_time;
   metrics["solver_reset"] = r.evaluation.solver_reset;
   if (!r.evaluation.message.empty()) metrics["message"] = r.evaluation.message;
+  json headline = {{"after", headline_json(r.after)}};
+  if (r.before.computed) headline["before"] = headline_json(r.before);
   return {{"objects", objs},
           {"order", r.order},
           {"metrics", metrics},
+          {"headline", headline},
           {"seconds",
            {{"probe", r.seconds_probe}, {"resample", r.seconds_resample}, {"final", r.seconds_final}, {"metrics", r.seconds_metrics}}}};
+}
+
+HeadlineMetrics headline_metrics(const Scene& scene, const std::vector<const Mesh*>& world,
+                                 const PhysicsEvaluation& settle, const MetricsConfig& config) {
+  HeadlineMetrics h;
+  const size_t n = scene.objects.size();
+  SIMU_CHECK(world.size() == n && settle.objects.size() == n, "headline_metrics: {} objects, {} meshes, {} records", n,
+             world.size(), settle.objects.size());
+  h.physics = physics_metrics(settle.objects, config, settle.ran ? settle.scene_peak_energy : -1);
+  // Objects with ground truth first (identity pairs i <-> i), the others only as predictions.
+  auto scored = [&](const std::vector<int>& with, const auto& iou_of) {
+    std::vector<int> order = with;
+    for (size_t i = 0; i < n; ++i)
+      if (std::find(with.begin(), with.end(), int(i)) == with.end()) order.push_back(int(i));
+    std::vector<bool> valid;
+    std::vector<MetricCategory> cat;
+    for (int j : order) {
+      valid.push_back(world[j] != nullptr && is_valid(settle.objects[j], config));
+      cat.push_back(metric_category(scene.objects[j].dof));
+    }
+    std::vector<std::vector<double>> iou(with.size(), std::vector<double>(order.size(), 0.0));
+    for (size_t a = 0; a < with.size(); ++a)
+      for (size_t b = 0; b < order.size(); ++b) iou[a][b] = iou_of(with[a], order[b]);
+    return overlap_metrics(iou, valid, cat);
+  };
+  // 2D: visible masks of the jointly rendered meshes against the input masks.
+  std::vector<BinaryMask> gt(n);
+  std::vector<int> with_mask, with_box;
+  for (size_t i = 0; i < n; ++i) {
+    const auto& so = scene.objects[i];
+    if (so.gt_box) with_box.push_back(int(i));
+    if (so.mask_path.empty() || !scene.camera.valid()) continue;
+    try {
+      gt[i] = read_mask(so.mask_path);
+      if (gt[i].width == scene.camera.width && gt[i].height == scene.camera.height) with_mask.push_back(int(i));
+    } catch (const std::exception& e) {
+      log::debug("headline metrics: {}", e.what());
+    }
+  }
+  if (!with_mask.empty()) {
+    const LabelImage img = render_labels(scene.camera, world);
+    std::vector<BinaryMask> pred(n);
+    for (size_t j = 0; j < n; ++j) pred[j] = img.mask_of(int(j));
+    h.mask = scored(with_mask, [&](int i, int j) { return mask_iou(gt[i], pred[j]); });
+    h.has_masks = true;
+  }
+  if (!with_box.empty()) {
+    h.box = scored(with_box, [&](int i, int j) {
+      return world[j] && world[j]->V.rows() ? box_iou(*scene.objects[i].gt_box, world_aabb(*world[j])) : 0.0;
+    });
+    h.has_boxes = true;
+  }
+  h.computed = true;
+  return h;
+}
+
+std::string format_headline(const HeadlineMetrics& b, const HeadlineMetrics& a, double settle_time) {
+  std::string s = fmt::format("{:<34} {:>9} {:>9}\n", fmt::format("metric (after a {:g} s settle)", settle_time),
+                              b.computed ? "before" : "", "after");
+  auto row = [&](const std::string& name, bool have_b, double vb, bool have_a, double va, const char* f) {
+    const std::string sb = b.computed && have_b ? fmt::format(fmt::runtime(f), vb) : "n/a";
+    const std::string sa = have_a ? fmt::format(fmt::runtime(f), va) : "n/a";
+    s += fmt::format("{:<34} {:>9} {:>9}\n", name, sb, sa);
+  };
+  row("ABO (2D)", b.has_masks, b.mask.abo, a.has_masks, a.mask.abo, "{:.4f}");
+  row("ABO_fh/fo (2D, strict)", b.has_masks, b.mask.abo_fhfo(), a.has_masks, a.mask.abo_fhfo(), "{:.4f}");
+  row("IoU (2D)", b.has_masks, b.mask.iou, a.has_masks, a.mask.iou, "{:.4f}");
+  row("IoU_fh/fo (2D, strict)", b.has_masks, b.mask.iou_fhfo(), a.has_masks, a.mask.iou_fhfo(), "{:.4f}");
+  if (a.has_boxes || b.has_boxes) {
+    row("3D ABO (AABB)", b.has_boxes, b.box.abo, a.has_boxes, a.box.abo, "{:.4f}");
+    row("3D ABO_fh/fo", b.has_boxes, b.box.abo_fhfo(), a.has_boxes, a.box.abo_fhfo(), "{:.4f}");
+    row("3D IoU (AABB)", b.has_boxes, b.box.iou, a.has_boxes, a.box.iou, "{:.4f}");
+    row("3D IoU_fh/fo", b.has_boxes, b.box.iou_fhfo(), a.has_boxes, a.box.iou_fhfo(), "{:.4f}");
+  }
+  row("stability (%, free, < 5 cm)", true, b.physics.stability, true, a.physics.stability, "{:.1f}");
+  row("penetration ratio (%, > 2 mm)", true, b.physics.penetration_ratio, true, a.physics.penetration_ratio, "{:.1f}");
+  row("D_mean (mm)", true, 1000 * b.physics.mean_displacement, true, 1000 * a.physics.mean_displacement, "{:.2f}");
+  row("E_pk (J)", true, b.physics.peak_energy, true, a.physics.peak_energy, "{:.4g}");
+  return s;
+}
+
+nlohmann::json headline_json(const HeadlineMetrics& m) {
+  auto ov = [](const OverlapMetrics& o) {
+    return json{{"abo", o.abo}, {"abo_fh", o.abo_fh}, {"abo_fo", o.abo_fo}, {"abo_fhfo", o.abo_fhfo()}, {"iou", o.iou},
+                {"iou_fh", o.iou_fh}, {"iou_fo", o.iou_fo}, {"iou_fhfo", o.iou_fhfo()}, {"n_gt", o.n_gt},
+                {"n_fh", o.n_fh}, {"n_fo", o.n_fo}};
+  };
+  json j = {{"physics", metrics_json(m.physics)}};
+  if (m.has_masks) j["mask_2d"] = ov(m.mask);
+  if (m.has_boxes) j["box_3d"] = ov(m.box);
+  return j;
 }
 
 nlohmann::json settle_json(const SettleRecord& r) {
@@ -1044,7 +1282,36 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   std::vector<Obj> objs(n);
   Ctx c{scene, cfg, objs, {}, {}};
 
+  if (!out_dir.empty() && cfg.write_outputs && !cfg.overwrite && stdfs::exists(out_dir))
+    fail_hint("pass --overwrite (probe) or choose another --out", "output folder {} already exists; not overwritten", out_dir);
   load_inputs(c, res.diagnostics);
+
+  // "Before" column of the headline metrics: the input scene settled exactly like the final one
+  // (anchored objects pinned at their input pose).
+  if (cfg.evaluate_input && cfg.metrics_settle_time > 0) {
+    std::vector<int> live_in;
+    for (size_t i = 0; i < n; ++i) {
+      if (!objs[i].simulate) continue;
+      if (scene.objects[i].dof != PoseDof::Free) {
+        Diagnostics scratch;
+        place_pins(c, static_cast<int>(i), scratch);
+      }
+      live_in.push_back(static_cast<int>(i));
+    }
+    res.input_evaluation = evaluate_settle(c, live_in, cfg.metrics_settle_time);
+    std::vector<Mesh> world(n);
+    std::vector<const Mesh*> ptrs(n, nullptr);
+    for (size_t i = 0; i < n; ++i)
+      if (objs[i].usable) {
+        world[i] = transform_mesh(objs[i].canonical, res.input_evaluation.R[i] * objs[i].s.asDiagonal(), res.input_evaluation.t[i]);
+        ptrs[i] = &world[i];
+      }
+    try {
+      res.before = headline_metrics(scene, ptrs, res.input_evaluation, cfg.metrics);
+    } catch (const std::exception& e) {
+      log::warn("headline metrics (before): {}", e.what());
+    }
+  }
 
   // 2. Sequential order over the simulated objects.
   std::vector<int> live;
@@ -1064,7 +1331,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
     d.order = done;
     std::string why;
     try {
-      World w = build_world(c, placed, {i}, false);
+      World w = build_world(c, placed, {i}, false, nullptr, {}, 1, /*detect=*/true);
       bool ok = resolve_penetration(c, w, i, &d.dt_pen, &d.pen_iterations, &d.pen_max_depth, &why);
       if (ok && so.dof == PoseDof::Free) {
         ok = fall_until_contact(c, w, i, &d.dt_grv, &d.sim_time, &why);
@@ -1072,7 +1339,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
       } else if (ok) {
         // Pins at the current (post-penetration) pose, paired with the wall.
         place_pins(c, i, d);
-        World wp = build_world(c, placed, {i}, true);
+        World wp = build_world(c, placed, {i}, true, nullptr, {}, 1, /*detect=*/true);
         ok = settle_on_pins(c, wp, i, &d.dt_grv, &d.dR_grv, &d.sim_time, &why);
       }
       if (!ok) {
@@ -1204,6 +1471,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
             } else {
               shape = decompose(cand.mesh, cfg.collision);
               rec = settle_candidate(c, statics, i, cand, shape, d.obb_target.center);
+              rec.world = transform_mesh(cand.mesh, cand.R * cand.scale.asDiagonal(), d.obb_target.center);
               shapes[k] = shape;
               usable[k] = true;
             }
@@ -1215,18 +1483,19 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
             }
             d.candidates.push_back(rec);
           }
-          // None settled: keep the usable one that penetrated least where it was placed (as a single
-          // sample would be kept); the final composition then handles it.
+          // None passed its checks: nothing is a replacement. The object keeps its input shape where the
+          // diagnostic left it; every candidate's figures stay in the report.
           if (d.chosen_candidate < 0) {
             double least = std::numeric_limits<double>::infinity();
+            int shallowest = -1;
             for (size_t k = 0; k < rr.candidates.size(); ++k)
-              if (usable[k] && d.candidates[k].penetration < least) least = d.candidates[k].penetration, d.chosen_candidate = static_cast<int>(k);
-            SIMU_CHECK(d.chosen_candidate >= 0, "none of the {} candidates has a usable mesh (see candidates)", rr.candidates.size());
-            chosen = rr.candidates[d.chosen_candidate];
-            chosen_shape = shapes[d.chosen_candidate];
+              if (usable[k] && d.candidates[k].penetration < least) least = d.candidates[k].penetration, shallowest = int(k);
             add_flag(d, "no_stable_candidate",
-                     fmt::format("none of the {} candidates settled; kept #{} (shallowest penetration {:.3f} m)",
-                                 rr.candidates.size(), d.chosen_candidate, least));
+                     shallowest >= 0 ? fmt::format("none of the {} candidates passed (shallowest #{} penetrates {:.3f} m); "
+                                                   "the input shape is kept", rr.candidates.size(), shallowest, least)
+                                     : fmt::format("none of the {} candidates has a usable mesh", rr.candidates.size()));
+            add_flag(d, "resample_failed", "");
+            continue;
           }
         } else {
           if (rr.candidates.size() == 1) chosen = rr.candidates[0];
@@ -1238,6 +1507,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
         }
         o.shape = chosen_shape;
         o.canonical = chosen.mesh;
+        o.visual_ok = chosen.mesh.V.rows() >= 4 && std::abs(signed_volume(chosen.mesh)) * chosen.scale.prod() > 1e-9;
         o.R = chosen.R;
         o.s = chosen.scale;
         o.t = d.obb_target.center;  // paper: translation := centre of the stretched OBB
@@ -1319,7 +1589,7 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
     }
   // The final MJCF: free objects dynamic, anchored ones on their pins, disabled ones visual only.
   try {
-    build_world(c, {}, final_order, true, &res.mjcf, visual, std::max(1, buffer_factor));
+    build_world(c, {}, final_order, true, &res.mjcf, visual, std::max(1, buffer_factor), false, /*visuals=*/true);
   } catch (const std::exception& e) {
     log::warn("final MJCF does not compile: {}", e.what());
   }
@@ -1345,6 +1615,27 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   }(), cfg.metrics, res.evaluation.ran ? res.evaluation.scene_peak_energy : -1);
   res.seconds_metrics = res.evaluation.seconds;
 
+  // "After" column: the final scene after the evaluation settle.
+  {
+    std::vector<Mesh> world(n);
+    std::vector<const Mesh*> ptrs(n, nullptr);
+    for (size_t i = 0; i < n; ++i)
+      if (objs[i].usable) {
+        const bool settled = i < res.evaluation.t.size();  // else no evaluation settle: the final poses
+        world[i] = transform_mesh(objs[i].canonical, (settled ? res.evaluation.R[i] : objs[i].R) * objs[i].s.asDiagonal(),
+                                  settled ? res.evaluation.t[i] : objs[i].t);
+        ptrs[i] = &world[i];
+      }
+    PhysicsEvaluation ev = res.evaluation;
+    ev.objects.clear();
+    for (const auto& d : res.diagnostics) ev.objects.push_back(d.evaluation);
+    try {
+      res.after = headline_metrics(scene, ptrs, ev, cfg.metrics);
+    } catch (const std::exception& e) {
+      log::warn("headline metrics (after): {}", e.what());
+    }
+  }
+
   // Corrected scene: final poses, scales and meshes (and each object's final OBB for the report).
   res.meshes.assign(n, Mesh{});
   for (size_t i = 0; i < n; ++i) {
@@ -1359,52 +1650,9 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
     scene.objects[i].scale = objs[i].s;
   }
 
-  // 6. Outputs.
-  if (!out_dir.empty() && cfg.write_outputs) {
-    stdfs::create_directories(out_dir + "/meshes");
-    for (size_t i = 0; i < n; ++i) {
-      if (!objs[i].usable) continue;
-      const std::string path = out_dir + "/meshes/" + safe_name(scene.objects[i].id) + ".obj";
-      try {
-        write_mesh(objs[i].canonical, path);
-        scene.objects[i].mesh_path = stdfs::absolute(path).lexically_normal().string();
-      } catch (const std::exception& e) {
-        add_flag(res.diagnostics[i], "write_failed", e.what());
-      }
-    }
-    save_scene(scene, out_dir + "/scene.json");
-    if (!res.mjcf.empty()) fs::atomic_write(out_dir + "/scene.xml", res.mjcf);
-    // Resample hand-off files (masks and target OBB).
-    for (const auto& r : res.resample_requests) {
-      const std::string dir = out_dir + "/resample/" + safe_name(r.object_id);
-      stdfs::create_directories(dir);
-      json j = {{"object_index", r.object_index}, {"object_id", r.object_id}, {"image", r.image_path},
-                {"mask", r.mask_path}, {"target_obb", box_j(r.target_obb)},
-                {"translation", vec_j(r.target_obb.center)}};
-#ifdef SIMU_HAVE_OPENCV
-      if (!r.aux_mask.empty()) {
-        cv::imwrite(dir + "/aux_mask.png", r.aux_mask);
-        j["aux_mask"] = "aux_mask.png";
-      }
-#endif
-      fs::atomic_write(dir + "/request.json", j.dump(2) + "\n");
-    }
-    fs::atomic_write(out_dir + "/report.json", report_json(res).dump(2) + "\n");
-    // Overlay for a person to look at (needs OpenCV's PNG codec and a camera).
-#ifdef SIMU_HAVE_OPENCV
-    if (scene.camera.valid()) {
-      try {
-        write_overlay(res, objs, out_dir + "/overlay.png");
-      } catch (const std::exception& e) {
-        log::warn("overlay.png not written: {}", e.what());
-      }
-    } else {
-      log::info("overlay.png skipped: the scene has no valid camera");
-    }
-#else
-    log::info("overlay.png skipped: built without OpenCV (SIMU_WITH_OPENCV=OFF)");
-#endif
-  }
+  // 6. Outputs, written into a staging folder beside out_dir and moved into place at the end: a
+  // failed run leaves the previous output as it was.
+  if (!out_dir.empty() && cfg.write_outputs) write_outputs(res, objs, out_dir, cfg);
   return res;
 }
 

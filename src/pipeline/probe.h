@@ -32,6 +32,7 @@
 #include <opencv2/core.hpp>
 #endif
 
+#include "common/config.h"
 #include "pipeline/collision.h"
 #include "pipeline/geometry.h"
 #include "pipeline/metrics.h"
@@ -100,6 +101,7 @@ struct Diagnostics {
     double rotation_deg = 0;      // rotation during the candidate's settle
     double penetration = 0;       // m: deepest contact where it was placed
     std::string message;          // why not ok
+    Mesh world;                   // the candidate placed at the target OBB centre (world frame; pictures)
   };
   bool resampled = false;         // the object's geometry was replaced by the resampler's
   std::string resample_message;   // the resampler's note for this object
@@ -174,7 +176,24 @@ struct ProbeConfig {
   double metrics_settle_time = 5.0;
   double metrics_rest_distance = 1e-4;
   MetricsConfig metrics;           // stability / penetration thresholds (5 cm, 2 mm)
-  bool write_outputs = true;       // scene.json, meshes, scene.xml, report.json, hand-off, overlay.png
+  bool write_outputs = true;       // scene.json, meshes, scene.xml, report.json, hand-off, pictures
+  bool overwrite = false;          // replace an existing output folder (else refused)
+  // Headline metrics (ABO, IoU and their fh/fo variants) also for the input scene settled the same
+  // way ("before" column). Costs one more evaluation settle.
+  bool evaluate_input = true;
+
+  // Typed, strict reading (configs/probe.yaml; common/config.h): every key below, unknown keys and
+  // wrong types are errors naming the file and the key, values outside their domain too.
+  static ProbeConfig from(simu::config::Reader& r);
+  // Loads a config file (empty path: the defaults) with "a.b=value" overrides applied (--set).
+  static ProbeConfig load(const std::string& path, const std::vector<std::string>& overrides = {});
+  // Throws simu::Error naming the key of the first value outside its domain.
+  void validate() const;
+  // Every config key with its current value and its documentation, in file order ("physics.timestep").
+  struct KeyDoc {
+    std::string key, value, doc;
+  };
+  std::vector<KeyDoc> describe() const;
 };
 
 // A joint gravity settle of a scene (free objects 6-DoF, anchored ones on their pins) with the
@@ -192,6 +211,25 @@ struct PhysicsEvaluation {
   std::string message;
 };
 
+// The paper's headline numbers for one settled scene (supplementary "Metrics"): 2D IoU / ABO of the
+// jointly rendered visible masks against the input masks, their strict fh / fo variants (an object
+// penetrating > 2 mm, physics-disabled or unstable scores 0), 3D AABB IoU / ABO where the scene has
+// ground-truth boxes, and the physics metrics (stability, penetration ratio, D_mean, E_pk).
+struct HeadlineMetrics {
+  bool computed = false;
+  PhysicsMetrics physics;
+  OverlapMetrics mask;       // n_gt = number of objects with an input mask
+  OverlapMetrics box;        // n_gt = number of objects with a ground-truth box
+  bool has_masks = false, has_boxes = false;
+};
+// Scores a settled scene: world meshes (nullptr: no geometry, scores 0), the settle's records, the
+// scene's masks (SceneObject::mask_path) and boxes (SceneObject::gt_box).
+HeadlineMetrics headline_metrics(const Scene& scene, const std::vector<const Mesh*>& world_meshes,
+                                 const PhysicsEvaluation& settle, const MetricsConfig& config);
+// A before/after table of the headline metrics for people (one line per metric).
+std::string format_headline(const HeadlineMetrics& before, const HeadlineMetrics& after, double settle_time);
+nlohmann::json headline_json(const HeadlineMetrics& m);
+
 // Progress of one object (for a progress line per object).
 using ProbeProgress = std::function<void(int done, int total, const std::string& object_id, const std::string& status)>;
 
@@ -207,6 +245,9 @@ struct ProbeResult {
   std::vector<ProbeResampleRequest> resample_requests;
   std::string mjcf;                 // final MJCF text
   PhysicsEvaluation evaluation;     // metrics settle of the final scene (report.json "metrics")
+  PhysicsEvaluation input_evaluation;  // the input scene settled the same way (cfg.evaluate_input)
+  HeadlineMetrics before, after;    // headline metrics of input_evaluation / evaluation
+  std::vector<std::string> pictures;  // files written next to the report (absolute paths in the final folder)
   double seconds_probe = 0, seconds_resample = 0, seconds_final = 0, seconds_metrics = 0;
 };
 

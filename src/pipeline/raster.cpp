@@ -129,6 +129,31 @@ LabelImage render_labels(const Camera& cam, const std::vector<const Mesh*>& mesh
   return img;
 }
 
+ShadedImage render_shaded(const Camera& cam, const std::vector<const Mesh*>& meshes, double ambient, double near) {
+  check_camera(cam);
+  ShadedImage img;
+  LabelImage& L = img.labels;
+  L.width = cam.width, L.height = cam.height;
+  L.label.assign(size_t(cam.width) * cam.height, -1);
+  L.depth.assign(L.label.size(), std::numeric_limits<float>::infinity());
+  img.shade.assign(L.label.size(), 0.f);
+  std::vector<double> zbuf(L.label.size(), std::numeric_limits<double>::infinity());
+  for (size_t k = 0; k < meshes.size(); ++k) {
+    if (!meshes[k] || meshes[k]->empty()) continue;
+    for_each_camera_triangle(cam, *meshes[k], [&](const Vec3(&tri)[3]) {
+      // Headlight: brightness from the angle between the face normal and the ray to its centre.
+      const Vec3 n = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
+      const Vec3 ray = (tri[0] + tri[1] + tri[2]) / 3.0;
+      const double cosang = n.norm() > 0 && ray.norm() > 0 ? std::abs(n.normalized().dot(ray.normalized())) : 0.0;
+      const float shade = float(ambient + (1.0 - ambient) * cosang);
+      raster_triangle(cam, tri, near, [&](size_t i, double z) {
+        if (z < zbuf[i]) zbuf[i] = z, L.label[i] = int32_t(k), L.depth[i] = float(z), img.shade[i] = shade;
+      });
+    });
+  }
+  return img;
+}
+
 BinaryMask render_silhouette(const Camera& cam, const Mesh& m, double near) {
   check_camera(cam);
   BinaryMask mask(cam.width, cam.height);

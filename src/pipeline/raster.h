@@ -47,6 +47,16 @@ struct LabelImage {
 // stay empty). Throws simu::Error when the camera is invalid.
 LabelImage render_labels(const Camera& cam, const std::vector<const Mesh*>& world_meshes, double near = 1e-3);
 
+// Joint rendering with flat Lambert shading for pictures: label image plus, per pixel, the
+// brightness in [ambient, 1] of the nearest face (|cos| of its normal with the view ray, so
+// inconsistently wound meshes shade the same).
+struct ShadedImage {
+  LabelImage labels;
+  std::vector<float> shade;  // per pixel; 0 where nothing is drawn
+};
+ShadedImage render_shaded(const Camera& cam, const std::vector<const Mesh*>& world_meshes, double ambient = 0.3,
+                          double near = 1e-3);
+
 // Silhouette (coverage, no occlusion by other meshes) of one world-frame mesh.
 BinaryMask render_silhouette(const Camera& cam, const Mesh& world_mesh, double near = 1e-3);
 

@@ -230,7 +230,16 @@ Scene scene_from_json(const json& j, const std::string& base_dir, const std::str
       SIMU_CHECK(s.gravity.norm() > 1e-9, "{}.gravity: zero vector", what);
       s.gravity.normalize();
     }
-    if (j.contains("gravity_magnitude")) s.gravity_magnitude = j["gravity_magnitude"].get<double>();
+    if (j.contains("gravity_magnitude")) {
+      SIMU_CHECK(j["gravity_magnitude"].is_number(), "{}.gravity_magnitude: expected a number (m/s^2), got {}", what,
+                 j["gravity_magnitude"].dump());
+      s.gravity_magnitude = j["gravity_magnitude"].get<double>();
+      // Positive and physical: 0 leaves nothing to measure, a negative one is gravity reversed (give the
+      // direction in 'gravity'), and beyond 1000 m/s^2 (~100 g) the 1/480 s step no longer resolves a fall.
+      SIMU_CHECK(std::isfinite(s.gravity_magnitude) && s.gravity_magnitude > 0 && s.gravity_magnitude <= 1000,
+                 "{}.gravity_magnitude: got {}, expected a magnitude in (0, 1000] m/s^2 (Earth: 9.81; the direction "
+                 "goes in 'gravity')", what, s.gravity_magnitude);
+    }
     if (j.contains("floor") && !j["floor"].is_null()) s.floor = read_plane(j["floor"], what + ".floor");
     if (j.contains("walls")) {
       SIMU_CHECK(j["walls"].is_array(), "{}.walls: expected an array", what);

@@ -108,10 +108,10 @@ TEST(ProbeBestOfN, KeepsTheCandidateThatMovesLeast) {
   EXPECT_NEAR(rep["objects"][1]["change"]["obb_extents_after"][2].get<double>(), 0.26, 2e-3);
 }
 
-// No candidate settles -> the one that penetrated least where it was placed is kept (as a single sample
-// would be), flagged no_stable_candidate: a 3 m and a 2 m cube centred 0.13 m above the floor
-// penetrate it by 1.37 m and 0.87 m.
-TEST(ProbeBestOfN, NoStableCandidateKeepsTheShallowest) {
+// No candidate passes its checks -> nothing replaces the object: it keeps its input shape, flagged
+// no_stable_candidate and resample_failed, and every candidate's figures are reported: a 3 m and a
+// 2 m cube centred 0.13 m above the floor penetrate it by 1.37 m and 0.87 m.
+TEST(ProbeBestOfN, NoStableCandidateKeepsTheInputShape) {
   const auto dir = pipeline_temp_dir("best_of_n_fail");
   Scene s;
   s.gravity = Vec3(0, 0, -1);
@@ -137,8 +137,13 @@ TEST(ProbeBestOfN, NoStableCandidateKeepsTheShallowest) {
   EXPECT_FALSE(d.candidates[1].ok);
   EXPECT_NEAR(d.candidates[0].penetration, 1.37, 0.01);
   EXPECT_NEAR(d.candidates[1].penetration, 0.87, 0.01);
-  EXPECT_EQ(d.chosen_candidate, 1);
-  EXPECT_TRUE(d.resampled);
+  EXPECT_EQ(d.chosen_candidate, -1);
+  EXPECT_FALSE(d.resampled);
   EXPECT_NE(std::find(d.flags.begin(), d.flags.end(), "no_stable_candidate"), d.flags.end());
-  EXPECT_NEAR(d.s_resampled.z(), 2.0, 1e-12);
+  EXPECT_NE(std::find(d.flags.begin(), d.flags.end(), "resample_failed"), d.flags.end());
+  EXPECT_NE(d.message.find("shallowest #1"), std::string::npos) << d.message;
+  // The input shape (a 0.2 m cube) is kept.
+  EXPECT_NEAR(r.scene.objects[0].scale.z(), 0.2, 1e-12);
+  const auto rep = report_json(r);
+  EXPECT_FALSE(rep["objects"][0]["resample"]["resampled"].get<bool>());
 }

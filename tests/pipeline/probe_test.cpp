@@ -4,6 +4,7 @@
 
 #include <mujoco/mujoco.h>
 
+#include <array>
 #include <filesystem>
 #include <fstream>
 
@@ -149,6 +150,25 @@ TEST(Probe, WrittenMjcfLoadsAndSimulatesInMuJoCo) {
   EXPECT_EQ(m->nbody, 3);  // world + 2 objects
   EXPECT_NEAR(m->opt.timestep, 1.0 / 480, 1e-9);
   EXPECT_TRUE(m->opt.enableflags & mjENBL_MULTICCD);
+  EXPECT_EQ(m->opt.integrator, mjINT_IMPLICIT);  // the paper's integrator
+  // Each object: its mesh as a visual geom (group 2, no contacts) in its own colour, hulls in group 3.
+  std::vector<std::array<float, 4>> visual_rgba;
+  for (int g = 0; g < m->ngeom; ++g) {
+    if (m->geom_bodyid[g] == 0) continue;
+    const std::string name = mj_id2name(m.get(), mjOBJ_GEOM, g);
+    if (name.find("/visual") != std::string::npos) {
+      EXPECT_EQ(m->geom_group[g], 2) << name;
+      EXPECT_EQ(m->geom_contype[g] | m->geom_conaffinity[g], 0) << name;
+      visual_rgba.push_back({m->geom_rgba[4 * g], m->geom_rgba[4 * g + 1], m->geom_rgba[4 * g + 2], m->geom_rgba[4 * g + 3]});
+    } else {
+      EXPECT_EQ(m->geom_group[g], 3) << name;
+      EXPECT_NE(m->geom_contype[g], 0) << name;
+    }
+  }
+  ASSERT_EQ(visual_rgba.size(), 2u);
+  EXPECT_NE(visual_rgba[0], visual_rgba[1]);
+  // Contact margins written for users are zero (MuJoCo versions combine non-zero ones differently).
+  for (int g = 0; g < m->ngeom; ++g) EXPECT_EQ(m->geom_margin[g], 0.0);
   auto d = make_data(m.get());
   for (int i = 0; i < 480; ++i) mj_step(m.get(), d.get());
   EXPECT_EQ(take_warnings(d.get()), 0);
@@ -169,6 +189,10 @@ TEST(Probe, BadInputsAreFlaggedNotFatal) {
     flat.F << 0, 1, 2;
     std::ofstream(dir + "/flat.obj") << "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n";
   }
+  // An empty mesh file and a non-manifold one (three fins on one edge, plus a box's corners).
+  std::ofstream(dir + "/empty.obj") << "# nothing\n";
+  std::ofstream(dir + "/fins.obj") << "v -0.5 -0.5 -0.5\nv -0.5 0.5 0.5\nv 0.5 0 0\nv -0.5 0 0.5\nv 0.5 -0.5 0.5\n"
+                                      "f 1 2 3\nf 1 2 4\nf 1 2 5\nf 3 4 5\n";
   std::ofstream(dir + "/scene.json") << R"({
     "gravity": [0,0,-1], "floor": {"point": [0,0,0], "normal": [0,0,1]},
     "walls": [{"id": "back", "point": [0,1,0], "normal": [0,-1,0]}],
@@ -179,12 +203,15 @@ TEST(Probe, BadInputsAreFlaggedNotFatal) {
       {"id": "flat", "mesh": "flat.obj", "scale": 0.2, "t": [0.5,0,0.1]},
       {"id": "below", "mesh": "cube.obj", "scale": 0.2, "t": [0,0,-3]},
       {"id": "behind", "mesh": "cube.obj", "scale": 0.2, "t": [0,2,0.5]},
-      {"id": "hang_nowall", "mesh": "cube.obj", "scale": 0.2, "t": [0,0,1], "dof": "point_anchored", "wall": "none"}
+      {"id": "hang_nowall", "mesh": "cube.obj", "scale": 0.2, "t": [0,0,1], "dof": "point_anchored", "wall": "none"},
+      {"id": "negscale", "mesh": "cube.obj", "scale": -0.2, "t": [0.3,0,0.1]},
+      {"id": "empty", "mesh": "empty.obj", "scale": 0.2, "t": [-0.5,0,0.1]},
+      {"id": "fins", "mesh": "fins.obj", "scale": 0.2, "t": [-0.5,-0.5,0.1]}
     ]})";
   const Scene s = load_scene(dir + "/scene.json");
   ProbeResult r;
   ASSERT_NO_THROW(r = run_probe(s, quick(), dir + "/out"));
-  ASSERT_EQ(r.diagnostics.size(), 7u);
+  ASSERT_EQ(r.diagnostics.size(), 10u);
   EXPECT_TRUE(r.diagnostics[0].flags.empty()) << r.diagnostics[0].message;
   EXPECT_EQ(r.diagnostics[0].order, 0);
   EXPECT_TRUE(has_flag(r.diagnostics[1], "mesh_error"));
@@ -194,7 +221,18 @@ TEST(Probe, BadInputsAreFlaggedNotFatal) {
   EXPECT_TRUE(has_flag(r.diagnostics[4], "outside_room"));
   EXPECT_TRUE(has_flag(r.diagnostics[5], "outside_room"));
   EXPECT_TRUE(has_flag(r.diagnostics[6], "no_wall"));
-  for (int i = 1; i < 7; ++i) EXPECT_TRUE(r.diagnostics[i].physics_disabled) << i;
+  EXPECT_TRUE(has_flag(r.diagnostics[7], "bad_input"));
+  EXPECT_NE(r.diagnostics[7].message.find("scale"), std::string::npos) << r.diagnostics[7].message;
+  EXPECT_TRUE(has_flag(r.diagnostics[8], "mesh_error"));
+  EXPECT_NE(r.diagnostics[8].message.find("empty.obj"), std::string::npos) << r.diagnostics[8].message;
+  for (int i = 1; i < 9; ++i) EXPECT_TRUE(r.diagnostics[i].physics_disabled) << i;
+  // The non-manifold mesh is flagged, named, and still simulated through its convex hull.
+  EXPECT_TRUE(has_flag(r.diagnostics[9], "non_manifold")) << r.diagnostics[9].message;
+  EXPECT_NE(r.diagnostics[9].message.find("fins.obj"), std::string::npos) << r.diagnostics[9].message;
+  EXPECT_FALSE(r.diagnostics[9].physics_disabled) << r.diagnostics[9].message;
+  // The good object is solved as if alone.
+  EXPECT_FALSE(r.diagnostics[0].physics_disabled);
+  EXPECT_LT(r.diagnostics[0].evaluation.displacement, 0.01);
   EXPECT_TRUE(std::filesystem::exists(dir + "/out/report.json"));
   EXPECT_NO_THROW(load_mjcf_file(dir + "/out/scene.xml"));
 }
