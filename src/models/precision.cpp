@@ -42,16 +42,31 @@ void check_precision(Precision p, const torch::Device& device, const std::string
               precision_name(p), device.str());
 }
 
-Autocast::Autocast(Precision p, bool enable) : enabled_(enable && p != Precision::kFp32) {
-  if (!enabled_) return;
+Autocast::Autocast(Precision p, bool enable)
+    : enabled_(enable && p != Precision::kFp32), fp32_(enable && p == Precision::kFp32) {
+  if (!enabled_ && !fp32_) return;
   prev_enabled_ = at::autocast::is_autocast_enabled(at::kCUDA);
   prev_dtype_ = at::autocast::get_autocast_dtype(at::kCUDA);
+  if (fp32_) {
+    at::autocast::set_autocast_enabled(at::kCUDA, false);
+    no_tf32_.emplace();
+    auto& ctx = at::globalContext();
+    prev_conv_ = ctx.float32Precision(at::Float32Backend::CUDA, at::Float32Op::CONV);
+    ctx.setFloat32Precision(at::Float32Backend::CUDA, at::Float32Op::CONV, at::Float32Precision::IEEE);
+    return;
+  }
   at::autocast::set_autocast_enabled(at::kCUDA, true);
   at::autocast::set_autocast_dtype(at::kCUDA, precision_dtype(p));
   at::autocast::increment_nesting();
 }
 
 Autocast::~Autocast() {
+  if (fp32_) {
+    at::globalContext().setFloat32Precision(at::Float32Backend::CUDA, at::Float32Op::CONV, prev_conv_);
+    no_tf32_.reset();
+    at::autocast::set_autocast_enabled(at::kCUDA, prev_enabled_);
+    return;
+  }
   if (!enabled_) return;
   if (at::autocast::decrement_nesting() == 0) at::autocast::clear_cache();
   at::autocast::set_autocast_enabled(at::kCUDA, prev_enabled_);

@@ -11,6 +11,7 @@
 
 #include <torch/torch.h>
 
+#include <optional>
 #include <string>
 
 namespace simu::models {
@@ -28,8 +29,11 @@ torch::ScalarType precision_dtype(Precision p);
 // Checks that p can run on device (bf16/fp16 need CUDA); error naming `what` otherwise.
 void check_precision(Precision p, const torch::Device& device, const std::string& what = "precision");
 
-// CUDA autocast with p's dtype for its lifetime (no-op for fp32 or when `enable` is false); restores
-// the previous autocast state after. Generalises Bf16Autocast (which is Autocast(kBf16)).
+// CUDA autocast with p's dtype for its lifetime (no-op when `enable` is false); restores the previous
+// state after. Generalises Bf16Autocast (which is Autocast(kBf16)). fp32 means IEEE float32: autocast
+// off inside the scope (also within an outer bf16/fp16 scope), and no TF32 in cuBLAS matmuls
+// (at::NoTF32Guard) nor in cuDNN convolutions (PyTorch's default allows TF32 there, which put the
+// decoder 8e-4 away from the fp32 fixture on an H100).
 class Autocast {
  public:
   explicit Autocast(Precision p, bool enable = true);
@@ -38,9 +42,12 @@ class Autocast {
   Autocast& operator=(const Autocast&) = delete;
 
  private:
-  bool enabled_ = false;
+  bool enabled_ = false;  // a low-precision autocast scope is open
+  bool fp32_ = false;     // an IEEE-fp32 scope is open
   bool prev_enabled_ = false;
   at::ScalarType prev_dtype_ = at::kBFloat16;
+  at::Float32Precision prev_conv_ = at::Float32Precision::NONE;
+  std::optional<at::NoTF32Guard> no_tf32_;
 };
 
 }  // namespace simu::models

@@ -136,6 +136,18 @@ TEST(PrecisionGpu, AutocastNestsAndRestores) {
       EXPECT_EQ(y.scalar_type(), at::kHalf);
     }
     EXPECT_EQ(at::autocast::get_autocast_dtype(at::kCUDA), at::kBFloat16);
+    // fp32 inside a bf16 scope: IEEE float32 (autocast off, no TF32 in matmuls or convolutions).
+    {
+      sm::Autocast c(sm::Precision::kFp32);
+      EXPECT_FALSE(at::autocast::is_autocast_enabled(at::kCUDA));
+      EXPECT_TRUE(at::NoTF32Guard::should_disable_tf32());
+      EXPECT_EQ(at::globalContext().float32Precision(at::Float32Backend::CUDA, at::Float32Op::CONV),
+                at::Float32Precision::IEEE);
+      auto y = torch::matmul(torch::randn({4, 4}, torch::kCUDA), torch::randn({4, 4}, torch::kCUDA));
+      EXPECT_EQ(y.scalar_type(), at::kFloat);
+    }
+    EXPECT_TRUE(at::autocast::is_autocast_enabled(at::kCUDA));
+    EXPECT_FALSE(at::NoTF32Guard::should_disable_tf32());
   }
   EXPECT_FALSE(at::autocast::is_autocast_enabled(at::kCUDA));
 }
