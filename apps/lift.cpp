@@ -41,7 +41,7 @@ int main(int argc, char** argv) {
   app.add_option("--seed", seed, "sampling seed")->capture_default_str();
   app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--precision", precision,
-                 "auto | fp16 | bf16 | fp32 (auto: bf16 autocast on CUDA, fp32 on CPU; fp16 needs the precision policy)")
+                 "auto | fp16 | bf16 | fp32 (auto: fp16 autocast on CUDA as released, fp32 on CPU)")
       ->capture_default_str();
   app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps (released inference: 25)")->capture_default_str();
   app.add_option("--generator-config", rcfg.generator_config, "Stage-1 generator config")->capture_default_str();
@@ -68,6 +68,7 @@ int main(int argc, char** argv) {
       fmt::print(stderr, "{}\n{}\n{}\n", bar, banner, bar);
     }
     simu::pipeline::apply_precision(rcfg, precision);
+    rcfg.random_weights = random_weights;
     simu::pipeline::check_output_dir(out_dir, overwrite);
     auto inputs = simu::pipeline::load_lift_inputs(files);
     fmt::print("{}: {}x{}, {} object(s)\n", files.image, inputs.rgb.size(2), inputs.rgb.size(1), inputs.objects.size());

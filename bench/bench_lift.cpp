@@ -67,7 +67,7 @@ int main(int argc, char** argv) {
   app.add_option("--steps", steps, "sampling steps")->capture_default_str();
   app.add_option("--iters", iters, "timed calls per batch size (median by total)")->capture_default_str();
   app.add_option("--device", device, "cuda | cuda:N | cpu")->capture_default_str();
-  app.add_option("--precision", precision, "auto | bf16 | fp32 (as lift --precision)")->capture_default_str();
+  app.add_option("--precision", precision, "auto | fp16 | bf16 | fp32 (as lift --precision)")->capture_default_str();
   app.add_option("--decoder-bias", decoder_bias, "added to the decoder's output bias (random weights: occupancy)")
       ->capture_default_str();
   app.add_flag("--small", small, "fixture-size models (CPU smoke run of this program)");
@@ -91,6 +91,7 @@ int main(int argc, char** argv) {
       cfg.generator_overrides = {"flow_model.cond_channels=48"};
     }
     simu::pipeline::apply_precision(cfg, precision);
+    cfg.random_weights = true;  // a benchmark: random init, banner logged
     torch::NoGradGuard no_grad;
     simu::pipeline::Resampler rs(cfg);
     if (decoder_bias != 0) {

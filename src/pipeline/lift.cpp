@@ -295,20 +295,12 @@ std::string check_lift_weights(const ResamplerConfig& c, bool random_weights) {
 }
 
 void apply_precision(ResamplerConfig& config, const std::string& precision) {
-  if (precision == "auto" || precision == "bf16") {
-    config.bf16 = true;  // autocast on CUDA only; CPU runs fp32
-  } else if (precision == "fp32") {
-    config.bf16 = false;
-  } else if (precision == "fp16") {
-    fail_hint("use --precision bf16 or fp32", "--precision fp16: this build's models have no fp16 policy yet");
-  } else {
-    fail("--precision must be auto, fp16, bf16 or fp32, got '{}'", precision);
-  }
+  SIMU_CHECK(precision == "auto" || precision == "fp16" || precision == "bf16" || precision == "fp32",
+             "--precision must be auto, fp16, bf16 or fp32, got '{}'", precision);
+  config.precision = precision;  // the Resampler resolves auto and checks the device (models/precision.h)
 }
 
-std::string effective_precision(const Resampler& resampler) {
-  return resampler.config().bf16 && resampler.device().is_cuda() ? "bf16-autocast" : "fp32";
-}
+std::string effective_precision(const Resampler& resampler) { return models::precision_name(resampler.precision()); }
 
 void check_output_dir(const std::string& out_dir, bool overwrite) {
   SIMU_CHECK(!out_dir.empty(), "lift: no output directory (--out)");

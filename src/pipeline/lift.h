@@ -129,10 +129,10 @@ LiftInputs load_lift_inputs(const LiftFiles& files);
 // returns the banner naming the modules left at random init ("" when every file is given).
 std::string check_lift_weights(const ResamplerConfig& config, bool random_weights);
 
-// Maps --precision onto the resampler: "auto" (bf16 autocast on CUDA, fp32 on CPU), "bf16", "fp32".
-// "fp16" is refused with a hint until the models have an fp16 policy.
+// Maps --precision onto the resampler: "auto" (fp16 autocast on CUDA as released, fp32 on CPU),
+// "fp16", "bf16" (CUDA only), "fp32".
 void apply_precision(ResamplerConfig& config, const std::string& precision);
-// The precision a resampler actually runs in ("bf16-autocast" or "fp32").
+// The precision a resampler actually runs in ("fp16", "bf16" or "fp32").
 std::string effective_precision(const Resampler& resampler);
 
 // Refuses an existing output directory unless overwrite (an error naming it and the flag).
