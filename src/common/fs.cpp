@@ -82,6 +82,18 @@ void atomic_write(const std::string& path, std::string_view bytes) {
   atomic_rename(tmp, path);
 }
 
+namespace {
+// A process that exists and is not a zombie. A killed writer whose parent died first stays a zombie
+// until init reaps it (which a container's init may never do): its temporary files are stale.
+bool process_alive(pid_t pid) {
+  if (::kill(pid, 0) != 0) return errno != ESRCH;  // EPERM: someone else's live process
+  std::ifstream stat("/proc/" + std::to_string(pid) + "/stat");
+  std::string text((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
+  const auto close = text.rfind(')');
+  return close == std::string::npos || close + 2 >= text.size() || text[close + 2] != 'Z';
+}
+}  // namespace
+
 int remove_stale_temps(const std::string& path) {
   const std::filesystem::path p(path);
   const std::string name = p.filename().string();
@@ -100,7 +112,7 @@ int remove_stale_temps(const std::string& path) {
       const std::string digits = n.substr(prefix.size());
       if (digits.size() > 9 || digits.find_first_not_of("0123456789") != std::string::npos) continue;
       const pid_t pid = static_cast<pid_t>(std::stol(digits));
-      if (pid <= 0 || pid == ::getpid() || ::kill(pid, 0) == 0 || errno != ESRCH) continue;  // alive (or unknown)
+      if (pid <= 0 || pid == ::getpid() || process_alive(pid)) continue;
       remove_tree(it->path().string());
       ++removed;
     }

@@ -88,11 +88,11 @@ TrainConfig TrainConfig::from(simu::config::Reader& r) {
   auto m = r.child("model");
   c.model = ModelConfig::from(m);
   // The lora: section is checked here, naming this file (make_generator_policy reads it again).
-  {
+  if (r.has("lora")) {
     auto l = r.child("lora");
     (void)simu::lora::LoraConfig::from(l);
   }
-  c.lora = r.node()["lora"];
+  c.lora = r.raw("lora");
   auto o = r.child("objective");
   c.objective = ObjectiveConfig::from(o);
   auto op = r.child("optim");

@@ -234,7 +234,7 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
   EXPECT_EQ(prc, 0) << plog;
   // The probe reads scene.json directly and runs on it.
   const auto [qrc, qlog] = run(simu::testing::build_dir() + "/probe --scene " + out + "/scene.json --out " + dir +
-                                   "/probe --no-coacd --settle-time 0.2 --cache-dir " + dir + "/hulls",
+                                   "/probe --no-coacd --set final.settle_time=0.2 --set evaluation.settle_time=0.2 --cache-dir " + dir + "/hulls",
                                dir + "/probe.log");
   EXPECT_EQ(qrc, 0) << qlog;
   EXPECT_TRUE(std::filesystem::exists(dir + "/probe/scene.xml")) << qlog;
@@ -252,7 +252,7 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
                 "/probe_bad --no-coacd --resample --device cpu --generator-config " + fix("ss_generator_small.json") +
                 " --generator-weights " + fix("ss_generator_small.safetensors") + " --decoder-config " +
                 fix("ss_decoder_small.json") + " --decoder-weights " + dec + " --embedder-config " +
-                simu::testing::source_dir() + "/configs/demo_embedder_small.json",
+                simu::testing::source_dir() + "/configs/demo_embedder_small.json --random-weights",
             dir + "/probe_bad.log");
     EXPECT_EQ(brc, 1) << blog;
     EXPECT_NE(blog.find(dir + "/gone.png: the scene's depth file is not found"), std::string::npos) << blog;

@@ -1,8 +1,11 @@
 // Resampler on the small fixture generator + decoder: batching, seeding, decode chain, pose, meshes.
 #include <ATen/CPUGeneratorImpl.h>
 
+#include <fstream>
+
 #ifdef SIMU_HAVE_OPENCV
 #include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 #endif
 
 #include "common/error.h"
@@ -171,9 +174,23 @@ TEST(Resampler, ProbeBadDepthFileIsAPerObjectErrorNamingTheFile) {
   GTEST_SKIP() << "needs OpenCV";
 #else
   Resampler rs(small_config());
+  // A missing file is refused when the resampling function is made, naming it.
+  Scene missing;
+  missing.image_path = "/nonexistent/image.png";
+  missing.depth_path = "/nonexistent/depth.png";
+  try {
+    (void)make_probe_resample_fn(rs, missing);
+    ADD_FAILURE() << "no error for a missing image/depth file";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("/nonexistent/"), std::string::npos) << e.what();
+  }
+  // A depth file that exists but cannot be read fails every object with the file's and the object's name.
+  const std::string dir = simu::testing::temp_dir("bad_depth");
   Scene scene;
-  scene.image_path = "/nonexistent/image.png";
-  scene.depth_path = "/nonexistent/depth.png";
+  scene.image_path = dir + "/image.png";
+  scene.depth_path = dir + "/depth.png";
+  ASSERT_TRUE(cv::imwrite(scene.image_path, cv::Mat(8, 8, CV_8UC3, cv::Scalar(10, 20, 30))));
+  std::ofstream(scene.depth_path) << "not a png";
   ProbeResampleRequest rq;
   rq.object_id = "cup";
   rq.modal_mask = cv::Mat::zeros(8, 8, CV_8UC1);
@@ -182,7 +199,7 @@ TEST(Resampler, ProbeBadDepthFileIsAPerObjectErrorNamingTheFile) {
   ASSERT_EQ(out.size(), 2u);
   for (const auto& r : out) {
     EXPECT_FALSE(r.ok);
-    EXPECT_NE(r.message.find("/nonexistent/depth.png"), std::string::npos) << r.message;
+    EXPECT_NE(r.message.find(scene.depth_path), std::string::npos) << r.message;
     EXPECT_NE(r.message.find("cup"), std::string::npos) << r.message;
   }
 #endif
