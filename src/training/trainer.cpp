@@ -88,11 +88,12 @@ TrainConfig TrainConfig::from(simu::config::Reader& r) {
   auto m = r.child("model");
   c.model = ModelConfig::from(m);
   // The lora: section is checked here, naming this file (make_generator_policy reads it again).
+  // An absent section stays a null node (the defaults); unknown keys under it are errors (finish()).
   if (r.has("lora")) {
     auto l = r.child("lora");
     (void)simu::lora::LoraConfig::from(l);
+    c.lora = YAML::Clone(l.node());
   }
-  c.lora = r.raw("lora");
   auto o = r.child("objective");
   c.objective = ObjectiveConfig::from(o);
   auto op = r.child("optim");
