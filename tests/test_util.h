@@ -8,7 +8,10 @@
 
 #include <cstdlib>
 #include <filesystem>
+#include <functional>
 #include <string>
+
+#include "common/error.h"
 
 namespace simu::testing {
 
@@ -32,6 +35,16 @@ inline std::string temp_dir(const std::string& name) {
 }
 
 // max |a-b| / max(max|b|, 1e-6), computed in float64.
+// The message of the simu::Error that f throws, "" when it throws none.
+inline std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const simu::Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
 inline double rel_err(const torch::Tensor& a, const torch::Tensor& b) {
   auto a64 = a.detach().to(torch::kCPU, torch::kFloat64);
   auto b64 = b.detach().to(torch::kCPU, torch::kFloat64);

@@ -30,14 +30,7 @@ struct OptimConfig {
   }
 };
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const simu::Error& e) {
-    return e.what();
-  }
-  return "";
-}
+using simu::testing::error_of;
 
 TEST(Config, ReadsTypedFieldsAndDefaults) {
   const auto path = write_yaml("a.yaml", "optim:\n  lr: 2.0e-5\n  betas: [0.8, 0.95]\nname: run1\n");

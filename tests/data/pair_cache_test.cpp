@@ -18,14 +18,7 @@ namespace {
 using namespace simu::data;
 namespace stdfs = std::filesystem;
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const simu::Error& e) {
-    return e.what();
-  }
-  return "";
-}
+using simu::testing::error_of;
 
 // A record with random content; cond with len rows.
 PairRecord random_record(const std::string& id, PairKind kind, int64_t T, int64_t C, int64_t len, int64_t Cc) {

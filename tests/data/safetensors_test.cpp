@@ -11,14 +11,7 @@ using simu::data::load_safetensors;
 using simu::data::SafeTensorsFile;
 using simu::data::save_safetensors;
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const simu::Error& e) {
-    return e.what();
-  }
-  return "";
-}
+using simu::testing::error_of;
 
 void write_raw(const std::string& path, const std::string& header, const std::string& data, int64_t len_override = -1) {
   std::ofstream out(path, std::ios::binary);

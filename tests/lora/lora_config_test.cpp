@@ -17,14 +17,7 @@ namespace {
 using simu::lora::LoraConfig;
 using simu::lora::TargetMatcher;
 
-std::string error_of(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const simu::Error& e) {
-    return e.what();
-  }
-  return "";
-}
+using simu::testing::error_of;
 
 LoraConfig regex_cfg(const std::string& re) {
   LoraConfig c;
