@@ -11,7 +11,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "common/progress.h"
-#include "pipeline/pair_builder.h"
+#include "resample/pair_builder.h"
 
 namespace {
 std::atomic<bool> g_stop{false};
@@ -22,7 +22,7 @@ int main(int argc, char** argv) {
   CLI::App app{"Build an FM-DPO pair cache from a manifest of image pairs: condition embedder + Stage-1 sampling on "
                "both sides, condition c = (I, M, I_M', D) stored as tokens. Manifest and layout: docs/pair_cache.md"};
   std::string manifest, dtype = "f16";
-  simu::pipeline::PairBuilderConfig cfg;
+  simu::resample::PairBuilderConfig cfg;
   auto& rc = cfg.resampler;
   bool overwrite = false;
   std::string preprocess_preset = "released";
@@ -73,7 +73,7 @@ int main(int argc, char** argv) {
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);
     simu::Progress progress{"build_pairs", "records"};
-    const auto report = simu::pipeline::build_pairs(manifest, cfg, std::ref(progress), &g_stop);
+    const auto report = simu::resample::build_pairs(manifest, cfg, std::ref(progress), &g_stop);
     fmt::print("{}: {} pairs ({} written now, {} already there), {} bad record(s) skipped, {} records in {:.1f} s{}\n",
                cfg.out, report.cache_size, report.written, report.skipped_existing, report.issues.size(),
                report.records, report.seconds, report.interrupted ? " (interrupted: run again to continue)" : "");

@@ -12,16 +12,16 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "data/depth_io.h"
-#include "pipeline/lift.h"
+#include "resample/lift.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"lift: SAM 3D Objects Stage 1 (shape + pose) on the objects of one photo -> meshes, 64^3 occupancy, "
                "poses in SAM 3D's and the scene convention, scene.json for the probe"};
-  simu::pipeline::LiftFiles files;
+  simu::resample::LiftFiles files;
   std::string out_dir, precision = "auto";
   bool random_weights = false, overwrite = false;
   uint64_t seed = 0;
-  simu::pipeline::ResamplerConfig rcfg;
+  simu::resample::ResamplerConfig rcfg;
   rcfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
   app.add_option("--image", files.image, "RGB(A) image")->required();
   app.add_option("--masks", files.masks,
@@ -62,28 +62,28 @@ int main(int argc, char** argv) {
                       common.sets.front());
     const auto t_start = std::chrono::steady_clock::now();
     // Weights first (cheap), then every input file, then the models.
-    const std::string banner = simu::pipeline::check_lift_weights(rcfg, random_weights);
+    const std::string banner = simu::resample::check_lift_weights(rcfg, random_weights);
     if (!banner.empty()) {
       const std::string bar(std::min<size_t>(banner.size(), 100), '!');
       fmt::print(stderr, "{}\n{}\n{}\n", bar, banner, bar);
     }
-    simu::pipeline::apply_precision(rcfg, precision);
+    simu::resample::apply_precision(rcfg, precision);
     rcfg.random_weights = random_weights;
-    simu::pipeline::check_output_dir(out_dir, overwrite);
-    auto inputs = simu::pipeline::load_lift_inputs(files);
+    simu::resample::check_output_dir(out_dir, overwrite);
+    auto inputs = simu::resample::load_lift_inputs(files);
     fmt::print("{}: {}x{}, {} object(s)\n", files.image, inputs.rgb.size(2), inputs.rgb.size(1), inputs.objects.size());
-    simu::pipeline::Resampler resampler(rcfg);
-    simu::pipeline::LiftOptions opt;
+    simu::resample::Resampler resampler(rcfg);
+    simu::resample::LiftOptions opt;
     opt.seed = seed;
-    const auto result = simu::pipeline::lift_objects(resampler, inputs, opt);
-    simu::pipeline::LiftWriteOptions w;
+    const auto result = simu::resample::lift_objects(resampler, inputs, opt);
+    simu::resample::LiftWriteOptions w;
     w.out_dir = out_dir;
     w.overwrite = overwrite;
     w.image_path = files.image;
     w.depth_path = files.pointmap.empty() ? files.depth : files.pointmap;
     w.banner = banner;
-    w.run_info = simu::pipeline::lift_run_info(resampler, opt, precision, random_weights);
-    simu::pipeline::write_lift_outputs(result, inputs, w, simu::pipeline::occupancy_resolution(resampler));
+    w.run_info = simu::resample::lift_run_info(resampler, opt, precision, random_weights);
+    simu::resample::write_lift_outputs(result, inputs, w, simu::resample::occupancy_resolution(resampler));
     // Summary: one line per object, the stage times, where the files are.
     for (const auto& o : result.objects) {
       if (o.ok)

@@ -10,9 +10,9 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "pipeline/probe.h"
-#include "pipeline/probe_batch.h"
-#include "pipeline/probe_resampler.h"
+#include "physics/probe.h"
+#include "physics/probe_batch.h"
+#include "resample/probe_resampler.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"Physics probe: penetration resolution, gravity diagnostics, stretch-or-resample decision, final "
@@ -31,7 +31,7 @@ int main(int argc, char** argv) {
   app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh (= --set collision.use_coacd=false)");
   app.add_flag("--quiet", quiet, "no per-object progress lines");
   // In-process resampling (SAM 3D Stage 1 + optional LoRA adapter), loaded once for every scene.
-  simu::pipeline::ResamplerConfig rcfg;
+  simu::resample::ResamplerConfig rcfg;
   bool resample = false;
   uint64_t seed = 0;
   std::string preprocess_preset = "released";
@@ -57,7 +57,7 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"released", "default"}));
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
-  app.footer(simu::pipeline::probe_config_help());
+  app.footer(simu::physics::probe_config_help());
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
     if (!scene_path.empty()) scenes.insert(scenes.begin(), scene_path);
@@ -65,17 +65,17 @@ int main(int argc, char** argv) {
     std::vector<std::string> sets = common.sets;
     if (no_coacd) sets.push_back("collision.use_coacd=false");
     if (!cache_dir.empty()) sets.push_back("collision.cache_dir=" + cache_dir);
-    auto cfg = simu::pipeline::ProbeConfig::load(config_path, sets);
+    auto cfg = simu::physics::ProbeConfig::load(config_path, sets);
     cfg.overwrite = overwrite;
     if (cfg.collision.cache_dir.empty()) {
       if (const char* env = std::getenv("SIMU_HULL_CACHE")) cfg.collision.cache_dir = env;
       else if (const char* home = std::getenv("HOME")) cfg.collision.cache_dir = std::string(home) + "/.cache/simuscene/hulls";
     }
-    std::unique_ptr<simu::pipeline::Resampler> resampler;
+    std::unique_ptr<simu::resample::Resampler> resampler;
     if (resample) {
       if (rcfg.embedder_config.empty())
         simu::fail_hint("pass --embedder-config (and --embedder-weights)", "--resample needs the condition embedder");
-      resampler = std::make_unique<simu::pipeline::Resampler>(rcfg);
+      resampler = std::make_unique<simu::resample::Resampler>(rcfg);
       simu::log::info("resampler loaded on {} ({}){}", resampler->device().str(),
                       simu::models::precision_name(resampler->precision()),
                       resampler->has_adapter() ? " with adapter " + rcfg.adapter_dir : "");
@@ -83,22 +83,22 @@ int main(int argc, char** argv) {
         fmt::print(stderr, "\n*** {} ***\n\n", resampler->random_weights_banner());
     }
     std::mutex model_mu;  // one model, scenes in threads: resampling calls take turns
-    simu::pipeline::ResampleFactory factory;
+    simu::physics::ResampleFactory factory;
     if (resampler) {
-      factory = [&](const simu::pipeline::Scene& scene) -> simu::pipeline::ResampleFn {
-        simu::pipeline::ProbeResamplerOptions ropt;
+      factory = [&](const simu::physics::Scene& scene) -> simu::physics::ResampleFn {
+        simu::resample::ProbeResamplerOptions ropt;
         ropt.seed = seed;
         ropt.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
-        auto inner = simu::pipeline::make_probe_resample_fn(*resampler, scene, ropt);
-        return [inner, &model_mu](const std::vector<simu::pipeline::ProbeResampleRequest>& rq) {
+        auto inner = simu::resample::make_probe_resample_fn(*resampler, scene, ropt);
+        return [inner, &model_mu](const std::vector<simu::physics::ProbeResampleRequest>& rq) {
           std::lock_guard<std::mutex> lock(model_mu);
           return inner(rq);
         };
       };
     }
-    simu::pipeline::ProbeBatchOptions opt;
+    simu::physics::ProbeBatchOptions opt;
     opt.threads = threads;
     opt.quiet = quiet;
-    return simu::pipeline::run_probe_batch(scenes, out_dir, cfg, factory, opt) > 0 ? 1 : 0;
+    return simu::physics::run_probe_batch(scenes, out_dir, cfg, factory, opt) > 0 ? 1 : 0;
   });
 }

@@ -11,8 +11,8 @@
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/log.h"
-#include "pipeline/probe.h"
-#include "pipeline/synthetic.h"
+#include "physics/probe.h"
+#include "physics/synthetic.h"
 
 #include <unistd.h>
 
@@ -26,7 +26,7 @@
 #include <mutex>
 #include <thread>
 
-using namespace simu::pipeline;
+using namespace simu::physics;
 
 int main(int argc, char** argv) {
   CLI::App app{"Synthetic benchmark of the gravity diagnostics: decision accuracy and metrics before/after"};

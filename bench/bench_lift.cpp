@@ -1,4 +1,4 @@
-// bench_lift: time per object of the lift path (pipeline/lift.h lift_objects: released preprocessing,
+// bench_lift: time per object of the lift path (resample/lift.h lift_objects: released preprocessing,
 // condition embedder, 25-step CFG sampling, decoder, marching cubes, pose) at batch 1 and 8, at the
 // released dimensions with random weights (configs/stage1_real.yaml, configs/cond_embedder_sam3d_stage1.yaml
 // = 7,528 condition tokens per object, configs/ss_decoder.yaml). A synthetic 640x480 photo with 8
@@ -18,7 +18,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "data/depth_io.h"
-#include "pipeline/lift.h"
+#include "resample/lift.h"
 
 namespace {
 
@@ -29,12 +29,12 @@ double peak_gib(const torch::Device& d) {
 }
 
 // A 640x480 photo: a wall at 3 m, 8 boxes (4 x 2 grid) at 1.5..2.2 m, their masks; f = 0.9 W.
-simu::pipeline::LiftInputs synthetic_photo(int64_t n_objects) {
+simu::resample::LiftInputs synthetic_photo(int64_t n_objects) {
   const int64_t W = 640, H = 480;
   const double f = 0.9 * W, cx = W / 2.0, cy = H / 2.0;
   auto z = torch::full({H, W}, 3.0, torch::kFloat32);
   auto rgb = torch::rand({3, H, W}, torch::TensorOptions().dtype(torch::kFloat32)) * 0.2 + 0.4;
-  simu::pipeline::LiftInputs in;
+  simu::resample::LiftInputs in;
   for (int64_t k = 0; k < n_objects; ++k) {
     const int64_t col = k % 4, row = (k / 4) % 2;
     const int64_t x0 = 30 + col * 150, y0 = 40 + row * 220, w = 100 + 7 * k, h = 120 + 5 * k;
@@ -80,7 +80,7 @@ int main(int argc, char** argv) {
       fmt::print("bench_lift: skipped: no CUDA device (use --device cpu --small for a smoke run)\n");
       return 0;
     }
-    simu::pipeline::ResamplerConfig cfg;  // released inference sampler defaults, real-size configs
+    simu::resample::ResamplerConfig cfg;  // released inference sampler defaults, real-size configs
     cfg.device = device;
     cfg.steps = steps;
     cfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
@@ -90,10 +90,10 @@ int main(int argc, char** argv) {
       cfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/demo_embedder_small.json";
       cfg.generator_overrides = {"flow_model.cond_channels=48"};
     }
-    simu::pipeline::apply_precision(cfg, precision);
+    simu::resample::apply_precision(cfg, precision);
     cfg.random_weights = true;  // a benchmark: random init, banner logged
     torch::NoGradGuard no_grad;
-    simu::pipeline::Resampler rs(cfg);
+    simu::resample::Resampler rs(cfg);
     if (decoder_bias != 0) {
       auto params = rs.decoder()->named_parameters();
       SIMU_CHECK(params.contains("out_layer.2.bias"), "decoder has no out_layer.2.bias");
@@ -102,14 +102,14 @@ int main(int argc, char** argv) {
     const auto& mc = rs.generator()->config().backbone;
     fmt::print("device {}; {}; generator {} ({} ch, {} blocks); embedder {} ({} tokens/object); decoder {}; {} steps, "
                "rescale_t {}, CFG {} on [{}, {}]; occupancy {}^3\n",
-               dev.str(), simu::pipeline::effective_precision(rs), cfg.generator_config, mc.model_channels,
+               dev.str(), simu::resample::effective_precision(rs), cfg.generator_config, mc.model_channels,
                mc.num_blocks, cfg.embedder_config, rs.embedder()->num_tokens(), cfg.decoder_config, cfg.steps,
                cfg.rescale_t, cfg.cfg_strength, cfg.cfg_interval.first, cfg.cfg_interval.second,
-               simu::pipeline::occupancy_resolution(rs));
+               simu::resample::occupancy_resolution(rs));
     struct Row {
       int64_t batch;
       double wall_ms;
-      simu::pipeline::LiftTimings t;
+      simu::resample::LiftTimings t;
       int64_t voxels;
       double peak;
     };
@@ -120,14 +120,14 @@ int main(int argc, char** argv) {
     for (const int64_t B : batches) {
       auto in = photo;
       in.objects.resize(static_cast<size_t>(B));
-      simu::pipeline::LiftOptions opt;
-      (void)simu::pipeline::lift_objects(rs, in, opt);  // warm-up (kernels, allocator)
+      simu::resample::LiftOptions opt;
+      (void)simu::resample::lift_objects(rs, in, opt);  // warm-up (kernels, allocator)
       if (dev.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(dev.index() < 0 ? 0 : dev.index());
       std::vector<Row> runs;
       for (int i = 0; i < iters; ++i) {
         opt.seed = static_cast<uint64_t>(i + 1);
         const auto t0 = std::chrono::steady_clock::now();
-        const auto res = simu::pipeline::lift_objects(rs, in, opt);
+        const auto res = simu::resample::lift_objects(rs, in, opt);
         const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
         int64_t voxels = 0;
         for (const auto& o : res.objects)

@@ -1,5 +1,5 @@
 // bench_mesh: CPU time of the resampler's per-object "logits -> canonical mesh" step
-// (pipeline::mesh_from_logits: occupied voxels, marching cubes on the logits, voxel frame, canonical
+// (resample::mesh_from_logits: occupied voxels, marching cubes on the logits, voxel frame, canonical
 // frame) on 64^3 grids: (a) random logits as random weights give (~42% occupied, spatially
 // uncorrelated), (b) the same noise smoothed by a 3^3 box filter (larger components), (c) a ball.
 // Prints a table per thread count: ms per object for the whole step, for marching cubes alone, and for
@@ -13,10 +13,11 @@
 #include <functional>
 
 #include "common/cli.h"
-#include "pipeline/marching_cubes.h"
-#include "pipeline/resampler.h"
+#include "resample/marching_cubes.h"
+#include "resample/resampler.h"
 
-using namespace simu::pipeline;
+using namespace simu::physics;
+using namespace simu::resample;
 
 namespace {
 
@@ -79,7 +80,7 @@ int main(int argc, char** argv) {
       for (const auto& [name, logits] : cases) {
         ResampledShape out;
         const double full = median_ms(reps, [&] { mesh_from_logits(logits, out); });
-        TriangleMesh mesh;
+        Mesh mesh;
         const double mc = median_ms(reps, [&] { mesh = marching_cubes(logits); });
         const double ref = median_ms(reps, [&] { mesh = marching_cubes_reference(logits); });
         const double occ = (logits > 0).to(torch::kFloat64).mean().item<double>();

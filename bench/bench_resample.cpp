@@ -17,7 +17,7 @@
 #include "gpu_profile.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "pipeline/resampler.h"
+#include "resample/resampler.h"
 
 namespace {
 double peak_gib(const torch::Device& d) {
@@ -47,7 +47,7 @@ int main(int argc, char** argv) {
     simu::cli::apply_common_options(common);
     const torch::Device dev(device);
     if (!simu::bench::device_usable("bench_resample", dev, small)) return 0;
-    simu::pipeline::ResamplerConfig cfg;  // official sampling defaults, real-size configs
+    simu::resample::ResamplerConfig cfg;  // official sampling defaults, real-size configs
     cfg.device = device;
     cfg.steps = steps;
     cfg.random_weights = true;  // timing only
@@ -59,7 +59,7 @@ int main(int argc, char** argv) {
       iters = 1;
     }
     torch::NoGradGuard no_grad;
-    simu::pipeline::Resampler rs(cfg);
+    simu::resample::Resampler rs(cfg);
     const auto& mc = rs.generator()->config().backbone;
     const auto& dc = rs.decoder()->config();
     fmt::print("device {}; generator {} ({} ch, {} blocks, {} heads, cond {} ch); decoder channels [{}]; {} steps, "
@@ -76,7 +76,7 @@ int main(int argc, char** argv) {
     std::vector<Row> rows;
     torch::manual_seed(0);
     for (const int64_t B : batches) {
-      std::vector<simu::pipeline::ResampleRequest> reqs(static_cast<size_t>(B));
+      std::vector<simu::resample::ResampleRequest> reqs(static_cast<size_t>(B));
       for (auto& r : reqs) r.cond = torch::randn({cond_len, mc.cond_channels});
       // Warm-up (kernels, allocator), then timed calls; median by total time.
       (void)rs.resample(reqs, 0);

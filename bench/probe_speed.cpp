@@ -13,10 +13,10 @@
 
 #include "common/cli.h"
 #include "common/fs.h"
-#include "pipeline/mesh.h"
-#include "pipeline/probe.h"
+#include "physics/mesh.h"
+#include "physics/probe.h"
 
-using namespace simu::pipeline;
+using namespace simu::physics;
 
 namespace {
 

@@ -1,4 +1,4 @@
-// libFuzzer target: a probe scene file (src/pipeline/scene.cpp load_scene: JSON, camera, gravity,
+// libFuzzer target: a probe scene file (src/physics/scene.cpp load_scene: JSON, camera, gravity,
 // planes, objects, bases) and the meshes it names (read_mesh through assimp: OBJ, PLY).
 // Input: first byte selects what the rest is: 0-127 scene JSON, 128-191 an OBJ mesh, 192-255 a PLY.
 // PLY runs only with SIMU_FUZZ_PLY=1: assimp 5.2's PLY reader loops forever on some 130-byte files
@@ -12,8 +12,8 @@
 #include <string>
 
 #include "common/error.h"
-#include "pipeline/mesh.h"
-#include "pipeline/scene.h"
+#include "physics/mesh.h"
+#include "physics/scene.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size < 1) return 0;
@@ -33,11 +33,11 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   std::fclose(f);
   try {
     if (sel < 128) {
-      const auto scene = simu::pipeline::load_scene(path);
-      (void)simu::pipeline::scene_to_json(scene, "/tmp");
+      const auto scene = simu::physics::load_scene(path);
+      (void)simu::physics::scene_to_json(scene, "/tmp");
     } else {
-      const auto mesh = simu::pipeline::read_mesh(path);
-      (void)simu::pipeline::mesh_problem(mesh);
+      const auto mesh = simu::physics::read_mesh(path);
+      (void)simu::physics::mesh_problem(mesh);
     }
   } catch (const simu::Error&) {
   }

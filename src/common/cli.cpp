@@ -1,7 +1,10 @@
 #include "common/cli.h"
 
 #include <cstdio>
+#include <cstring>
 #include <exception>
+#include <string>
+#include <typeinfo>
 
 #include "common/error.h"
 #include "common/log.h"
@@ -27,10 +30,16 @@ int run(CLI::App& app, int argc, char** argv, const std::function<int()>& body) 
     std::fprintf(stderr, "error: %s\n", e.what());
     if (!e.hint().empty()) std::fprintf(stderr, "hint: %s\n", e.hint().c_str());
     return 1;
-  } catch (const c10::Error& e) {
-    std::fprintf(stderr, "error (torch): %s\n", e.what_without_backtrace());
-    return 1;
   } catch (const std::exception& e) {
+    // torch's c10::Error (and its subclasses, namespace c10) appends a C++ backtrace to what(),
+    // after "\nException raised from"; print the message only (its what_without_backtrace()). The
+    // type is recognised by its mangled name so that common needs no torch.
+    const std::string what = e.what();
+    if (std::strncmp(typeid(e).name(), "N3c10", 5) == 0) {
+      const auto cut = what.find("\nException raised from ");
+      std::fprintf(stderr, "error (torch): %s\n", what.substr(0, cut).c_str());
+      return 1;
+    }
     std::fprintf(stderr, "error: %s\n", e.what());
     return 1;
   }

@@ -11,7 +11,7 @@
 
 #include "data/safetensors.h"
 #include "models/generator.h"
-#include "pipeline/resampler.h"
+#include "resample/resampler.h"
 #include "test_util.h"
 
 namespace sm = simu::models;
@@ -117,14 +117,14 @@ TEST(SamplerReleased, SmallGeneratorWithReleasedValuesSamplesAsTheOfficialInfere
 // The Resampler (probe --resample, build_pairs, lift) given the released sampler values: its options
 // are the official ones (only `steps` changed by the test) and sample as the official code does.
 TEST(SamplerReleased, ResamplerUsesOfficialInferenceValues) {
-  simu::pipeline::ResamplerConfig c;
+  simu::resample::ResamplerConfig c;
   c.generator_config = data("ss_generator_small_released_sampler.yaml");
   c.generator_weights = simu::testing::fixture("ss_generator_small.safetensors");
   c.decoder_config = simu::testing::fixture("ss_decoder_small.json");
   c.decoder_weights = simu::testing::fixture("ss_decoder_small.safetensors");
   c.device = "cpu";
   c.steps = 4;
-  simu::pipeline::Resampler rs(c);
+  simu::resample::Resampler rs(c);
   const auto o = rs.sample_options();
   EXPECT_EQ(o.steps, 4);
   EXPECT_DOUBLE_EQ(o.rescale_t, 3.0);

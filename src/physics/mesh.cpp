@@ -1,0 +1,232 @@
+// Mesh reading/writing through assimp and mesh utilities.
+#include "physics/mesh.h"
+
+#include <assimp/Exporter.hpp>
+#include <assimp/Importer.hpp>
+#include <assimp/postprocess.h>
+#include <assimp/scene.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <vector>
+
+#include "common/error.h"
+#include "common/fs.h"
+
+#include <map>
+
+namespace simu::physics {
+
+Mesh read_mesh(const std::string& path) {
+  SIMU_CHECK(std::filesystem::is_regular_file(path), "mesh file {} does not exist", path);
+  Assimp::Importer importer;
+  // Triangulate, bake node transforms into the vertices, merge duplicated vertices.
+  const unsigned flags = aiProcess_Triangulate | aiProcess_PreTransformVertices | aiProcess_JoinIdenticalVertices |
+                         aiProcess_SortByPType;
+  const aiScene* sc = importer.ReadFile(path, flags);
+  if (!sc || !sc->mRootNode) fail("mesh file {}: assimp could not read it ({})", path, importer.GetErrorString());
+  // Concatenate the triangles of every sub-mesh.
+  std::vector<double> v;
+  std::vector<int> f;
+  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
+    const aiMesh* am = sc->mMeshes[m];
+    const int base = static_cast<int>(v.size() / 3);
+    for (unsigned i = 0; i < am->mNumVertices; ++i) {
+      v.push_back(am->mVertices[i].x);
+      v.push_back(am->mVertices[i].y);
+      v.push_back(am->mVertices[i].z);
+    }
+    for (unsigned i = 0; i < am->mNumFaces; ++i) {
+      const aiFace& face = am->mFaces[i];
+      if (face.mNumIndices != 3) continue;  // points and lines
+      for (int k = 0; k < 3; ++k) f.push_back(base + static_cast<int>(face.mIndices[k]));
+    }
+  }
+  SIMU_CHECK(!f.empty(), "mesh file {}: no triangles", path);
+  Mesh mesh;
+  mesh.V = Eigen::Map<Eigen::Matrix<double, -1, 3, Eigen::RowMajor>>(v.data(), static_cast<Eigen::Index>(v.size() / 3), 3);
+  mesh.F = Eigen::Map<Eigen::Matrix<int, -1, 3, Eigen::RowMajor>>(f.data(), static_cast<Eigen::Index>(f.size() / 3), 3);
+  return mesh;
+}
+
+void write_mesh(const Mesh& mesh, const std::string& path) {
+  SIMU_CHECK(!mesh.empty(), "write_mesh {}: empty mesh", path);
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
+  const char* format = nullptr;
+  if (ext == ".obj") format = "objnomtl";
+  else if (ext == ".ply") format = "plyb";
+  else if (ext == ".glb") format = "glb2";
+  else if (ext == ".gltf") format = "gltf2";
+  else if (ext == ".stl") format = "stlb";
+  else fail_hint("use .obj, .ply, .glb, .gltf or .stl", "write_mesh {}: unknown extension '{}'", path, ext);
+  // Build a one-mesh aiScene (the scene owns and frees the arrays).
+  aiScene sc;
+  sc.mRootNode = new aiNode();
+  sc.mMaterials = new aiMaterial*[1];
+  sc.mMaterials[0] = new aiMaterial();
+  sc.mNumMaterials = 1;
+  sc.mMeshes = new aiMesh*[1];
+  sc.mNumMeshes = 1;
+  auto* am = new aiMesh();
+  sc.mMeshes[0] = am;
+  am->mMaterialIndex = 0;
+  am->mPrimitiveTypes = aiPrimitiveType_TRIANGLE;
+  sc.mRootNode->mMeshes = new unsigned[1];
+  sc.mRootNode->mMeshes[0] = 0;
+  sc.mRootNode->mNumMeshes = 1;
+  am->mNumVertices = static_cast<unsigned>(mesh.V.rows());
+  am->mVertices = new aiVector3D[am->mNumVertices];
+  for (unsigned i = 0; i < am->mNumVertices; ++i)
+    am->mVertices[i] = aiVector3D(static_cast<ai_real>(mesh.V(i, 0)), static_cast<ai_real>(mesh.V(i, 1)),
+                                  static_cast<ai_real>(mesh.V(i, 2)));
+  am->mNumFaces = static_cast<unsigned>(mesh.F.rows());
+  am->mFaces = new aiFace[am->mNumFaces];
+  for (unsigned i = 0; i < am->mNumFaces; ++i) {
+    am->mFaces[i].mNumIndices = 3;
+    am->mFaces[i].mIndices = new unsigned[3];
+    for (int k = 0; k < 3; ++k) am->mFaces[i].mIndices[k] = static_cast<unsigned>(mesh.F(i, k));
+  }
+  // Export into memory, then write atomically.
+  Assimp::Exporter exporter;
+  const aiExportDataBlob* blob = exporter.ExportToBlob(&sc, format);
+  if (!blob) fail("write_mesh {}: assimp export failed ({})", path, exporter.GetErrorString());
+  fs::atomic_write(path, std::string_view(static_cast<const char*>(blob->data), blob->size));
+}
+
+Aabb mesh_aabb(const Mesh& mesh) {
+  Aabb b;
+  if (mesh.V.rows() == 0) return b;
+  b.min = mesh.V.colwise().minCoeff().transpose();
+  b.max = mesh.V.colwise().maxCoeff().transpose();
+  return b;
+}
+
+int nonmanifold_edges(const Mesh& mesh) {
+  std::map<std::pair<int, int>, int> uses;
+  for (Eigen::Index f = 0; f < mesh.F.rows(); ++f)
+    for (int k = 0; k < 3; ++k) {
+      const int a = mesh.F(f, k), b = mesh.F(f, (k + 1) % 3);
+      ++uses[{std::min(a, b), std::max(a, b)}];
+    }
+  int n = 0;
+  for (const auto& [e, c] : uses) n += c > 2;
+  return n;
+}
+
+std::string mesh_problem(const Mesh& mesh) {
+  if (mesh.V.rows() == 0) return "mesh has no vertices";
+  if (mesh.F.rows() == 0) return "mesh has no faces";
+  if (!mesh.V.allFinite()) return "mesh has non-finite vertex coordinates";
+  if (mesh.F.minCoeff() < 0 || mesh.F.maxCoeff() >= mesh.V.rows())
+    return fmt::format("mesh face index out of range [0, {})", mesh.V.rows());
+  const auto b = mesh_aabb(mesh);
+  if (b.size().maxCoeff() <= 0) return "mesh has zero extent";
+  return "";
+}
+
+Mesh clean_mesh(const Mesh& mesh, double area_eps) {
+  // Keep faces with three distinct in-range indices and non-zero area.
+  std::vector<int> keep;
+  for (Eigen::Index i = 0; i < mesh.F.rows(); ++i) {
+    const int a = mesh.F(i, 0), b = mesh.F(i, 1), c = mesh.F(i, 2);
+    if (a == b || b == c || a == c) continue;
+    if (std::min({a, b, c}) < 0 || std::max({a, b, c}) >= mesh.V.rows()) continue;
+    const Vec3 pa = mesh.V.row(a), pb = mesh.V.row(b), pc = mesh.V.row(c);
+    const double area = 0.5 * (pb - pa).cross(pc - pa).norm();
+    if (!(area > area_eps)) continue;
+    keep.push_back(static_cast<int>(i));
+  }
+  // Reindex the referenced vertices.
+  std::vector<int> remap(mesh.V.rows(), -1);
+  int nv = 0;
+  for (int i : keep)
+    for (int k = 0; k < 3; ++k)
+      if (remap[mesh.F(i, k)] < 0) remap[mesh.F(i, k)] = nv++;
+  Mesh out;
+  out.V.resize(nv, 3);
+  for (Eigen::Index i = 0; i < mesh.V.rows(); ++i)
+    if (remap[i] >= 0) out.V.row(remap[i]) = mesh.V.row(i);
+  out.F.resize(static_cast<Eigen::Index>(keep.size()), 3);
+  for (size_t j = 0; j < keep.size(); ++j)
+    for (int k = 0; k < 3; ++k) out.F(j, k) = remap[mesh.F(keep[j], k)];
+  return out;
+}
+
+double canonicalize(Mesh& mesh) {
+  const auto b = mesh_aabb(mesh);
+  const double longest = b.size().maxCoeff();
+  SIMU_CHECK(longest > 0 && std::isfinite(longest), "canonicalize: mesh has zero or non-finite extent");
+  const double factor = 1.0 / longest;
+  const Eigen::RowVector3d c = b.center().transpose();
+  for (Eigen::Index i = 0; i < mesh.V.rows(); ++i) mesh.V.row(i) = (mesh.V.row(i) - c) * factor;
+  return factor;
+}
+
+double signed_volume(const Mesh& mesh) {
+  double vol = 0;
+  for (Eigen::Index i = 0; i < mesh.F.rows(); ++i) {
+    const Vec3 a = mesh.V.row(mesh.F(i, 0)), b = mesh.V.row(mesh.F(i, 1)), c = mesh.V.row(mesh.F(i, 2));
+    vol += a.dot(b.cross(c));
+  }
+  return vol / 6.0;
+}
+
+Mesh box_mesh(const Vec3& h) {
+  Mesh m;
+  m.V.resize(8, 3);
+  for (int i = 0; i < 8; ++i) m.V.row(i) << ((i & 1) ? h.x() : -h.x()), ((i & 2) ? h.y() : -h.y()), ((i & 4) ? h.z() : -h.z());
+  // Two triangles per face, counter-clockwise seen from outside.
+  m.F.resize(12, 3);
+  m.F << 0, 2, 3, 0, 3, 1,  // -z
+      4, 5, 7, 4, 7, 6,     // +z
+      0, 1, 5, 0, 5, 4,     // -y
+      2, 6, 7, 2, 7, 3,     // +y
+      0, 4, 6, 0, 6, 2,     // -x
+      1, 3, 7, 1, 7, 5;     // +x
+  return m;
+}
+
+Mesh prism_mesh(const std::vector<Eigen::Vector2d>& poly, double hh) {
+  const int n = static_cast<int>(poly.size());
+  SIMU_CHECK(n >= 3, "prism_mesh: polygon needs 3 or more vertices, got {}", n);
+  Mesh m;
+  m.V.resize(2 * n, 3);
+  for (int i = 0; i < n; ++i) {
+    m.V.row(i) << poly[i].x(), poly[i].y(), -hh;      // bottom ring
+    m.V.row(n + i) << poly[i].x(), poly[i].y(), hh;   // top ring
+  }
+  std::vector<Eigen::Vector3i> f;
+  // Caps: fans from vertex 0 (top counter-clockwise seen from +z, bottom reversed).
+  for (int i = 1; i + 1 < n; ++i) {
+    f.emplace_back(n, n + i, n + i + 1);
+    f.emplace_back(0, i + 1, i);
+  }
+  // Sides: two triangles per edge, outward.
+  for (int i = 0; i < n; ++i) {
+    const int j = (i + 1) % n;
+    f.emplace_back(i, j, n + j);
+    f.emplace_back(i, n + j, n + i);
+  }
+  m.F.resize(static_cast<Eigen::Index>(f.size()), 3);
+  for (size_t k = 0; k < f.size(); ++k) m.F.row(static_cast<Eigen::Index>(k)) = f[k].transpose();
+  return m;
+}
+
+uint64_t fnv1a64(const void* data, size_t n, uint64_t seed) {
+  uint64_t h = seed;
+  const auto* p = static_cast<const unsigned char*>(data);
+  for (size_t i = 0; i < n; ++i) {
+    h ^= p[i];
+    h *= 1099511628211ULL;
+  }
+  return h;
+}
+
+uint64_t mesh_hash(const Mesh& mesh) {
+  uint64_t h = fnv1a64(mesh.V.data(), sizeof(double) * static_cast<size_t>(mesh.V.size()));
+  return fnv1a64(mesh.F.data(), sizeof(int) * static_cast<size_t>(mesh.F.size()), h);
+}
+
+}  // namespace simu::physics
