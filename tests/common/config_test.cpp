@@ -6,7 +6,7 @@
 
 #include <fstream>
 
-#include "test_util.h"
+#include "test_files.h"
 
 namespace {
 

@@ -8,7 +8,7 @@
 #include <fstream>
 
 #include "common/error.h"
-#include "test_util.h"
+#include "test_files.h"
 
 namespace stdfs = std::filesystem;
 

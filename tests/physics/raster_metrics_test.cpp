@@ -217,7 +217,7 @@ TEST(Metrics, PhysicsMetrics) {
 }
 
 #include "physics/overlay.h"
-#include "test_util.h"
+#include "test_files.h"
 
 #include <filesystem>
 

@@ -3,7 +3,7 @@
 // read back through the scene loader; the benchmark's "after" metrics score the probe's output.
 #include "physics/synthetic.h"
 
-#include "test_util.h"
+#include "test_files.h"
 
 #include <gtest/gtest.h>
 

@@ -1,0 +1,46 @@
+// Test helpers without torch (every suite): where the fixtures are, temporary directories, the message
+// of an expected simu::Error.
+#pragma once
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <functional>
+#include <string>
+
+#include "common/error.h"
+
+namespace simu::testing {
+
+// ../shared beside the repository root, or $SIMU_SHARED_DIR.
+inline std::string shared_dir() {
+  if (const char* env = std::getenv("SIMU_SHARED_DIR")) return env;
+  return (std::filesystem::path(SIMU_SOURCE_DIR) / ".." / "shared").lexically_normal().string();
+}
+inline std::string fixture(const std::string& name) { return shared_dir() + "/fixtures/" + name; }
+inline std::string source_dir() { return SIMU_SOURCE_DIR; }
+inline std::string build_dir() { return SIMU_BUILD_DIR; }
+// A fresh temporary directory for one test.
+inline std::string temp_dir(const std::string& name) {
+  // A counter keeps directories unique within a process (remove with simu::fs::remove_tree, never
+  // std::filesystem::remove_all: libtorch.so exports a copy of it that crashes on non-empty directories).
+  static int counter = 0;
+  auto p = std::filesystem::temp_directory_path() /
+           ("simu_test_" + name + "_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
+  std::filesystem::create_directories(p);
+  return p.string();
+}
+
+// The message of the simu::Error that f throws, "" when it throws none.
+inline std::string error_of(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const simu::Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+}  // namespace simu::testing
