@@ -11,6 +11,8 @@
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/log.h"
+#include "common/parallel.h"
+#include "common/timing.h"
 #include "physics/probe.h"
 #include "physics/synthetic.h"
 
@@ -107,63 +109,58 @@ int main(int argc, char** argv) {
     // Evaluate the scenes (in parallel), collecting per-scene results in order.
     std::vector<SceneEvaluation> results(num_scenes);
     std::vector<std::string> errors(num_scenes);
-    std::atomic<int> next{0}, done{0};
+    std::atomic<int> done{0};
     std::mutex print_mutex;
-    const auto t0 = std::chrono::steady_clock::now();
-    auto worker = [&] {
-      for (int k; (k = next++) < num_scenes;) {
-        try {
-          const std::string name = fmt::format("synth_{:04d}", k);
-          const bool from = !from_scenes.empty();
-          const SyntheticScene s = from ? load_synthetic_scene(from_scenes[k]) : generate_scene(syn, seed + k, name);
-          std::string dir = write_dir.empty() ? "" : (std::filesystem::path(write_dir) / name).string();
-          if (probe_name == "mujoco") {
-            // The physics probe on the written scene (no files written); its corrected scene is scored.
-            std::string scene_file = from ? from_scenes[k] : "";
-            if (!from) {
-              if (dir.empty())
-                dir = (std::filesystem::temp_directory_path() / fmt::format("synth_bench_{}", ::getpid()) / name).string();
-              write_scene_dir(s, dir);
-              scene_file = dir + "/scene.json";
-            }
-            ProbeConfig pc;
-            pc.write_outputs = false;
-            pc.rho_threshold = corr.resample_threshold;
-            pc.metrics_settle_time = metrics_time;
-            const Scene input = load_scene(scene_file);
-            // Before: the reconstruction as read, settled without any correction (run_probe's
-            // evaluate_input). After: the probe's corrected scene (settled poses, corrected scales and
-            // meshes; the resample branch through the proxy, or left where the diagnostic put it with
-            // "drop"), and the evaluation settle that starts from it.
-            pc.evaluate_input = true;
-            const ResampleFn resampler = *proxy == ResampleProxy::Stretch ? stretch_resampler(s, corr) : nullptr;
-            const ProbeResult pr = run_probe(input, pc, "", resampler);
-            phys_before[k] = pr.input_evaluation;
-            phys_after[k] = pr.evaluation;
-            head_before[k] = pr.before;
-            head_after[k] = pr.after;
-            for (const Diagnostics& d : pr.diagnostics) {
-              disabled += d.physics_disabled;
-              reverted += d.reverted;
-            }
-            results[k] = evaluate_probe_output(s, pr);
-          } else {
-            if (!dir.empty()) write_scene_dir(s, dir);
-            results[k] = evaluate_scene(s, corr, {}, *proxy);
+    const auto t0 = simu::Clock::now();
+    simu::parallel_for_each(num_scenes, threads, [&](int64_t k) {
+      try {
+        const std::string name = fmt::format("synth_{:04d}", k);
+        const bool from = !from_scenes.empty();
+        const SyntheticScene s = from ? load_synthetic_scene(from_scenes[k]) : generate_scene(syn, seed + k, name);
+        std::string dir = write_dir.empty() ? "" : (std::filesystem::path(write_dir) / name).string();
+        if (probe_name == "mujoco") {
+          // The physics probe on the written scene (no files written); its corrected scene is scored.
+          std::string scene_file = from ? from_scenes[k] : "";
+          if (!from) {
+            if (dir.empty())
+              dir = (std::filesystem::temp_directory_path() / fmt::format("synth_bench_{}", ::getpid()) / name).string();
+            write_scene_dir(s, dir);
+            scene_file = dir + "/scene.json";
           }
-        } catch (const std::exception& e) {
-          errors[k] = e.what();
+          ProbeConfig pc;
+          pc.write_outputs = false;
+          pc.rho_threshold = corr.resample_threshold;
+          pc.metrics_settle_time = metrics_time;
+          const Scene input = load_scene(scene_file);
+          // Before: the reconstruction as read, settled without any correction (run_probe's
+          // evaluate_input). After: the probe's corrected scene (settled poses, corrected scales and
+          // meshes; the resample branch through the proxy, or left where the diagnostic put it with
+          // "drop"), and the evaluation settle that starts from it.
+          pc.evaluate_input = true;
+          const ResampleFn resampler = *proxy == ResampleProxy::Stretch ? stretch_resampler(s, corr) : nullptr;
+          const ProbeResult pr = run_probe(input, pc, "", resampler);
+          phys_before[k] = pr.input_evaluation;
+          phys_after[k] = pr.evaluation;
+          head_before[k] = pr.before;
+          head_after[k] = pr.after;
+          for (const Diagnostics& d : pr.diagnostics) {
+            disabled += d.physics_disabled;
+            reverted += d.reverted;
+          }
+          results[k] = evaluate_probe_output(s, pr);
+        } else {
+          if (!dir.empty()) write_scene_dir(s, dir);
+          results[k] = evaluate_scene(s, corr, {}, *proxy);
         }
-        std::lock_guard<std::mutex> lock(print_mutex);
-        const int d = ++done;
-        const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-        if (d == num_scenes || d % 10 == 0)
-          fmt::print(stderr, "[{}/{}] scenes evaluated, {:.1f} s\n", d, num_scenes, el);
+      } catch (const std::exception& e) {
+        errors[k] = e.what();
       }
-    };
-    std::vector<std::thread> pool;
-    for (int i = 0; i < std::min(threads, num_scenes); ++i) pool.emplace_back(worker);
-    for (auto& t : pool) t.join();
+      std::lock_guard<std::mutex> lock(print_mutex);
+      const int d = ++done;
+      const double el = simu::seconds_since(t0);
+      if (d == num_scenes || d % 10 == 0)
+        fmt::print(stderr, "[{}/{}] scenes evaluated, {:.1f} s\n", d, num_scenes, el);
+    });
 
     // Decision accuracy per injected error type.
     std::map<std::string, std::array<int, 3>> per;  // error -> {n, correct, resampled}

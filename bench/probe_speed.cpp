@@ -13,10 +13,13 @@
 
 #include "common/cli.h"
 #include "common/fs.h"
+#include "common/parallel.h"
+#include "common/timing.h"
 #include "physics/mesh.h"
 #include "physics/probe.h"
 
 using namespace simu::physics;
+using simu::seconds_since;
 
 namespace {
 
@@ -123,9 +126,6 @@ Scene make_scene(const std::string& dir, unsigned seed) {
   return s;
 }
 
-double seconds_since(std::chrono::steady_clock::time_point t) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-}
 
 }  // namespace
 
@@ -191,11 +191,9 @@ int main(int argc, char** argv) {
       if (!d.flags.empty()) fmt::print("  flagged: {}\n", d.message);
     // Several scenes in parallel threads.
     t = std::chrono::steady_clock::now();
-    std::vector<std::thread> pool;
     std::vector<ProbeResult> rs(threads);
-    for (int k = 0; k < threads; ++k)
-      pool.emplace_back([&, k] { rs[k] = run_probe(scene, cfg, dir + fmt::format("/out_t{}", k)); });
-    for (auto& th : pool) th.join();
+    simu::parallel_for_each(threads, threads,
+                            [&](int64_t k) { rs[k] = run_probe(scene, cfg, dir + fmt::format("/out_t{}", k)); });
     const double wall = seconds_since(t);
     fmt::print("{:<34} {:>8} {:>10} {:>9} {:>9.3f} {:>8}\n", fmt::format("{} scenes on {} threads", threads, threads),
                threads * static_cast<int>(scene.objects.size()), "", "", wall, "");

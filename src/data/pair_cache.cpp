@@ -23,6 +23,7 @@
 #include <random>
 
 #include "common/error.h"
+#include "common/random.h"
 #include "common/fs.h"
 
 namespace simu::data {
@@ -350,14 +351,6 @@ void expect_shape(const torch::Tensor& t, const std::vector<int64_t>& want, cons
                                    c10::toString(t.scalar_type()));
   if (!torch::isfinite(t).all().item<bool>())
     fail("pair cache '{}': pair '{}': {} holds NaN or Inf", path, id, what);
-}
-
-// splitmix64 finalizer (seed mixing for the epoch permutations).
-uint64_t splitmix64(uint64_t x) {
-  x += 0x9E3779B97F4A7C15ULL;
-  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ULL;
-  x = (x ^ (x >> 27)) * 0x94D049BB133111EBULL;
-  return x ^ (x >> 31);
 }
 
 }  // namespace

@@ -12,6 +12,7 @@
 
 #include "common/error.h"
 #include "common/log.h"
+#include "common/parallel.h"
 
 namespace simu::physics {
 
@@ -110,40 +111,33 @@ int run_probe_batch(const std::vector<std::string>& scenes, const std::string& o
         fail_hint("pass --overwrite to replace it, or choose another --out", "output folder {} already exists", d);
   const bool many = scenes.size() > 1;
   std::mutex print_mu;
-  std::atomic<size_t> next{0};
   std::atomic<int> failed{0};
-  auto worker = [&] {
-    for (size_t k = next++; k < scenes.size(); k = next++) {
-      const std::string& path = scenes[k];
-      const std::string& dir = dirs[k];
-      try {
-        const Scene scene = load_scene(path);
-        auto progress = [&](int done, int total, const std::string& id, const std::string& status) {
-          if (options.quiet) return;
-          std::lock_guard<std::mutex> lock(print_mu);
-          fmt::print("{}[{}/{}] {}: {}\n", many ? path + " " : "", done, total, id, status);
-        };
-        const ResampleFn fn = resample ? resample(scene) : ResampleFn{};
-        const ProbeResult r = run_probe(scene, cfg, dir, fn, progress);
-        int flagged = 0;
-        for (const auto& d : r.diagnostics) flagged += d.flags.empty() ? 0 : 1;
+  parallel_for_each(static_cast<int64_t>(scenes.size()), options.threads, [&](int64_t k) {
+    const std::string& path = scenes[k];
+    const std::string& dir = dirs[k];
+    try {
+      const Scene scene = load_scene(path);
+      auto progress = [&](int done, int total, const std::string& id, const std::string& status) {
+        if (options.quiet) return;
         std::lock_guard<std::mutex> lock(print_mu);
-        fmt::print("{}: {} objects ({} flagged), probe {:.2f} s, final {:.2f} s, evaluation {:.2f} s -> {}\n", path,
-                   scene.objects.size(), flagged, r.seconds_probe, r.seconds_final, r.seconds_metrics, dir);
-        fmt::print("{}", probe_summary(r));
-        fmt::print("{}", format_headline(r.before, r.after, cfg.metrics_settle_time));
-        for (const auto& p : r.pictures) fmt::print("  picture: {}\n", p);
-      } catch (const std::exception& e) {
-        ++failed;
-        std::lock_guard<std::mutex> lock(print_mu);
-        log::error("{}: {}", path, e.what());
-      }
+        fmt::print("{}[{}/{}] {}: {}\n", many ? path + " " : "", done, total, id, status);
+      };
+      const ResampleFn fn = resample ? resample(scene) : ResampleFn{};
+      const ProbeResult r = run_probe(scene, cfg, dir, fn, progress);
+      int flagged = 0;
+      for (const auto& d : r.diagnostics) flagged += d.flags.empty() ? 0 : 1;
+      std::lock_guard<std::mutex> lock(print_mu);
+      fmt::print("{}: {} objects ({} flagged), probe {:.2f} s, final {:.2f} s, evaluation {:.2f} s -> {}\n", path,
+                 scene.objects.size(), flagged, r.seconds_probe, r.seconds_final, r.seconds_metrics, dir);
+      fmt::print("{}", probe_summary(r));
+      fmt::print("{}", format_headline(r.before, r.after, cfg.metrics_settle_time));
+      for (const auto& p : r.pictures) fmt::print("  picture: {}\n", p);
+    } catch (const std::exception& e) {
+      ++failed;
+      std::lock_guard<std::mutex> lock(print_mu);
+      log::error("{}: {}", path, e.what());
     }
-  };
-  std::vector<std::thread> pool;
-  const int nt = std::max(1, std::min<int>(options.threads, static_cast<int>(scenes.size())));
-  for (int t = 0; t < nt; ++t) pool.emplace_back(worker);
-  for (auto& t : pool) t.join();
+  });
   return failed;
 }
 

@@ -13,6 +13,7 @@
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
+#include "common/timing.h"
 #include "data/depth_io.h"
 #include "physics/mesh.h"
 
@@ -34,10 +35,6 @@ using physics::write_mesh;
 namespace {
 
 using json = nlohmann::json;
-
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
 
 // PyTorch3D camera axes (x left, y up, z forward) -> OpenCV camera axes (x right, y down, z forward).
 const Mat3 kP3dToOpenCv = Eigen::Vector3d(-1, -1, 1).asDiagonal();

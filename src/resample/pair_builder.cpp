@@ -14,6 +14,7 @@
 #include <set>
 
 #include "common/error.h"
+#include "common/random.h"
 #include "common/fs.h"
 #include "common/log.h"
 #include "data/safetensors.h"
@@ -21,13 +22,6 @@
 namespace simu::resample {
 
 namespace {
-
-uint64_t splitmix64(uint64_t x) {
-  x += 0x9E3779B97F4A7C15ULL;
-  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ULL;
-  x = (x ^ (x >> 27)) * 0x94D049BB133111EBULL;
-  return x ^ (x >> 31);
-}
 
 // A manifest path: absolute as is, else relative to the manifest's directory.
 std::string resolve(const std::string& path, const std::string& base_dir) {

@@ -10,15 +10,13 @@
 
 #include "common/error.h"
 #include "common/log.h"
+#include "common/timing.h"
 #include "lora/lora.h"
 #include "models/weights.h"
 
 namespace simu::resample {
 
 namespace {
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
 void sync(const torch::Device& d) {
   if (d.is_cuda()) torch::cuda::synchronize(d.index() < 0 ? 0 : d.index());
 }

@@ -8,6 +8,7 @@
 #include <mutex>
 
 #include "common/error.h"
+#include "common/random.h"
 
 namespace simu::training {
 
@@ -205,14 +206,6 @@ struct CheckpointFunction : public torch::autograd::Function<CheckpointFunction>
   }
 };
 
-// splitmix64 step: decorrelates the seed parts.
-uint64_t mix(uint64_t x) {
-  x += 0x9e3779b97f4a7c15ull;
-  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
-  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
-  return x ^ (x >> 31);
-}
-
 // Switches the adapters off for the reference pass and back on at scope exit.
 struct AdaptersOff {
   PolicyModel& m;
@@ -242,7 +235,7 @@ torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<t
 
 PairNoise draw_pair_noise(uint64_t seed, int64_t step, int64_t pair_id, at::IntArrayRef latent_shape, double t_mean,
                           double t_std) {
-  const uint64_t s = mix(mix(mix(seed) ^ static_cast<uint64_t>(step)) ^ static_cast<uint64_t>(pair_id));
+  const uint64_t s = splitmix64(splitmix64(splitmix64(seed) ^ static_cast<uint64_t>(step)) ^ static_cast<uint64_t>(pair_id));
   auto gen = at::make_generator<at::CPUGeneratorImpl>(s);
   PairNoise n;
   const auto f32 = torch::TensorOptions().dtype(torch::kFloat32);

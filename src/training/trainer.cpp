@@ -16,6 +16,8 @@
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
+#include "common/timing.h"
+#include "data/pair_cache.h"
 #include "lora/lora_config.h"
 #include "training/observe.h"
 
@@ -139,18 +141,6 @@ void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool
 
 // ---- data ------------------------------------------------------------------------------------
 
-std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch) {
-  std::vector<int64_t> perm(n);
-  std::iota(perm.begin(), perm.end(), 0);
-  // Fisher-Yates with a 64-bit Mersenne twister (identical on every platform).
-  std::mt19937_64 rng(seed * 0x9e3779b97f4a7c15ull + static_cast<uint64_t>(epoch) + 1);
-  for (int64_t i = n - 1; i > 0; --i) {
-    const int64_t j = static_cast<int64_t>(rng() % static_cast<uint64_t>(i + 1));
-    std::swap(perm[i], perm[j]);
-  }
-  return perm;
-}
-
 MemoryPairSource::MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world,
                                    int64_t global_batch, uint64_t seed, DataPosition start)
     : pairs_(std::move(pairs)), rank_(rank), world_(world), global_(global_batch), seed_(seed), pos_(start) {
@@ -166,7 +156,7 @@ std::vector<Pair> MemoryPairSource::next_batch() {
     pos_.step = 0;
   }
   if (perm_epoch_ != pos_.epoch) {
-    perm_ = epoch_permutation(n, seed_, pos_.epoch);
+    perm_ = simu::data::epoch_permutation(n, seed_, pos_.epoch);
     perm_epoch_ = pos_.epoch;
   }
   const int64_t share = global_ / world_;
@@ -327,7 +317,6 @@ void Trainer::resume(const std::string& dir) {
 
 StepMetrics Trainer::step() {
   using clock = std::chrono::steady_clock;
-  auto seconds_since = [](clock::time_point a) { return std::chrono::duration<double>(clock::now() - a).count(); };
   // Waits for the device so that a phase's wall time includes its GPU work (timing breakdown only).
   auto settle = [&] {
     if (device_.is_cuda()) torch::cuda::synchronize();

@@ -112,7 +112,8 @@ class PairSource {
 using PairSourceFactory =
     std::function<std::unique_ptr<PairSource>(int rank, int world, int64_t global_batch, uint64_t seed, DataPosition)>;
 
-// In-memory pairs with the stream's contract: each epoch a permutation seeded by (seed, epoch) that
+// In-memory pairs with the stream's contract: each epoch the permutation data::epoch_permutation(n, seed,
+// epoch) that the HDF5 PairStream uses too (one order for every source), that
 // every rank computes alike; global batch b of the epoch = perm[b*G, (b+1)*G) (the tail that does
 // not fill a batch is skipped); rank r takes the contiguous slice [r*G/W, (r+1)*G/W).
 class MemoryPairSource : public PairSource {
@@ -131,8 +132,6 @@ class MemoryPairSource : public PairSource {
   std::vector<int64_t> perm_;
   int64_t perm_epoch_ = -1;
 };
-// Epoch permutation of n records (shared by every source implementation).
-std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch);
 
 // Metrics of one optimizer step, over all ranks.
 struct StepMetrics {
