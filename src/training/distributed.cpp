@@ -310,6 +310,8 @@ class SoloCommunicator : public Communicator {
 
 }  // namespace
 
+std::unique_ptr<Communicator> make_solo_communicator() { return std::make_unique<SoloCommunicator>(); }
+
 std::string first_slurm_host(const std::string& nodelist) {
   // The first entry ends at the first comma outside brackets.
   size_t end = 0;

@@ -66,6 +66,9 @@ bool have_gloo();
 // Communicator over an existing store with the store-based reduction (the fallback; tests).
 std::unique_ptr<Communicator> make_store_communicator(c10::intrusive_ptr<c10d::Store> store, int rank, int world_size,
                                                       std::chrono::milliseconds timeout);
+// World of one (backend "single"): every collective returns its input. What create() gives a single
+// process; tests of the training loop use it.
+std::unique_ptr<Communicator> make_solo_communicator();
 // TCPStore for env (rank 0 serves); waits for all ranks to connect within timeout.
 c10::intrusive_ptr<c10d::Store> connect_store(const DistEnv& env, std::chrono::milliseconds timeout);
 

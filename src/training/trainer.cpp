@@ -1,7 +1,6 @@
 #include "training/trainer.h"
 
 #include <ATen/CPUGeneratorImpl.h>
-#include <ATen/autocast_mode.h>
 
 #include <algorithm>
 #include <chrono>
@@ -19,6 +18,7 @@
 #include "common/timing.h"
 #include "data/pair_cache.h"
 #include "lora/lora_config.h"
+#include "models/precision.h"
 #include "training/observe.h"
 
 namespace simu::training {
@@ -181,26 +181,6 @@ std::map<std::string, double> StepMetrics::scalars() const {
 namespace {
 
 const char* kKindNames[2] = {"completion", "preservation"};
-
-// CUDA bf16 autocast for a scope when enabled (adapters stay fp32; matmuls run in bf16).
-struct AutocastScope {
-  bool on;
-  bool prev_enabled = false;
-  at::ScalarType prev_dtype = at::kBFloat16;
-  explicit AutocastScope(bool enable) : on(enable) {
-    if (!on) return;
-    prev_enabled = at::autocast::is_autocast_enabled(at::kCUDA);
-    prev_dtype = at::autocast::get_autocast_dtype(at::kCUDA);
-    at::autocast::set_autocast_enabled(at::kCUDA, true);
-    at::autocast::set_autocast_dtype(at::kCUDA, at::kBFloat16);
-  }
-  ~AutocastScope() {
-    if (!on) return;
-    at::autocast::set_autocast_enabled(at::kCUDA, prev_enabled);
-    at::autocast::set_autocast_dtype(at::kCUDA, prev_dtype);
-    at::autocast::clear_cache();
-  }
-};
 
 // The CPU and (when used) CUDA default generators' states, as uint8 tensors under rng.*.
 std::map<std::string, torch::Tensor> rng_states(const torch::Device& device) {
@@ -372,7 +352,8 @@ StepMetrics Trainer::step() {
     in.w = torch::stack(ws).to(device_);
     FmdpoTerms terms;
     {
-      AutocastScope ac(bf16);
+      // CUDA bf16 autocast when enabled (adapters stay fp32; matmuls in bf16); nests, restores.
+      models::Autocast ac(models::Precision::kBf16, bf16);
       terms = fmdpo_terms(model_, in, beta, cfg_.train.activation_checkpointing);
     }
     // Rank-local mean over its share; the all-reduce averages the ranks -> global mean.
