@@ -28,10 +28,7 @@
 #include "training/generator_policy.h"
 #include "training/trainer.h"
 
-#if __has_include("models/generator.h")
 #include "models/generator.h"
-#define SIMU_BENCH_HAVE_MODELS 1
-#endif
 
 using namespace simu::training;
 
@@ -43,7 +40,6 @@ struct Row {
   double step_s = 0, pairs_s = 0, mfu = 0, needed_util = 0, peak_gib = 0;
 };
 
-#ifdef SIMU_BENCH_HAVE_MODELS
 // Matrix-product FLOPs (2 per multiply-add) one FM-DPO pair needs with the base frozen and LoRA of
 // rank r on the shape stream's five attention projections (self qkv/out, cross q/kv/out), both
 // members: 2 x [policy forward (F + LoRA) + policy backward + reference forward (F)].
@@ -70,7 +66,6 @@ double needed_pair_flops(const simu::models::FlowModelConfig& c, double T, doubl
   const double policy_bwd = c.num_blocks * (block_bwd + lora_b) + 2 * T * C * out;  // + output layer
   return 2 * ((F + c.num_blocks * lora_f) + policy_bwd + F);
 }
-#endif
 
 }  // namespace
 
@@ -99,10 +94,6 @@ int main(int argc, char** argv) {
       fmt::print("bench_fmdpo: skipped: needs a CUDA device (none here)\n");
       return 0;
     }
-    if (!have_generator_policy()) {
-      fmt::print("bench_fmdpo: skipped: this build has no generator/LoRA library\n");
-      return 0;
-    }
     if (nproc > 1 && !std::getenv("RANK")) {
       std::vector<std::string> args;
       for (int i = 1; i < argc; ++i) {
@@ -112,7 +103,6 @@ int main(int argc, char** argv) {
       launch_local_ranks(nproc, args, std::chrono::seconds(1200));
       return 0;
     }
-#ifdef SIMU_BENCH_HAVE_MODELS
     const auto env = DistEnv::from_environment();
     simu::log::set_rank(env.rank);
     c10::cuda::set_device(static_cast<c10::DeviceIndex>(env.local_rank));
@@ -216,9 +206,5 @@ int main(int argc, char** argv) {
       }
     }
     return 0;
-#else
-    fmt::print("bench_fmdpo: skipped: this build has no models/generator.h\n");
-    return 0;
-#endif
   });
 }

@@ -3,19 +3,12 @@
 #include "common/error.h"
 #include "common/log.h"
 
-#if __has_include("models/generator.h") && __has_include("lora/lora.h")
-#define SIMU_TRAINING_HAVE_POLICY 1
+#include "data/pair_cache.h"
 #include "lora/lora.h"
 #include "models/generator.h"
-#endif
-#if __has_include("data/pair_cache.h")
-#define SIMU_TRAINING_HAVE_CACHE 1
-#include "data/pair_cache.h"
-#endif
 
 namespace simu::training {
 
-#ifdef SIMU_TRAINING_HAVE_POLICY
 namespace {
 
 // The generator with adapters, seen through PolicyModel.
@@ -82,8 +75,6 @@ void freeze(torch::nn::Module& m) {
 
 }  // namespace
 
-bool have_generator_policy() { return true; }
-
 std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_config, const std::string& weights,
                                                    const YAML::Node& lora, const std::string& lora_dir,
                                                    torch::Device device, const std::string& lora_file) {
@@ -112,18 +103,6 @@ std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch
   torch::manual_seed(cfg.train.seed);
   return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device, cfg.file);
 }
-#else
-bool have_generator_policy() { return false; }
-std::unique_ptr<PolicyModel> make_generator_policy(const std::string&, const std::string&, const YAML::Node&,
-                                                   const std::string&, torch::Device, const std::string&) {
-  fail("this build has no Stage-1 generator / LoRA library (models/generator.h, lora/lora.h)");
-}
-std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig&, torch::Device) {
-  fail("this build has no Stage-1 generator / LoRA library (models/generator.h, lora/lora.h)");
-}
-#endif
-
-#ifdef SIMU_TRAINING_HAVE_CACHE
 namespace {
 
 // PairStream seen through PairSource.
@@ -156,18 +135,10 @@ class CacheSource : public PairSource {
 
 }  // namespace
 
-bool have_pair_cache() { return true; }
-
 PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch) {
   return [path, prefetch](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
     return std::make_unique<CacheSource>(path, rank, world, gb, seed, pos, prefetch);
   };
 }
-#else
-bool have_pair_cache() { return false; }
-PairSourceFactory pair_cache_source(const std::string&, int64_t) {
-  fail("this build has no pair cache library (data/pair_cache.h)");
-}
-#endif
 
 }  // namespace simu::training

@@ -1,6 +1,5 @@
 // Bindings of the trainer to the rest of the toolkit: the Stage-1 generator with LoRA adapters as
-// the PolicyModel, and the HDF5 pair cache as the PairSource. Parts whose library is not in this
-// build throw a simu::Error saying so.
+// the PolicyModel, and the HDF5 pair cache as the PairSource.
 #pragma once
 
 #include <memory>
@@ -25,9 +24,5 @@ std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_
 
 // Source over the HDF5 pair cache (data/pair_cache.h PairStream) with `prefetch` batches read ahead.
 PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch);
-
-// True when this build has the generator + LoRA (resp. the pair cache) libraries.
-bool have_generator_policy();
-bool have_pair_cache();
 
 }  // namespace simu::training

@@ -70,7 +70,6 @@ void expect_same(const Result& a, const Result& b, PolicyModel& policy, double t
 
 // The fixture's trained adapter (dropout 0): checkpointed == plain, one segment per block.
 TEST(BlockCheckpointing, SameLossesAndLoraGradsAsPlain) {
-  if (!have_generator_policy()) GTEST_SKIP() << "this build has no generator/LoRA library";
   auto policy = make_generator_policy(simu::testing::fixture("ss_generator_small.json"),
                                       simu::testing::fixture("ss_generator_small.safetensors"), YAML::Node(),
                                       simu::testing::fixture("lora_small"), torch::kCPU);
@@ -99,7 +98,6 @@ TEST(BlockCheckpointing, SameLossesAndLoraGradsAsPlain) {
 // recompute replays the forward's dropout masks (same RNG state), so gradients equal the plain run
 // from the same seed, and the generator ends where the plain run leaves it.
 TEST(BlockCheckpointing, DropoutMasksReplayedInRecompute) {
-  if (!have_generator_policy()) GTEST_SKIP() << "this build has no generator/LoRA library";
   YAML::Node lora = YAML::Load("{r: 4, alpha: 8, dropout: 0.3}");
   auto policy = make_generator_policy(simu::testing::fixture("ss_generator_small.json"),
                                       simu::testing::fixture("ss_generator_small.safetensors"), lora, "", torch::kCPU);

@@ -13,7 +13,6 @@
 using namespace simu::training;
 
 TEST(FmdpoParity, MatchesOfficialStep) {
-  if (!have_generator_policy()) GTEST_SKIP() << "this build has no generator/LoRA library yet";
   auto io = simu::data::load_safetensors(simu::testing::fixture("fmdpo_small_io.safetensors"));
   auto policy = make_generator_policy(simu::testing::fixture("ss_generator_small.json"),
                                       simu::testing::fixture("ss_generator_small.safetensors"), YAML::Node(),
