@@ -295,37 +295,46 @@ void Trainer::resume(const std::string& dir) {
   if (comm_.rank() == 0) simu::log::info("resumed from {} at step {} (data epoch {}, batch {})", dir, step_, pos.epoch, pos.step);
 }
 
-StepMetrics Trainer::step() {
-  using clock = std::chrono::steady_clock;
-  // Waits for the device so that a phase's wall time includes its GPU work (timing breakdown only).
-  auto settle = [&] {
-    if (device_.is_cuda()) torch::cuda::synchronize();
-  };
-  const auto began = clock::now();
-  auto pairs = source_->next_batch();
-  const double seconds_data = seconds_since(began);
-  const auto compute_began = clock::now();
-  const int64_t share = static_cast<int64_t>(pairs.size());
-  SIMU_CHECK(share == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected", share,
-             cfg_.data.global_batch / comm_.world_size());
-  const int64_t micro = cfg_.data.micro_batch;
-  const double beta = cfg_.objective.beta;
-  const bool bf16 = cfg_.train.precision == "bf16" && device_.is_cuda();
-  opt_->zero_grad();
+std::vector<double> StepSums::pack() const {
+  std::vector<double> v = {loss, correct, margin};
+  for (const auto& k : kind) v.insert(v.end(), {k.count, k.policy_pos, k.policy_neg, k.ref_pos, k.ref_neg});
+  return v;
+}
 
-  // Sums over this rank's pairs: loss*, correct, margin, then per kind: count, 4 losses.
-  std::vector<double> sums(3 + 2 * 5, 0.0);
-  // Micro-batches of `micro` pairs; within one, pairs with different condition lengths run as
-  // separate forwards (the model has no condition mask, so padding would change the result).
+StepSums StepSums::unpack(const std::vector<double>& v) {
+  SIMU_CHECK(v.size() == 13, "step sums: {} values, 13 expected", v.size());
+  StepSums s;
+  s.loss = v[0];
+  s.correct = v[1];
+  s.margin = v[2];
+  for (int k = 0; k < 2; ++k) s.kind[k] = {v[3 + 5 * k], v[4 + 5 * k], v[5 + 5 * k], v[6 + 5 * k], v[7 + 5 * k]};
+  return s;
+}
+
+namespace {
+
+// Micro-batches of `micro` pairs; within one, pairs with different condition lengths run as separate
+// forwards (the model has no condition mask, so padding would change the result).
+std::vector<std::vector<int64_t>> forward_groups(const std::vector<Pair>& pairs, int64_t micro) {
+  const int64_t share = static_cast<int64_t>(pairs.size());
   std::vector<std::vector<int64_t>> groups;
   for (int64_t m0 = 0; m0 < share; m0 += micro) {
     std::map<int64_t, std::vector<int64_t>> by_len;
     for (int64_t i = m0; i < std::min(share, m0 + micro); ++i) by_len[pairs[i].cond.size(0)].push_back(i);
     for (auto& [len, idx] : by_len) groups.push_back(idx);
   }
+  return groups;
+}
+
+}  // namespace
+
+StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
+  const int64_t share = static_cast<int64_t>(pairs.size());
+  const double beta = cfg_.objective.beta;
+  const bool bf16 = cfg_.train.precision == "bf16" && device_.is_cuda();
   std::vector<torch::Tensor> metric_terms;
   std::vector<int> metric_kinds;
-  for (const auto& group : groups) {
+  for (const auto& group : forward_groups(pairs, cfg_.data.micro_batch)) {
     // One forward: stack pairs, draw their noise.
     std::vector<torch::Tensor> xp, xn, cd, ts, ep, en, ws;
     std::vector<int> kinds;
@@ -368,19 +377,39 @@ StepMetrics Trainer::step() {
     metric_kinds.insert(metric_kinds.end(), kinds.begin(), kinds.end());
   }
   // Metrics: one copy to the host, then sums in float64 pair by pair (in micro-batch order).
-  if (!metric_terms.empty()) {
-    auto host = torch::cat(metric_terms, 1).to(torch::kCPU, torch::kFloat64).contiguous();  // [7, pairs]
-    const int64_t n_pairs = host.size(1);
-    auto a = host.accessor<double, 2>();
-    for (int64_t b = 0; b < n_pairs; ++b) {
-      sums[0] += a[0][b];
-      sums[1] += a[1][b] < a[2][b] ? 1.0 : 0.0;
-      sums[2] += -beta / 2.0 * (a[1][b] - a[2][b]);
-      const int k = std::clamp(metric_kinds[b], 0, 1);
-      sums[3 + 5 * k + 0] += 1.0;
-      for (int j = 0; j < 4; ++j) sums[3 + 5 * k + 1 + j] += a[3 + j][b];
-    }
+  StepSums sums;
+  if (metric_terms.empty()) return sums;
+  auto host = torch::cat(metric_terms, 1).to(torch::kCPU, torch::kFloat64).contiguous();  // [7, pairs]
+  auto a = host.accessor<double, 2>();
+  for (int64_t b = 0; b < host.size(1); ++b) {
+    sums.loss += a[0][b];
+    sums.correct += a[1][b] < a[2][b] ? 1.0 : 0.0;
+    sums.margin += -beta / 2.0 * (a[1][b] - a[2][b]);
+    auto& k = sums.kind[std::clamp(metric_kinds[b], 0, 1)];
+    k.count += 1.0;
+    k.policy_pos += a[3][b];
+    k.policy_neg += a[4][b];
+    k.ref_pos += a[5][b];
+    k.ref_neg += a[6][b];
   }
+  return sums;
+}
+
+StepMetrics Trainer::step() {
+  using clock = std::chrono::steady_clock;
+  // Waits for the device so that a phase's wall time includes its GPU work (timing breakdown only).
+  auto settle = [&] {
+    if (device_.is_cuda()) torch::cuda::synchronize();
+  };
+  const auto began = clock::now();
+  auto pairs = source_->next_batch();
+  const double seconds_data = seconds_since(began);
+  const auto compute_began = clock::now();
+  const int64_t share = static_cast<int64_t>(pairs.size());
+  SIMU_CHECK(share == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected", share,
+             cfg_.data.global_batch / comm_.world_size());
+  opt_->zero_grad();
+  StepSums sums = forward_backward(pairs);
   // Average gradients over ranks, clip, step.
   auto params = opt_->tensors();
   std::vector<torch::Tensor> grads;
@@ -395,7 +424,7 @@ StepMetrics Trainer::step() {
   auto phase_began = clock::now();
   comm_.all_reduce_mean(grads);
   // Metrics over all ranks (before the update: a non-finite loss must stop it on every rank alike).
-  sums = comm_.all_reduce_sum(sums);
+  sums = StepSums::unpack(comm_.all_reduce_sum(sums.pack()));
   settle();
   m.seconds_allreduce = seconds_since(phase_began);
   phase_began = clock::now();
@@ -403,7 +432,7 @@ StepMetrics Trainer::step() {
   m.lr = learning_rate(cfg_.optim, step_, cfg_.train.steps);
   // A non-finite loss or gradient (global values: every rank takes the same branch) stops training
   // before the optimizer touches the adapters, so the last checkpoint stays the last good state.
-  const double global_loss = sums[0] / static_cast<double>(cfg_.data.global_batch);
+  const double global_loss = sums.loss / static_cast<double>(cfg_.data.global_batch);
   if (!std::isfinite(global_loss) || !std::isfinite(m.grad_norm))
     fail_hint("lower optim.lr or objective.beta, check the pair cache (pairs validate), then --resume latest",
               "{}: step {}: non-finite {} (loss {}, gradient norm {}); training stopped before this update, the "
@@ -417,17 +446,17 @@ StepMetrics Trainer::step() {
   heartbeat();
   const double n = static_cast<double>(cfg_.data.global_batch);
   m.step = step_;
-  m.loss = sums[0] / n;
-  m.accuracy = sums[1] / n;
-  m.margin = sums[2] / n;
+  m.loss = sums.loss / n;
+  m.accuracy = sums.correct / n;
+  m.margin = sums.margin / n;
   for (int k = 0; k < 2; ++k) {
-    const double c = sums[3 + 5 * k];
-    if (c == 0) continue;
+    const auto& s = sums.kind[k];
+    if (s.count == 0) continue;
     const std::string kn = kKindNames[k];
-    m.per_kind[kn + "/policy_pos"] = sums[3 + 5 * k + 1] / c;
-    m.per_kind[kn + "/policy_neg"] = sums[3 + 5 * k + 2] / c;
-    m.per_kind[kn + "/ref_pos"] = sums[3 + 5 * k + 3] / c;
-    m.per_kind[kn + "/ref_neg"] = sums[3 + 5 * k + 4] / c;
+    m.per_kind[kn + "/policy_pos"] = s.policy_pos / s.count;
+    m.per_kind[kn + "/policy_neg"] = s.policy_neg / s.count;
+    m.per_kind[kn + "/ref_pos"] = s.ref_pos / s.count;
+    m.per_kind[kn + "/ref_neg"] = s.ref_neg / s.count;
   }
   settle();
   m.seconds_step = seconds_since(began);

@@ -151,6 +151,20 @@ struct StepMetrics {
   std::map<std::string, double> scalars() const;
 };
 
+// Sums over pairs of one step (this rank's, then every rank's through Communicator::all_reduce_sum):
+// the typed form of the metrics reduction. Kinds are indexed 0 occlusion completion, 1 clean preservation.
+struct StepSums {
+  double loss = 0;     // sum of w * per-pair loss
+  double correct = 0;  // pairs with d_theta < d_ref
+  double margin = 0;   // sum of -beta/2 (d_theta - d_ref)
+  struct PerKind {
+    double count = 0, policy_pos = 0, policy_neg = 0, ref_pos = 0, ref_neg = 0;
+  } kind[2];
+  // Flat layout for the all-reduce: loss, correct, margin, then per kind count and the four losses.
+  std::vector<double> pack() const;
+  static StepSums unpack(const std::vector<double>& v);
+};
+
 class Trainer {
  public:
   // model: adapters injected, on `device`; comm: this rank's communicator.
@@ -170,6 +184,10 @@ class Trainer {
   AdamW& optimizer() { return *opt_; }
 
  private:
+  // Forward and backward over this rank's pairs, one group (micro-batch, one condition length) at a
+  // time; gradients accumulate on the adapters. Returns this rank's metric sums.
+  StepSums forward_backward(const std::vector<Pair>& pairs);
+
   TrainConfig cfg_;
   PolicyModel& model_;
   PairSourceFactory make_source_;
