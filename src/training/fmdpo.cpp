@@ -32,10 +32,10 @@ ObjectiveConfig ObjectiveConfig::from(simu::config::Reader& r) {
   return c;
 }
 
-double ObjectiveConfig::weight_of(int kind) const {
-  if (kind == 0) return weight_completion;
-  if (kind == 1) return weight_preservation;
-  fail("pair kind {} unknown (0 = occlusion completion, 1 = clean preservation)", kind);
+double ObjectiveConfig::weight_of(data::PairKind kind) const {
+  if (kind == data::PairKind::OcclusionCompletion) return weight_completion;
+  if (kind == data::PairKind::CleanPreservation) return weight_preservation;
+  fail("pair kind {} unknown (0 = occlusion completion, 1 = clean preservation)", static_cast<int>(kind));
 }
 
 torch::Tensor flow_mse(const torch::Tensor& pred, const torch::Tensor& target) {

@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "common/config.h"
+#include "data/pair_cache.h"
 
 namespace simu::training {
 
@@ -49,11 +50,11 @@ class PolicyModel {
 // objective: section of the training config.
 struct ObjectiveConfig {
   double beta = 500.0;
-  double weight_completion = 1.0;    // kind 0: occlusion completion
-  double weight_preservation = 0.1;  // kind 1: clean preservation
+  double weight_completion = 1.0;    // data::PairKind::OcclusionCompletion
+  double weight_preservation = 0.1;  // data::PairKind::CleanPreservation
   double t_mean = 0.0, t_std = 1.0;  // logit-normal training-time sampler
   static ObjectiveConfig from(simu::config::Reader& r);
-  double weight_of(int kind) const;
+  double weight_of(data::PairKind kind) const;
 };
 
 // Inputs of one FM-DPO evaluation (all on the model's device).

@@ -116,7 +116,7 @@ class CacheSource : public PairSource {
     for (auto& r : stream_.next_batch()) {
       Pair p;
       p.id = r.index;
-      p.kind = static_cast<int>(r.kind);
+      p.kind = r.kind;
       p.x_pos = r.latent_pos;
       p.x_neg = r.latent_neg;
       p.cond = r.cond;

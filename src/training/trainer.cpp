@@ -348,7 +348,7 @@ StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
       ep.push_back(nz.eps_pos);
       en.push_back(nz.eps_neg);
       ws.push_back(torch::tensor(static_cast<float>(cfg_.objective.weight_of(p.kind))));
-      kinds.push_back(p.kind);
+      kinds.push_back(static_cast<int>(p.kind));
     }
     FmdpoInputs in;
     // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.

@@ -89,7 +89,7 @@ void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool
 // One preference pair as the trainer sees it.
 struct Pair {
   int64_t id = 0;      // stable record index in the cache (seeds its noise)
-  int kind = 0;        // 0 occlusion completion, 1 clean preservation
+  data::PairKind kind = data::PairKind::OcclusionCompletion;
   torch::Tensor x_pos, x_neg;  // [T, C] float32
   torch::Tensor cond;          // [l, Cc] float32 (l may differ between pairs)
 };

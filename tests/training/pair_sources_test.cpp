@@ -23,7 +23,7 @@ TEST(PairSources, CacheAndMemorySourcesGiveTheSameOrder) {
     const auto r = reader.read(i);
     Pair p;
     p.id = r.index;
-    p.kind = static_cast<int>(r.kind);
+    p.kind = r.kind;
     p.x_pos = r.latent_pos;
     p.x_neg = r.latent_neg;
     p.cond = r.cond;

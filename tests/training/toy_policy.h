@@ -56,7 +56,7 @@ inline std::shared_ptr<std::vector<simu::training::Pair>> toy_pairs(int64_t n, i
   for (int64_t i = 0; i < n; ++i) {
     simu::training::Pair p;
     p.id = i;
-    p.kind = static_cast<int>(i % 2);
+    p.kind = static_cast<simu::data::PairKind>(i % 2);
     p.x_pos = torch::randn({T, C});
     p.x_neg = torch::randn({T, C});
     p.cond = torch::randn({L, Cc});

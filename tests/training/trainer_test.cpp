@@ -259,16 +259,16 @@ TEST(Trainer, StepMetricsMatchIndependentMath) {
     const double pp = L(p.x_pos, nz.eps_pos, true), pn = L(p.x_neg, nz.eps_neg, true);
     const double rp = L(p.x_pos, nz.eps_pos, false), rn = L(p.x_neg, nz.eps_neg, false);
     const double z = -beta / 2 * ((pp - pn) - (rp - rn));
-    const double w = p.kind == 0 ? 1.0 : 0.1;
+    const double w = p.kind == simu::data::PairKind::OcclusionCompletion ? 1.0 : 0.1;
     loss += w * std::log1p(std::exp(-z)) / 8;
     correct += (pp - pn) < (rp - rn) ? 1.0 / 8 : 0.0;
     margin += z / 8;
-    const std::string kn = p.kind == 0 ? "completion" : "preservation";
+    const std::string kn = p.kind == simu::data::PairKind::OcclusionCompletion ? "completion" : "preservation";
     per_kind[kn + "/policy_pos"] += pp;
     per_kind[kn + "/policy_neg"] += pn;
     per_kind[kn + "/ref_pos"] += rp;
     per_kind[kn + "/ref_neg"] += rn;
-    count[p.kind] += 1;
+    count[static_cast<int>(p.kind)] += 1;
   }
   auto solo = make_solo_communicator();
   Communicator& comm = *solo;
@@ -504,8 +504,8 @@ TEST(TrainConfig, Lora64IsThePapersRecipe) {
   EXPECT_EQ(lc.dropout, 0.0);
   EXPECT_FALSE(lc.use_rslora);
   EXPECT_EQ(cfg.objective.beta, 500.0);
-  EXPECT_EQ(cfg.objective.weight_of(0), 1.0);
-  EXPECT_EQ(cfg.objective.weight_of(1), 0.1);
+  EXPECT_EQ(cfg.objective.weight_of(simu::data::PairKind::OcclusionCompletion), 1.0);
+  EXPECT_EQ(cfg.objective.weight_of(simu::data::PairKind::CleanPreservation), 0.1);
   EXPECT_EQ(cfg.objective.t_mean, 0.0);
   EXPECT_EQ(cfg.objective.t_std, 1.0);
   EXPECT_EQ(cfg.optim.lr, 1e-5);
