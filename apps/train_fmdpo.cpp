@@ -11,6 +11,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "training/distributed.h"
+#include "training/launcher.h"
 #include "training/generator_policy.h"
 #include "training/trainer.h"
 

@@ -25,6 +25,7 @@
 #include "common/log.h"
 #include "gpu_profile.h"
 #include "training/distributed.h"
+#include "training/launcher.h"
 #include "training/generator_policy.h"
 #include "training/trainer.h"
 

@@ -75,14 +75,5 @@ c10::intrusive_ptr<c10d::Store> connect_store(const DistEnv& env, std::chrono::m
 // A TCP port free on the loopback interface right now.
 int free_port();
 
-// Progress signal to a launching parent: touches $SIMU_HEARTBEAT_FILE when set (no-op otherwise).
-void heartbeat();
-
-// Starts nproc local ranks of this program (/proc/self/exe with args) with RANK, LOCAL_RANK,
-// WORLD_SIZE, LOCAL_WORLD_SIZE, MASTER_ADDR=127.0.0.1, a free MASTER_PORT, NCCL_NVLS_ENABLE=0 and a
-// heartbeat file each; waits for them. A rank that exits non-zero or by a signal, or sends no
-// heartbeat for hang_timeout, ends the whole job (SIGTERM, then SIGKILL after 5 s) and this throws
-// simu::Error naming the rank. Returns when all ranks exit 0.
-void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::chrono::seconds hang_timeout);
 
 }  // namespace simu::training

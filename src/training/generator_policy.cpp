@@ -103,42 +103,5 @@ std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch
   torch::manual_seed(cfg.train.seed);
   return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device, cfg.file);
 }
-namespace {
-
-// PairStream seen through PairSource.
-class CacheSource : public PairSource {
- public:
-  CacheSource(const std::string& path, int rank, int world, int64_t global_batch, uint64_t seed, DataPosition pos,
-              int64_t prefetch)
-      : stream_(path, rank, world, global_batch, seed, simu::data::StreamPosition{pos.epoch, pos.step}, prefetch) {}
-  std::vector<Pair> next_batch() override {
-    std::vector<Pair> out;
-    for (auto& r : stream_.next_batch()) {
-      Pair p;
-      p.id = r.index;
-      p.kind = r.kind;
-      p.x_pos = r.latent_pos;
-      p.x_neg = r.latent_neg;
-      p.cond = r.cond;
-      out.push_back(std::move(p));
-    }
-    return out;
-  }
-  DataPosition position() const override {
-    auto p = stream_.position();
-    return {p.epoch, p.step};
-  }
-
- private:
-  simu::data::PairStream stream_;
-};
-
-}  // namespace
-
-PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch) {
-  return [path, prefetch](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
-    return std::make_unique<CacheSource>(path, rank, world, gb, seed, pos, prefetch);
-  };
-}
 
 }  // namespace simu::training

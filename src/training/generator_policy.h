@@ -1,11 +1,12 @@
-// Bindings of the trainer to the rest of the toolkit: the Stage-1 generator with LoRA adapters as
-// the PolicyModel, and the HDF5 pair cache as the PairSource.
+// The Stage-1 generator with LoRA adapters as the trainer's PolicyModel. (The HDF5 pair cache as
+// its PairSource: pair_source.h.)
 #pragma once
 
 #include <memory>
 #include <string>
 
 #include "training/fmdpo.h"
+#include "training/pair_source.h"
 #include "training/trainer.h"
 
 namespace simu::training {
@@ -22,7 +23,5 @@ std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_
                                                    const YAML::Node& lora, const std::string& lora_dir,
                                                    torch::Device device, const std::string& lora_file = "");
 
-// Source over the HDF5 pair cache (data/pair_cache.h PairStream) with `prefetch` batches read ahead.
-PairSourceFactory pair_cache_source(const std::string& path, int64_t prefetch);
 
 }  // namespace simu::training

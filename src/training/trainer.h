@@ -1,5 +1,5 @@
-// FM-DPO training loop: typed config, data sharding contract, gradient accumulation across ranks,
-// AdamW + schedule + clipping, bf16 autocast, checkpoints and resume, logs.
+// FM-DPO training loop: gradient accumulation across ranks, AdamW + schedule + clipping, bf16
+// autocast, checkpoints and resume, logs. Its config: train_config.h; its data: pair_source.h.
 #pragma once
 
 #include <torch/torch.h>
@@ -17,122 +17,10 @@
 #include "training/distributed.h"
 #include "training/fmdpo.h"
 #include "training/optim.h"
+#include "training/pair_source.h"
+#include "training/train_config.h"
 
 namespace simu::training {
-
-// model: the base Stage-1 generator.
-struct ModelConfig {
-  std::string config;   // generator config (official JSON/YAML or project layout)
-  std::string weights;  // safetensors with the official names ("" = random init, benchmarks only)
-  static ModelConfig from(simu::config::Reader& r);
-};
-
-// data: the pair cache and the batch split.
-struct DataConfig {
-  std::string cache;          // HDF5 pair cache
-  int64_t global_batch = 16;  // pairs per optimizer step over all ranks
-  int64_t micro_batch = 1;    // pairs per forward/backward; accumulation = global / (micro * world)
-  int64_t prefetch = 4;       // batches read ahead by the background thread
-  uint64_t seed = 0;          // epoch shuffle seed (all ranks agree)
-  static DataConfig from(simu::config::Reader& r);
-};
-
-// train: the loop.
-struct LoopConfig {
-  int64_t steps = 1500;
-  std::string precision = "bf16";         // "bf16" (CUDA autocast; adapters stay fp32) or "fp32"
-  bool activation_checkpointing = false;  // recompute each transformer block in backward (per-block checkpointing)
-  uint64_t seed = 0;                      // noise and t seed
-  std::string device = "cuda";            // "cuda" (rank's local GPU) or "cpu"
-  static LoopConfig from(simu::config::Reader& r);
-};
-
-// run: outputs.
-struct RunConfig {
-  std::string out_dir = "runs/fmdpo";  // checkpoints/, metrics.jsonl, tensorboard/, adapter/
-  int64_t checkpoint_every = 250;      // steps; 0 = only at the end
-  int keep_last = 3;
-  int64_t log_every = 10;              // plain progress lines every N steps (non-TTY)
-  bool progress = true;
-  static RunConfig from(simu::config::Reader& r);
-};
-
-// dist: failure detection.
-struct DistConfig {
-  double timeout_s = 600;        // every collective and the rendezvous
-  double hang_timeout_s = 1800;  // launcher: a rank silent this long is declared hung
-  static DistConfig from(simu::config::Reader& r);
-};
-
-struct TrainConfig {
-  ModelConfig model;
-  YAML::Node lora;  // LoRA section, read by the LoRA library (lora::LoraConfig::from, strict)
-  ObjectiveConfig objective;
-  OptimConfig optim;
-  DataConfig data;
-  LoopConfig train;
-  RunConfig run;
-  DistConfig dist;
-  std::string file;      // the config file
-  YAML::Node resolved;   // the whole config after --set overrides (saved in checkpoints)
-  // Loads a file with "a.b=v" overrides; unknown keys or bad values are errors naming file and key.
-  static TrainConfig load(const std::string& path, const std::vector<std::string>& overrides = {});
-  static TrainConfig from(simu::config::Reader& r);
-};
-
-// Outputs of an earlier run in cfg.run.out_dir (checkpoints/, adapter/, metrics.jsonl, tensorboard/):
-// a fresh run (not resuming) refuses them unless overwrite (simu::Error naming the config, out_dir
-// and what is there); with overwrite the lead process removes them first. Also refuses an empty
-// data.cache (naming the config file and key).
-void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead);
-
-// One preference pair as the trainer sees it.
-struct Pair {
-  int64_t id = 0;      // stable record index in the cache (seeds its noise)
-  data::PairKind kind = data::PairKind::OcclusionCompletion;
-  torch::Tensor x_pos, x_neg;  // [T, C] float32
-  torch::Tensor cond;          // [l, Cc] float32 (l may differ between pairs)
-};
-
-// Position in the epoch-shuffled stream of global batches.
-struct DataPosition {
-  int64_t epoch = 0, step = 0;
-};
-
-// Source of this rank's share of each global batch (the HDF5 PairStream or an in-memory one).
-class PairSource {
- public:
-  virtual ~PairSource() = default;
-  // This rank's pairs of the next global batch (global_batch / world of them).
-  virtual std::vector<Pair> next_batch() = 0;
-  // Position of the next batch (what a checkpoint stores).
-  virtual DataPosition position() const = 0;
-};
-// Opens a source for (rank, world, global batch, seed) at a position.
-using PairSourceFactory =
-    std::function<std::unique_ptr<PairSource>(int rank, int world, int64_t global_batch, uint64_t seed, DataPosition)>;
-
-// In-memory pairs with the stream's contract: each epoch the permutation data::epoch_permutation(n, seed,
-// epoch) that the HDF5 PairStream uses too (one order for every source), that
-// every rank computes alike; global batch b of the epoch = perm[b*G, (b+1)*G) (the tail that does
-// not fill a batch is skipped); rank r takes the contiguous slice [r*G/W, (r+1)*G/W).
-class MemoryPairSource : public PairSource {
- public:
-  MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world, int64_t global_batch,
-                   uint64_t seed, DataPosition start);
-  std::vector<Pair> next_batch() override;
-  DataPosition position() const override { return pos_; }
-
- private:
-  std::shared_ptr<const std::vector<Pair>> pairs_;
-  int rank_, world_;
-  int64_t global_;
-  uint64_t seed_;
-  DataPosition pos_;
-  std::vector<int64_t> perm_;
-  int64_t perm_epoch_ = -1;
-};
-
 // Metrics of one optimizer step, over all ranks.
 struct StepMetrics {
   int64_t step = 0;          // optimizer steps done after this one

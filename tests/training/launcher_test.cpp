@@ -11,6 +11,7 @@
 #include "common/error.h"
 #include "test_util.h"
 #include "training/distributed.h"
+#include "training/launcher.h"
 
 using namespace simu::training;
 

@@ -1,0 +1,82 @@
+// The typed config of an FM-DPO training run (configs/*.yaml): one struct per section, strict keys.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <yaml-cpp/yaml.h>
+
+#include "common/config.h"
+#include "training/fmdpo.h"
+#include "training/optim.h"
+
+namespace simu::training {
+
+// model: the base Stage-1 generator.
+struct ModelConfig {
+  std::string config;   // generator config (official JSON/YAML or project layout)
+  std::string weights;  // safetensors with the official names ("" = random init, benchmarks only)
+  static ModelConfig from(simu::config::Reader& r);
+};
+
+// data: the pair cache and the batch split.
+struct DataConfig {
+  std::string cache;          // HDF5 pair cache
+  int64_t global_batch = 16;  // pairs per optimizer step over all ranks
+  int64_t micro_batch = 1;    // pairs per forward/backward; accumulation = global / (micro * world)
+  int64_t prefetch = 4;       // batches read ahead by the background thread
+  uint64_t seed = 0;          // epoch shuffle seed (all ranks agree)
+  static DataConfig from(simu::config::Reader& r);
+};
+
+// train: the loop.
+struct LoopConfig {
+  int64_t steps = 1500;
+  std::string precision = "bf16";         // "bf16" (CUDA autocast; adapters stay fp32) or "fp32"
+  bool activation_checkpointing = false;  // recompute each transformer block in backward (per-block checkpointing)
+  uint64_t seed = 0;                      // noise and t seed
+  std::string device = "cuda";            // "cuda" (rank's local GPU) or "cpu"
+  static LoopConfig from(simu::config::Reader& r);
+};
+
+// run: outputs.
+struct RunConfig {
+  std::string out_dir = "runs/fmdpo";  // checkpoints/, metrics.jsonl, tensorboard/, adapter/
+  int64_t checkpoint_every = 250;      // steps; 0 = only at the end
+  int keep_last = 3;
+  int64_t log_every = 10;              // plain progress lines every N steps (non-TTY)
+  bool progress = true;
+  static RunConfig from(simu::config::Reader& r);
+};
+
+// dist: failure detection.
+struct DistConfig {
+  double timeout_s = 600;        // every collective and the rendezvous
+  double hang_timeout_s = 1800;  // launcher: a rank silent this long is declared hung
+  static DistConfig from(simu::config::Reader& r);
+};
+
+struct TrainConfig {
+  ModelConfig model;
+  YAML::Node lora;  // LoRA section, read by the LoRA library (lora::LoraConfig::from, strict)
+  ObjectiveConfig objective;
+  OptimConfig optim;
+  DataConfig data;
+  LoopConfig train;
+  RunConfig run;
+  DistConfig dist;
+  std::string file;      // the config file
+  YAML::Node resolved;   // the whole config after --set overrides (saved in checkpoints)
+  // Loads a file with "a.b=v" overrides; unknown keys or bad values are errors naming file and key.
+  static TrainConfig load(const std::string& path, const std::vector<std::string>& overrides = {});
+  static TrainConfig from(simu::config::Reader& r);
+};
+
+// Outputs of an earlier run in cfg.run.out_dir (checkpoints/, adapter/, metrics.jsonl, tensorboard/):
+// a fresh run (not resuming) refuses them unless overwrite (simu::Error naming the config, out_dir
+// and what is there); with overwrite the lead process removes them first. Also refuses an empty
+// data.cache (naming the config file and key).
+void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead);
+
+}  // namespace simu::training
