@@ -4,6 +4,16 @@
 
 namespace simu::training {
 
+Pair pair_from_record(const data::PairRecord& r) {
+  Pair p;
+  p.id = r.index;
+  p.kind = r.kind;
+  p.x_pos = r.latent_pos;
+  p.x_neg = r.latent_neg;
+  p.cond = r.cond;
+  return p;
+}
+
 MemoryPairSource::MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world,
                                    int64_t global_batch, uint64_t seed, DataPosition start)
     : pairs_(std::move(pairs)), rank_(rank), world_(world), global_(global_batch), seed_(seed), pos_(start) {
@@ -39,15 +49,7 @@ class CacheSource : public PairSource {
       : stream_(path, rank, world, global_batch, seed, simu::data::StreamPosition{pos.epoch, pos.step}, prefetch) {}
   std::vector<Pair> next_batch() override {
     std::vector<Pair> out;
-    for (auto& r : stream_.next_batch()) {
-      Pair p;
-      p.id = r.index;
-      p.kind = r.kind;
-      p.x_pos = r.latent_pos;
-      p.x_neg = r.latent_neg;
-      p.cond = r.cond;
-      out.push_back(std::move(p));
-    }
+    for (const auto& r : stream_.next_batch()) out.push_back(pair_from_record(r));
     return out;
   }
   DataPosition position() const override {

@@ -22,6 +22,9 @@ struct Pair {
   torch::Tensor cond;          // [l, Cc] float32 (l may differ between pairs)
 };
 
+// A pair cache record as the trainer sees it (id = the record index).
+Pair pair_from_record(const data::PairRecord& r);
+
 // Position in the epoch-shuffled stream of global batches.
 struct DataPosition {
   int64_t epoch = 0, step = 0;

@@ -19,16 +19,7 @@ TEST(PairSources, CacheAndMemorySourcesGiveTheSameOrder) {
   simu::data::make_synthetic_cache(path, 13, {4, 3}, {5, 6}, /*seed=*/3, torch::kFloat32);
   const auto reader = simu::data::PairCacheReader::open(path);
   auto pairs = std::make_shared<std::vector<Pair>>();
-  for (int64_t i = 0; i < reader.size(); ++i) {
-    const auto r = reader.read(i);
-    Pair p;
-    p.id = r.index;
-    p.kind = r.kind;
-    p.x_pos = r.latent_pos;
-    p.x_neg = r.latent_neg;
-    p.cond = r.cond;
-    pairs->push_back(std::move(p));
-  }
+  for (int64_t i = 0; i < reader.size(); ++i) pairs->push_back(pair_from_record(reader.read(i)));
   const uint64_t seed = 11;
   for (int world : {1, 2}) {
     for (int rank = 0; rank < world; ++rank) {
