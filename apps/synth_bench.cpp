@@ -59,7 +59,7 @@ int main(int argc, char** argv) {
                  "displacement source: mujoco (run_probe on the written scene; physics metrics) or oracle (drop to the "
                  "known support; overlap metrics only)")->capture_default_str();
   app.add_option("--from", from_dir,
-                 "evaluate the written scenes in this folder (each DIR/*/scene.json, e.g. tests/data/scenes) instead of "
+                 "evaluate the written scenes in this folder (each DIR/*/scene.json, e.g. tests/testdata/scenes) instead of "
                  "generating");
   app.add_option("--metrics-time", metrics_time, "evaluation settle for the physics metrics (s; paper: 5)")
       ->capture_default_str();

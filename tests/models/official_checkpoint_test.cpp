@@ -23,7 +23,7 @@ namespace sm = simu::models;
 
 namespace {
 
-std::string released_yaml() { return simu::testing::source_dir() + "/tests/models/data/ss_generator_released.yaml"; }
+std::string released_yaml() { return simu::testing::source_dir() + "/tests/testdata/models/ss_generator_released.yaml"; }
 
 // Runs a command, returns its exit code; output goes to `log`.
 int run(const std::string& cmd, const std::string& log) {

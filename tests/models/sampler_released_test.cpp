@@ -3,7 +3,7 @@
 // sample as the official inference pipeline does (25 steps, rescale_t 3, CFG 7 on t*1000 in [0, 500],
 // add_flag, d = 0) unless the user overrides a value, and say which values it used. Checked against
 // the official small generator's sampling (ss_generator_small_io.safetensors, made by the official
-// code at 4 steps) through configs carrying the released values (tests/models/data/).
+// code at 4 steps) through configs carrying the released values (tests/testdata/models/).
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -18,7 +18,7 @@ namespace sm = simu::models;
 
 namespace {
 
-std::string data(const std::string& name) { return simu::testing::source_dir() + "/tests/models/data/" + name; }
+std::string data(const std::string& name) { return simu::testing::source_dir() + "/tests/testdata/models/" + name; }
 
 sm::Latents with_prefix(const std::map<std::string, torch::Tensor>& io, const std::string& prefix) {
   sm::Latents out;

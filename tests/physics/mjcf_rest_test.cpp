@@ -1,5 +1,5 @@
 // The probe's scene.xml is simulation-ready in every MuJoCo a user opens it in: for each committed
-// scene (tests/data/scenes/*) and the demo scene (configs/demo_scene.yaml, seed 21, as scripts/demo.sh
+// scene (tests/testdata/scenes/*) and the demo scene (configs/demo_scene.yaml, seed 21, as scripts/demo.sh
 // makes it), the written file is stepped 5 s from its written state and every free object must move
 // less than 2 mm without a MuJoCo warning, both in MuJoCo 2.2 (the library we link) and in the PyPI
 // `mujoco` of the project's venv (tests/physics/mjcf_rest_check.py). The last test writes the file
@@ -35,7 +35,7 @@ constexpr double kLimit = 0.002;  // m
 // The scenes: committed ones, then the demo scene written into dir.
 std::vector<std::string> scenes(const std::string& dir) {
   std::vector<std::string> out;
-  for (const auto& e : std::filesystem::directory_iterator("tests/data/scenes"))
+  for (const auto& e : std::filesystem::directory_iterator("tests/testdata/scenes"))
     if (std::filesystem::exists(e.path() / "scene.json")) out.push_back((e.path() / "scene.json").string());
   std::sort(out.begin(), out.end());
   YAML::Node node = simu::config::load_file("configs/demo_scene.yaml");

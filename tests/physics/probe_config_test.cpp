@@ -168,7 +168,7 @@ TEST(ProbeConfig, GravityMagnitudeOutOfRangeIsRefused) {
 
 // --scenes: inputs with the same file name get distinct folders; the same file twice is refused.
 TEST(ProbeConfig, ScenesWithTheSameFileNameGetDistinctFolders) {
-  const std::vector<std::string> in = {"tests/data/scenes/synth_0000/scene.json", "tests/data/scenes/synth_0001/scene.json",
+  const std::vector<std::string> in = {"tests/testdata/scenes/synth_0000/scene.json", "tests/testdata/scenes/synth_0001/scene.json",
                                        "other/a.json"};
   const auto dirs = probe_output_dirs(in, "OUT");
   EXPECT_EQ(dirs[0], "OUT/synth_0000_scene");
@@ -190,8 +190,8 @@ TEST(ProbeConfig, ProgramScenesWriteOneFolderEach) {
   const auto dir = physics_temp_dir("probe_cli_scenes");
   const auto [rc, out] =
       run(probe + " --config configs/probe.yaml --no-coacd --quiet --set final.settle_time=0.2 --set evaluation.settle_time=0.2 "
-                  "--set evaluation.evaluate_input=false --out " + dir + "/out --scenes tests/data/scenes/synth_0000/scene.json "
-                  "tests/data/scenes/synth_0001/scene.json tests/data/scenes/synth_0002/scene.json");
+                  "--set evaluation.evaluate_input=false --out " + dir + "/out --scenes tests/testdata/scenes/synth_0000/scene.json "
+                  "tests/testdata/scenes/synth_0001/scene.json tests/testdata/scenes/synth_0002/scene.json");
   ASSERT_EQ(rc, 0) << out;
   for (const char* s : {"synth_0000", "synth_0001", "synth_0002"})
     EXPECT_TRUE(std::filesystem::exists(dir + "/out/" + s + "_scene/report.json")) << s << "\n" << out;

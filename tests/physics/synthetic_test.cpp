@@ -115,13 +115,13 @@ TEST(Synthetic, WriteAndReload) {
 
 #include "physics/overlay.h"
 
-// The committed default set (tests/data/scenes) loads, and every free object has a modal mask of the
+// The committed default set (tests/testdata/scenes) loads, and every free object has a modal mask of the
 // camera's size with pixels in it.
 TEST(Synthetic, CommittedDefaultScenes) {
 #ifndef SIMU_HAVE_OPENCV
   GTEST_SKIP() << "mask PNGs need OpenCV (built with SIMU_WITH_OPENCV=OFF)";
 #endif
-  const std::string root = simu::testing::source_dir() + "/tests/data/scenes";
+  const std::string root = simu::testing::source_dir() + "/tests/testdata/scenes";
   int scenes = 0;
   for (const auto& e : std::filesystem::directory_iterator(root)) {
     const Scene sc = load_scene((e.path() / "scene.json").string());
