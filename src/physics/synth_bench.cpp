@@ -109,39 +109,43 @@ SynthBenchResult run_synth_bench(const SynthBenchOptions& o) {
   return res;
 }
 
-std::string synth_bench_table(const SynthBenchOptions& o, const SynthBenchResult& r) {
-  std::string out;
-  auto it = std::back_inserter(out);
-  // Decision accuracy per injected error type.
+namespace {
+
+using Out = std::back_insert_iterator<std::string>;
+
+// Decision accuracy per injected error type; returns the free objects counted.
+int decision_rows(Out it, std::string& out, const SynthBenchOptions& o, const SynthBenchResult& r, double* gap_before,
+                  double* gap_after) {
   std::map<std::string, std::array<int, 3>> per;  // error -> {n, correct, resampled}
-  int n = 0, correct = 0;
-  double gap_before = 0, gap_after = 0;
-  int failed = 0, undecided = 0;
+  int n = 0, correct = 0, undecided = 0;
   for (int k = 0; k < r.num_scenes; ++k) {
-    if (!r.errors[k].empty()) {
-      ++failed;
-      continue;
-    }
-    for (const ObjectOutcome& o : r.scenes[k].objects) {
-      auto& a = per[to_string(o.error)];
+    if (!r.errors[k].empty()) continue;
+    for (const ObjectOutcome& ob : r.scenes[k].objects) {
+      auto& a = per[to_string(ob.error)];
       ++a[0], ++n;
-      const bool right = o.decided && o.got == o.expected;
+      const bool right = ob.decided && ob.got == ob.expected;
       a[1] += right, correct += right;
-      undecided += !o.decided;
-      a[2] += o.got == Branch::Resample;
-      gap_before += o.support_gap_before, gap_after += o.support_gap_after;
+      undecided += !ob.decided;
+      a[2] += ob.got == Branch::Resample;
+      *gap_before += ob.support_gap_before, *gap_after += ob.support_gap_after;
     }
   }
   fmt::format_to(it, "Decision (rho >= {:.2f} -> resample) vs injected error; expected: bottom_cut -> resample, others -> stretch\n",
-             o.correction.resample_threshold);
+                 o.correction.resample_threshold);
   fmt::format_to(it, "{:<12} {:>6} {:>9} {:>10}\n", "error", "n", "accuracy", "resampled");
   for (const auto& [e, a] : per)
     fmt::format_to(it, "{:<12} {:>6} {:>8.1f}% {:>9.1f}%\n", e, a[0], a[0] ? 100.0 * a[1] / a[0] : 0.0,
-               a[0] ? 100.0 * a[2] / a[0] : 0.0);
+                   a[0] ? 100.0 * a[2] / a[0] : 0.0);
   fmt::format_to(it, "{:<12} {:>6} {:>8.1f}%   ({} / {} correct", "all", n, n ? 100.0 * correct / n : 0.0, correct, n);
   out += undecided ? fmt::format("; {} without a decision, counted wrong)\n", undecided) : std::string(")\n");
+  return n;
+}
 
-  // Mean overlap metrics before / after over the scenes.
+// Mean overlap metrics before / after over the scenes that ran.
+void overlap_rows(Out it, const SynthBenchOptions& o, const SynthBenchResult& r, int n, double gap_before,
+                  double gap_after) {
+  int ok = 0;
+  for (const auto& e : r.errors) ok += e.empty();
   auto mean = [&](auto get) {
     double s = 0;
     int c = 0;
@@ -149,76 +153,87 @@ std::string synth_bench_table(const SynthBenchOptions& o, const SynthBenchResult
       if (r.errors[k].empty()) s += get(r.scenes[k]), ++c;
     return c ? s / c : 0.0;
   };
-  fmt::format_to(it, "\nMetric (mean over {} scenes)       before    after   (before: input; after: {})\n", r.num_scenes - failed,
-             o.mujoco ? "the probe's corrected scene" : "oracle correction of each object alone");
-  fmt::format_to(it, "2D IoU                          {:8.4f} {:8.4f}\n", mean([](auto& r) { return r.mask_before.iou; }),
-             mean([](auto& r) { return r.mask_after.iou; }));
-  fmt::format_to(it, "2D ABO                          {:8.4f} {:8.4f}\n", mean([](auto& r) { return r.mask_before.abo; }),
-             mean([](auto& r) { return r.mask_after.abo; }));
-  fmt::format_to(it, "3D AABB IoU                     {:8.4f} {:8.4f}\n", mean([](auto& r) { return r.box_before.iou; }),
-             mean([](auto& r) { return r.box_after.iou; }));
-  fmt::format_to(it, "3D AABB ABO                     {:8.4f} {:8.4f}\n", mean([](auto& r) { return r.box_before.abo; }),
-             mean([](auto& r) { return r.box_after.abo; }));
+  fmt::format_to(it, "\nMetric (mean over {} scenes)       before    after   (before: input; after: {})\n", ok,
+                 o.mujoco ? "the probe's corrected scene" : "oracle correction of each object alone");
+  fmt::format_to(it, "2D IoU                          {:8.4f} {:8.4f}\n", mean([](auto& s) { return s.mask_before.iou; }),
+                 mean([](auto& s) { return s.mask_after.iou; }));
+  fmt::format_to(it, "2D ABO                          {:8.4f} {:8.4f}\n", mean([](auto& s) { return s.mask_before.abo; }),
+                 mean([](auto& s) { return s.mask_after.abo; }));
+  fmt::format_to(it, "3D AABB IoU                     {:8.4f} {:8.4f}\n", mean([](auto& s) { return s.box_before.iou; }),
+                 mean([](auto& s) { return s.box_after.iou; }));
+  fmt::format_to(it, "3D AABB ABO                     {:8.4f} {:8.4f}\n", mean([](auto& s) { return s.box_before.abo; }),
+                 mean([](auto& s) { return s.box_after.abo; }));
   fmt::format_to(it, "support gap (mm, free objects)  {:8.2f} {:8.2f}\n", n ? 1000 * gap_before / n : 0.0,
-             n ? 1000 * gap_after / n : 0.0);
-  // Physics metrics (MuJoCo): records pooled over the scenes; peak energy: mean of the scene peaks.
-  if (o.mujoco) {
-    std::vector<SettleRecord> before, after;
-    double peak_before = 0, peak_after = 0;
-    int scenes_ok = 0;
-    for (int k = 0; k < r.num_scenes; ++k) {
-      if (!r.errors[k].empty()) continue;
-      ++scenes_ok;
-      before.insert(before.end(), r.physics_before[k].objects.begin(), r.physics_before[k].objects.end());
-      after.insert(after.end(), r.physics_after[k].objects.begin(), r.physics_after[k].objects.end());
-      peak_before += r.physics_before[k].scene_peak_energy, peak_after += r.physics_after[k].scene_peak_energy;
-    }
-    const PhysicsMetrics mb = physics_metrics(before), ma = physics_metrics(after);
-    fmt::format_to(it, "Physics after a {:.0f} s settle (pooled objects; before: as read, after: probe output)\n", o.metrics_time);
-    fmt::format_to(it, "stability (%, free, <5 cm)      {:8.1f} {:8.1f}   (n = {} / {})\n", mb.stability, ma.stability,
-               mb.stability_count, ma.stability_count);
-    fmt::format_to(it, "penetration ratio (%, >2 mm)    {:8.1f} {:8.1f}\n", mb.penetration_ratio, ma.penetration_ratio);
-    fmt::format_to(it, "initially penetrating (%)       {:8.1f} {:8.1f}\n", mb.initial_penetration_ratio,
-               ma.initial_penetration_ratio);
-    fmt::format_to(it, "mean displacement (mm)          {:8.2f} {:8.2f}   (n = {} / {})\n", 1000 * mb.mean_displacement,
-               1000 * ma.mean_displacement, mb.evaluated_count, ma.evaluated_count);
-    fmt::format_to(it, "peak energy (J, mean of scenes) {:8.4f} {:8.4f}\n", scenes_ok ? peak_before / scenes_ok : 0.0,
-               scenes_ok ? peak_after / scenes_ok : 0.0);
-    fmt::format_to(it, "physics-disabled objects        {:8d} {:8d}\n", mb.disabled_count, ma.disabled_count);
-    // The paper's table: overlap after the settle (strict variants zero penetrating/unstable objects).
-    auto hmean = [&](const std::vector<HeadlineMetrics>& h, auto get) {
-      double sum = 0;
-      int c = 0;
-      for (int k = 0; k < r.num_scenes; ++k)
-        if (r.errors[k].empty() && h[k].computed) sum += get(h[k]), ++c;
-      return c ? sum / c : 0.0;
-    };
-    fmt::format_to(it, "\nHeadline metrics after a {:.0f} s settle (mean over scenes; before: input settled the same way)\n",
-               o.metrics_time);
-    fmt::format_to(it, "{:<32} {:>8} {:>8}\n", "metric", "before", "after");
-    auto hrow = [&](const char* name, auto get) {
-      fmt::format_to(it, "{:<32} {:8.4f} {:8.4f}\n", name, hmean(r.headline_before, get), hmean(r.headline_after, get));
-    };
-    hrow("ABO (2D)", [](const HeadlineMetrics& h) { return h.mask.abo; });
-    hrow("ABO_fh/fo (2D, strict)", [](const HeadlineMetrics& h) { return h.mask.abo_fhfo(); });
-    hrow("IoU (2D)", [](const HeadlineMetrics& h) { return h.mask.iou; });
-    hrow("IoU_fh/fo (2D, strict)", [](const HeadlineMetrics& h) { return h.mask.iou_fhfo(); });
-    hrow("3D ABO (AABB)", [](const HeadlineMetrics& h) { return h.box.abo; });
-    hrow("3D ABO_fh/fo", [](const HeadlineMetrics& h) { return h.box.abo_fhfo(); });
-    hrow("3D IoU (AABB)", [](const HeadlineMetrics& h) { return h.box.iou; });
-    hrow("3D IoU_fh/fo", [](const HeadlineMetrics& h) { return h.box.iou_fhfo(); });
-    hrow("stability (%)", [](const HeadlineMetrics& h) { return h.physics.stability; });
-    hrow("penetration ratio (%)", [](const HeadlineMetrics& h) { return h.physics.penetration_ratio; });
-    hrow("D_mean (mm)", [](const HeadlineMetrics& h) { return 1000 * h.physics.mean_displacement; });
-    hrow("E_pk (J)", [](const HeadlineMetrics& h) { return h.physics.peak_energy; });
+                 n ? 1000 * gap_after / n : 0.0);
+}
+
+// Physics metrics (MuJoCo): records pooled over the scenes; peak energy: mean of the scene peaks.
+void physics_rows(Out it, const SynthBenchOptions& o, const SynthBenchResult& r) {
+  std::vector<SettleRecord> before, after;
+  double peak_before = 0, peak_after = 0;
+  int scenes_ok = 0;
+  for (int k = 0; k < r.num_scenes; ++k) {
+    if (!r.errors[k].empty()) continue;
+    ++scenes_ok;
+    before.insert(before.end(), r.physics_before[k].objects.begin(), r.physics_before[k].objects.end());
+    after.insert(after.end(), r.physics_after[k].objects.begin(), r.physics_after[k].objects.end());
+    peak_before += r.physics_before[k].scene_peak_energy, peak_after += r.physics_after[k].scene_peak_energy;
   }
-  fmt::format_to(it, "resample branch stand-in: {}\n", proxy_name);
-  if (o.mujoco)
-    fmt::format_to(it, "probe: MuJoCo run_probe; physics-disabled objects: {} (scored at their input pose, invalid), "
-               "reverted in the final settle: {} (scored at their pre-settle pose)\n",
-               disabled.load(), reverted.load());
-  else
-    fmt::format_to(it, "probe: oracle drop to the known support (physics metrics: --probe mujoco)\n");
+  const PhysicsMetrics mb = physics_metrics(before), ma = physics_metrics(after);
+  fmt::format_to(it, "Physics after a {:.0f} s settle (pooled objects; before: as read, after: probe output)\n", o.metrics_time);
+  fmt::format_to(it, "stability (%, free, <5 cm)      {:8.1f} {:8.1f}   (n = {} / {})\n", mb.stability, ma.stability,
+                 mb.stability_count, ma.stability_count);
+  fmt::format_to(it, "penetration ratio (%, >2 mm)    {:8.1f} {:8.1f}\n", mb.penetration_ratio, ma.penetration_ratio);
+  fmt::format_to(it, "initially penetrating (%)       {:8.1f} {:8.1f}\n", mb.initial_penetration_ratio,
+                 ma.initial_penetration_ratio);
+  fmt::format_to(it, "mean displacement (mm)          {:8.2f} {:8.2f}   (n = {} / {})\n", 1000 * mb.mean_displacement,
+                 1000 * ma.mean_displacement, mb.evaluated_count, ma.evaluated_count);
+  fmt::format_to(it, "peak energy (J, mean of scenes) {:8.4f} {:8.4f}\n", scenes_ok ? peak_before / scenes_ok : 0.0,
+                 scenes_ok ? peak_after / scenes_ok : 0.0);
+  fmt::format_to(it, "physics-disabled objects        {:8d} {:8d}\n", mb.disabled_count, ma.disabled_count);
+}
+
+// The paper's table: overlap after the settle (strict variants zero penetrating/unstable objects).
+void headline_rows(Out it, const SynthBenchOptions& o, const SynthBenchResult& r) {
+  auto hmean = [&](const std::vector<HeadlineMetrics>& h, auto get) {
+    double sum = 0;
+    int c = 0;
+    for (int k = 0; k < r.num_scenes; ++k)
+      if (r.errors[k].empty() && h[k].computed) sum += get(h[k]), ++c;
+    return c ? sum / c : 0.0;
+  };
+  fmt::format_to(it, "\nHeadline metrics after a {:.0f} s settle (mean over scenes; before: input settled the same way)\n",
+                 o.metrics_time);
+  fmt::format_to(it, "{:<32} {:>8} {:>8}\n", "metric", "before", "after");
+  auto hrow = [&](const char* name, auto get) {
+    fmt::format_to(it, "{:<32} {:8.4f} {:8.4f}\n", name, hmean(r.headline_before, get), hmean(r.headline_after, get));
+  };
+  hrow("ABO (2D)", [](const HeadlineMetrics& h) { return h.mask.abo; });
+  hrow("ABO_fh/fo (2D, strict)", [](const HeadlineMetrics& h) { return h.mask.abo_fhfo(); });
+  hrow("IoU (2D)", [](const HeadlineMetrics& h) { return h.mask.iou; });
+  hrow("IoU_fh/fo (2D, strict)", [](const HeadlineMetrics& h) { return h.mask.iou_fhfo(); });
+  hrow("3D ABO (AABB)", [](const HeadlineMetrics& h) { return h.box.abo; });
+  hrow("3D ABO_fh/fo", [](const HeadlineMetrics& h) { return h.box.abo_fhfo(); });
+  hrow("3D IoU (AABB)", [](const HeadlineMetrics& h) { return h.box.iou; });
+  hrow("3D IoU_fh/fo", [](const HeadlineMetrics& h) { return h.box.iou_fhfo(); });
+  hrow("stability (%)", [](const HeadlineMetrics& h) { return h.physics.stability; });
+  hrow("penetration ratio (%)", [](const HeadlineMetrics& h) { return h.physics.penetration_ratio; });
+  hrow("D_mean (mm)", [](const HeadlineMetrics& h) { return 1000 * h.physics.mean_displacement; });
+  hrow("E_pk (J)", [](const HeadlineMetrics& h) { return h.physics.peak_energy; });
+}
+
+}  // namespace
+
+std::string synth_bench_table(const SynthBenchOptions& o, const SynthBenchResult& r) {
+  std::string out;
+  auto it = std::back_inserter(out);
+  double gap_before = 0, gap_after = 0;
+  const int n = decision_rows(it, out, o, r, &gap_before, &gap_after);
+  overlap_rows(it, o, r, n, gap_before, gap_after);
+  if (o.mujoco) {
+    physics_rows(it, o, r);
+    headline_rows(it, o, r);
+  }
   fmt::format_to(it, "resample branch stand-in: {}\n", resample_proxy_name(o.proxy));
   if (o.mujoco)
     fmt::format_to(it, "probe: MuJoCo run_probe; physics-disabled objects: {} (scored at their input pose, invalid), "
