@@ -146,8 +146,8 @@ TEST(Fmdpo, ActivationCheckpointingSameGradients) {
 // micro 1 x accumulation 4 == micro 4 x accumulation 1 (same global batch).
 TEST(Trainer, AccumulationMatchesOneMicroBatch) {
   auto pairs = simu::testing::toy_pairs(16, T, C, L, Cc, 9);
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   std::vector<std::vector<torch::Tensor>> results;
   for (int64_t micro : {1, 4}) {
     ToyPolicy m(C, Cc, R, 3);
@@ -165,8 +165,8 @@ TEST(Trainer, TwoRanksMatchOneRank) {
   const int steps = 4;
   std::vector<torch::Tensor> solo;
   {
-    auto solo = make_solo_communicator();
-    Communicator& comm = *solo;
+    auto solo_comm = make_solo_communicator();
+    Communicator& comm = *solo_comm;
     ToyPolicy m(C, Cc, R, 4);
     Trainer tr(toy_config(simu::testing::temp_dir("solo"), steps, 8, 2), m, memory_source(pairs), comm, torch::kCPU);
     for (int s = 0; s < steps; ++s) tr.step();
@@ -205,8 +205,8 @@ TEST(Trainer, TwoRanksMatchOneRank) {
 // and metrics to an uninterrupted run.
 TEST(Trainer, ResumeIsBitExact) {
   auto pairs = simu::testing::toy_pairs(10, T, C, L, Cc, 11);  // 2 batches per epoch: crosses epochs
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   const std::string out_a = simu::testing::temp_dir("resume_a"), out_b = simu::testing::temp_dir("resume_b");
   std::vector<StepMetrics> ma, mb;
   ToyPolicy a(C, Cc, R, 5);
@@ -270,8 +270,8 @@ TEST(Trainer, StepMetricsMatchIndependentMath) {
     per_kind[kn + "/ref_neg"] += rn;
     count[static_cast<int>(p.kind)] += 1;
   }
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   Trainer tr(cfg, m, memory_source(pairs), comm, torch::kCPU);
   const auto sm = tr.step();
   EXPECT_NEAR(sm.loss, loss, 1e-5 * loss);
@@ -294,8 +294,8 @@ TEST(Trainer, StepMetricsMatchIndependentMath) {
 // run(): metrics lines, TensorBoard file, checkpoints, exported adapter (rank 0 output layout).
 TEST(Trainer, RunWritesOutputs) {
   auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 12);
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   const std::string out = simu::testing::temp_dir("run");
   ToyPolicy m(C, Cc, R, 6);
   Trainer tr(toy_config(out, 5, 4, 4), m, memory_source(pairs), comm, torch::kCPU);
@@ -334,8 +334,8 @@ TEST(Trainer, StepTimeSplit) {
     s->inner = std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
     return s;
   };
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   ToyPolicy m(C, Cc, R, 7);
   Trainer tr(toy_config(simu::testing::temp_dir("timing"), 2, 4, 2), m, slow, comm, torch::kCPU);
   const auto sm = tr.step();
@@ -367,8 +367,8 @@ TEST(TrainConfig, BadConfigsAreClearErrors) {
   expect_error("model: {config: x}\noptim: {schedule: linear}\n", "optim.schedule");
   // Batch split checked against the world size when the trainer starts.
   auto cfg = toy_config(simu::testing::temp_dir("badsplit"), 1, 6, 4);
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   ToyPolicy m(C, Cc, R, 1);
   try {
     Trainer tr(cfg, m, memory_source(simu::testing::toy_pairs(8, T, C, L, Cc, 1)), comm, torch::kCPU);
@@ -451,8 +451,8 @@ TEST(TrainConfig, EarlierRunIsRefusedUnlessOverwrite) {
 // keep their values and the last checkpoint stays the newest.
 TEST(Trainer, NonFiniteLossStopsBeforeTheUpdate) {
   auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 21);
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   const std::string out = simu::testing::temp_dir("nonfinite");
   ToyPolicy m(C, Cc, R, 6);
   auto cfg = toy_config(out, 6, 8, 8);  // every step sees all 8 pairs
@@ -549,8 +549,8 @@ TEST(Trainer, PairCacheSourceAndBadCache) {
   }
   EXPECT_EQ(src->position().step, 1);
   // Training over it (variable condition lengths run as separate forwards).
-  auto solo = make_solo_communicator();
-  Communicator& comm = *solo;
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
   ToyPolicy m(C, Cc, R, 8);
   Trainer tr(toy_config(simu::testing::temp_dir("cache_train"), 2, 4, 4), m, factory, comm, torch::kCPU);
   auto s = tr.step();
