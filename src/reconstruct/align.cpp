@@ -177,8 +177,62 @@ AlignResult align_translation_scale(const AlignInput& in, const AlignConfig& cfg
       res.best = int(k);
     }
   }
-  res.s = res.candidates[size_t(res.best)].s;
-  res.t = res.candidates[size_t(res.best)].t;
+  res.s = res.s_selected = res.candidates[size_t(res.best)].s;
+  res.t = res.t_selected = res.candidates[size_t(res.best)].t;
+  if (cfg.polish_iterations > 0) {
+    // The mesh side's vertices: visible at the initial pose, not hidden behind the observed depth at the
+    // selected pose (fixed during the polish).
+    const Points Vs = transform(V, Similarity{res.s, in.R_init, res.t});
+    std::vector<int64_t> keep;
+    for (int64_t j : vis) {
+      const Vec3 p = Vs.row(j).transpose();
+      bool hidden = false;
+      if (in.depth && p.z() > 0) {
+        const int col = int(std::lround(in.K.fx * p.x() / p.z() + in.K.cx));
+        const int row = int(std::lround(in.K.fy * p.y() / p.z() + in.K.cy));
+        if (col >= 0 && row >= 0 && col < in.K.width && row < in.K.height && !in.mask.at(row, col)) {
+          const Vec3& o = in.depth->at(row, col);
+          hidden = PointMap::valid(o) && o.z() < p.z() - cfg.occlusion_margin;
+        }
+      }
+      if (!hidden) keep.push_back(j);
+    }
+    Points Vm(Eigen::Index(keep.size()), 3);
+    for (size_t i = 0; i < keep.size(); ++i) Vm.row(Eigen::Index(i)) = V.row(keep[i]);
+    Vm = subsample(Vm, cfg.max_points);
+    if (Vm.rows() >= 3) {
+      Eigen::VectorXd x(4);
+      x << std::log(res.s), res.t.x(), res.t.y(), res.t.z();
+      Adam adam(4);
+      for (int it = 0; it < cfg.polish_iterations; ++it) {
+        const double s = std::exp(x[0]);
+        const Vec3 t = x.tail<3>();
+        double gl = 0;
+        Vec3 gt;
+        align_loss(Y, tree, in.R_init, s, t, &gl, &gt);
+        double gl2 = 0;
+        Vec3 gt2 = Vec3::Zero();
+        for (Eigen::Index i = 0; i < Vm.rows(); ++i) {
+          const Vec3 p = s * (in.R_init * Vm.row(i).transpose());
+          const Vec3 r = p + t - obs_tree.points().row(obs_tree.nearest(p + t)).transpose();
+          const double d = r.norm();
+          if (d > 1e-12) {
+            gt2 += r / d;
+            gl2 += r.dot(p) / d;
+          }
+        }
+        gl2 /= double(Vm.rows());
+        gt2 /= double(Vm.rows());
+        Eigen::VectorXd g(4);
+        g << 0.5 * (gl + gl2) + 2 * cfg.lambda * (x[0] - log_s_init), 0.5 * (gt + gt2).x(), 0.5 * (gt + gt2).y(),
+            0.5 * (gt + gt2).z();
+        const double decay = 1.0 - 0.9 * double(it) / double(std::max(1, cfg.polish_iterations - 1));
+        adam.update(x, g, 0.25 * lr * decay, cfg.beta1, cfg.beta2, cfg.eps);
+      }
+      res.s = std::exp(x[0]);
+      res.t = x.tail<3>();
+    }
+  }
   res.ok = true;
   return res;
 }

@@ -280,7 +280,7 @@ PlanesResult fit_planes(const Points& floor_points, const std::vector<WallInput>
   return res;
 }
 
-double snap_floor_to_meshes(PlanesResult& planes, const std::vector<Points>& meshes) {
+double snap_floor_to_meshes(PlanesResult& planes, const std::vector<Points>& meshes, double max_snap) {
   double low = std::numeric_limits<double>::infinity();
   Vec3 at = Vec3::Zero();
   for (const auto& M : meshes)
@@ -298,6 +298,12 @@ double snap_floor_to_meshes(PlanesResult& planes, const std::vector<Points>& mes
     return 0;
   }
   const double before = planes.up.dot(planes.floor->plane.point);
+  if (std::abs(low - before) > max_snap) {
+    planes.messages.push_back(fmt::format("floor snap refused: the lowest fitted-mesh vertex is {:+.3f} m from the fitted "
+                                          "floor (more than {} m): the floor plane is kept",
+                                          low - before, max_snap));
+    return 0;
+  }
   planes.floor->plane.point = planes.floor->plane.point + (low - before) * planes.up;
   planes.floor->plane.normal = planes.up;
   return low - before;

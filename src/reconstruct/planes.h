@@ -56,6 +56,7 @@ struct PlanesConfig {
   double orthogonality_tol_deg = 10;
   int max_walls = 4;               // top walls by coverage (paper: four)
   int fallback_planes = 4;         // planes tried by the fallback
+  double max_floor_snap = 0.10;    // m: a larger floor snap is refused (a mesh far below the floor is wrong, not the floor)
 };
 
 // One wall's input: its id and the points of its mask.
@@ -86,8 +87,9 @@ PlanesResult fit_planes(const Points& floor_points, const std::vector<WallInput>
 
 // Second pass: moves the floor plane along `up` to the lowest vertex of `meshes` (world vertices of the
 // fitted objects and bases that stand on the floor). Adds a floor (normal = up) when there is none.
-// Returns the snap distance (m, positive = floor moved up).
-double snap_floor_to_meshes(PlanesResult& planes, const std::vector<Points>& meshes);
+// Returns the snap distance (m, positive = floor moved up); a snap longer than max_snap is refused (the
+// floor stays, a message names the distance) and 0 returned.
+double snap_floor_to_meshes(PlanesResult& planes, const std::vector<Points>& meshes, double max_snap = 0.10);
 
 // Angle between two directions in degrees (sign-sensitive) and between two lines (sign-agnostic).
 double angle_deg(const Vec3& a, const Vec3& b);

@@ -383,8 +383,8 @@ ReconstructResult reconstruct(const ReconstructFiles& files, const ReconstructOp
     std::vector<Points> resting;
     for (auto& w : objs)
       if (w.ok && w.spec.dof == pipeline::PoseDof::Free) resting.push_back(place(w.mesh.V, w.scale, w.R, w.t));
-    const double d = snap_floor_to_meshes(res.planes, resting);
-    res.messages.push_back(fmt::format("floor snapped by {:+.4f} m along up to the lowest fitted-mesh vertex", d));
+    const double d = snap_floor_to_meshes(res.planes, resting, opt.planes.max_floor_snap);
+    if (d != 0) res.messages.push_back(fmt::format("floor snapped by {:+.4f} m along up to the lowest fitted-mesh vertex", d));
   }
   for (auto& m : res.planes.messages) res.messages.push_back(m);
   // ---- Compose the pre-simulation scene (world = OpenCV camera) ----

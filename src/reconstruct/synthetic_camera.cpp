@@ -110,7 +110,7 @@ CameraScene generate_camera_scene(const CameraSceneConfig& cfg, uint64_t seed, c
     if (l < 0) continue;
     // A fixed colour per label value, times the Lambert shade.
     const uint32_t h = uint32_t(l + 1) * 2654435761u;
-    const double base[3] = {80 + (h & 0x7f), 80 + ((h >> 8) & 0x7f), 80 + ((h >> 16) & 0x7f)};
+    const double base[3] = {double(80 + (h & 0x7f)), double(80 + ((h >> 8) & 0x7f)), double(80 + ((h >> 16) & 0x7f))};
     for (int ch = 0; ch < 3; ++ch) s.rgb[i * 3 + ch] = uint8_t(std::min(255.0, base[ch] * (0.3 + img.shade[i])));
   }
   s.points.width = W;

@@ -120,4 +120,10 @@ TEST(ReconstructPlanes, FloorSnapsToTheLowestMeshVertex) {
   b << 1, 1.3, 2;
   EXPECT_NEAR(snap_floor_to_meshes(r, {a, b}), 0.03, 1e-12);
   EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.47, 0)), 0.0, 1e-12);
+  // A mesh far below the floor (a wrong lift) does not drag the floor: refused with a message.
+  Points deep(1, 3);
+  deep << 0, 2.5, 3;
+  EXPECT_EQ(snap_floor_to_meshes(r, {a, deep}), 0.0);
+  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.47, 0)), 0.0, 1e-12);
+  EXPECT_NE(r.messages.back().find("floor snap refused"), std::string::npos);
 }
