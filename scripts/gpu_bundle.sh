@@ -15,7 +15,7 @@ CARRY="$ROOT/.carry"
 SHARED="${SIMU_SHARED_DIR:-$ROOT/../shared}"
 PKGS=(libmujoco-dev libmujoco2.2.2 libqhull-dev libqhull-r8.0 libqhull8.0 libqhullcpp8.0 libccd2 libtinyxml2-9
       liblodepng0 libassimp-dev libassimp5 libdraco7 libminizip1 libgtest-dev libgmock-dev libpoly2tri1 libpugixml1v5
-      libkubazip0 libgloo-dev libre2-dev libre2-9)
+      libkubazip0 libgloo-dev libre2-dev libre2-9 libnanoflann-dev)
 mkdir -p "$CARRY/debs" "$CARRY/prefix"
 cd "$CARRY/debs"
 for p in "${PKGS[@]}"; do

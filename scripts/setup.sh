@@ -26,6 +26,7 @@ APT_PKGS=(
   libcli11-dev nlohmann-json3-dev libassimp-dev
   libgloo-dev
   libre2-dev
+  libnanoflann-dev
   clang libclang-rt-dev
   python3-venv
 )

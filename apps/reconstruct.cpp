@@ -1,0 +1,106 @@
+// reconstruct: from a photo's masks and depth to a simulation-ready scene in one process
+// (docs/reconstruct.md). Lifts the objects without their own mesh with the Stage-1 port, aligns scale
+// and translation to the depth, fits floor and walls (Manhattan rectification), refines tables, composes
+// the pre-simulation scene (world = the OpenCV camera, gravity = -up) and runs the physics probe with
+// in-process resampling. Exit 1 when any object was skipped (the others are reconstructed).
+#include <fmt/format.h>
+#include <fmt/ranges.h>
+
+#include <algorithm>
+#include <cstdlib>
+#include <memory>
+
+#include "common/cli.h"
+#include "common/error.h"
+#include "common/log.h"
+#include "resample/lift.h"
+#include "physics/probe_batch.h"
+#include "reconstruct/run.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{"reconstruct: photo (image, masks + sidecar, depth + K or point map) -> aligned objects, floor and walls, "
+               "tabletop refinement -> the physics probe (settle, resampling, MJCF, report, pictures)"};
+  simu::reconstruct::ReconstructFiles files;
+  std::string out_dir, precision = "auto", probe_config;
+  bool random_weights = false, overwrite = false, no_align = false, no_tabletop = false, no_probe = false, no_model = false,
+       no_coacd = false;
+  uint64_t seed = 0;
+  simu::resample::ResamplerConfig rcfg;
+  rcfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
+  app.add_option("--image", files.lift.image, "RGB(A) image")->required();
+  app.add_option("--masks", files.lift.masks, "one label PNG, or one PNG per object (repeatable), or a directory of PNGs")
+      ->required();
+  app.add_option("--mask-kind", files.lift.mask_kind, "auto | label | per-object")->capture_default_str();
+  app.add_option("--objects", files.sidecar,
+                 "sidecar JSON: per mask its id, label, role (object|floor|wall), dof (free|point|line), pins, base, "
+                 "optional mesh + pose (bring your own lift) and refined_pose (docs/reconstruct.md)");
+  auto* pm = app.add_option("--pointmap", files.lift.pointmap, "point map .npy [H, W, 3], OpenCV camera, inf/NaN invalid");
+  auto* dp = app.add_option("--depth", files.lift.depth, "depth: .npy (float m | uint16 mm), .png (16-bit mm), .exr (float m)");
+  pm->excludes(dp);
+  app.add_option("--intrinsics", files.lift.intrinsics, "K JSON (required with --depth; fitted to --pointmap when absent)");
+  app.add_option("--out", out_dir, "output directory (refused when it exists, unless --overwrite)")->required();
+  app.add_flag("--overwrite", overwrite, "replace an existing output directory");
+  app.add_flag("--no-align", no_align, "skip the translation-scale alignment");
+  app.add_flag("--no-tabletop", no_tabletop, "skip the tabletop refinement");
+  app.add_flag("--no-probe", no_probe, "stop after writing the pre-simulation scene (input/scene.json)");
+  app.add_flag("--no-model", no_model, "load no model: every object must bring its own mesh; the probe writes the resampling hand-off");
+  app.add_option("--probe-config", probe_config, "probe config YAML (configs/probe.yaml; default built-in)");
+  app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh in the probe");
+  app.add_option("--samples", rcfg.num_samples, "shapes drawn per object")->capture_default_str()->check(CLI::PositiveNumber);
+  app.add_option("--seed", seed, "sampling seed")->capture_default_str();
+  app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
+  app.add_option("--precision", precision, "auto | fp16 | bf16 | fp32")->capture_default_str();
+  app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps (released inference: 25)")->capture_default_str();
+  app.add_option("--generator-config", rcfg.generator_config, "Stage-1 generator config")->capture_default_str();
+  app.add_option("--generator-weights", rcfg.generator_weights, "generator safetensors");
+  app.add_option("--decoder-config", rcfg.decoder_config, "sparse-structure decoder config")->capture_default_str();
+  app.add_option("--decoder-weights", rcfg.decoder_weights, "decoder safetensors");
+  app.add_option("--embedder-config", rcfg.embedder_config, "condition embedder config")->capture_default_str();
+  app.add_option("--embedder-weights", rcfg.embedder_weights, "condition embedder safetensors");
+  app.add_option("--adapter", rcfg.adapter_dir, "PEFT LoRA adapter directory (optional)");
+  app.add_flag("--random-weights", random_weights, "allow missing weight files: random init (smoke runs, benchmarks)");
+  simu::cli::CommonOptions common;
+  simu::cli::add_common_options(app, common);
+  app.footer(simu::physics::probe_config_help());
+  return simu::cli::run(app, argc, argv, [&] {
+    simu::cli::apply_common_options(common);
+    simu::reconstruct::ReconstructOptions opt;
+    std::vector<std::string> sets = common.sets;
+    if (no_coacd) sets.push_back("collision.use_coacd=false");
+    opt.probe = simu::physics::ProbeConfig::load(probe_config, sets);
+    if (opt.probe.collision.cache_dir.empty()) {
+      if (const char* env = std::getenv("SIMU_HULL_CACHE")) opt.probe.collision.cache_dir = env;
+      else if (const char* home = std::getenv("HOME")) opt.probe.collision.cache_dir = std::string(home) + "/.cache/simuscene/hulls";
+    }
+    opt.do_align = !no_align;
+    opt.do_tabletop = !no_tabletop;
+    opt.run_probe = !no_probe;
+    opt.overwrite = overwrite;
+    opt.lift.seed = seed;
+    simu::resample::check_output_dir(out_dir, overwrite);
+    std::unique_ptr<simu::resample::Resampler> resampler;
+    std::string banner;
+    if (!no_model) {
+      banner = simu::resample::check_lift_weights(rcfg, random_weights);
+      if (!banner.empty()) fmt::print(stderr, "\n*** {} ***\n\n", banner);
+      simu::resample::apply_precision(rcfg, precision);
+      rcfg.random_weights = random_weights;
+      resampler = std::make_unique<simu::resample::Resampler>(rcfg);
+    }
+    const auto res = simu::reconstruct::reconstruct(files, opt, resampler.get(), out_dir);
+    int skipped = 0;
+    for (const auto& o : res.objects) {
+      if (!o.skipped.empty()) ++skipped;
+      fmt::print("  {:<20} {:<7} {}{}{}\n", o.id, o.role, o.used ? "used" : "SKIPPED", o.steps.empty() ? "" : ": ",
+                 fmt::join(o.steps, ", "));
+      for (const auto& s : o.skipped) fmt::print("      skipped {}\n", s);
+    }
+    for (const auto& m : res.messages) fmt::print("  note: {}\n", m);
+    fmt::print("up [{:.3f} {:.3f} {:.3f}] from {}; gravity = -up; world = the OpenCV camera\n", res.planes.up.x(),
+               res.planes.up.y(), res.planes.up.z(), res.planes.up_source);
+    fmt::print("seconds: {}\n-> {}/reconstruct_report.json, {}/input/scene.json{}\n", res.timings.dump(), out_dir, out_dir,
+               opt.run_probe ? ", " + out_dir + "/probe/ (scene.xml, report.json)" : "");
+    if (!banner.empty()) fmt::print(stderr, "{}\n", banner);
+    return skipped > 0 ? 1 : 0;
+  });
+}
