@@ -283,8 +283,8 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   void set_block_wrapper(BlockWrapper wrapper) { block_wrapper_ = std::move(wrapper); }
 
   // Fused CUDA kernels (fused_ops.h) replace the plain ATen ops for the norms, modulation, residuals and
-  // q/k RMS norm when fused_path() holds: CUDA and bf16 autocast. On by default; the same results up to
-  // bf16 rounding order. With a graph (grad mode) only the kernels that have a backward run; without
+  // q/k RMS norm when fused_path() holds: CUDA and bf16 or fp16 autocast. On by default; the same results up to
+  // 16-bit rounding order. With a graph (grad mode) only the kernels that have a backward run; without
   // one, also the inference-only ones (GELU epilogue, q/k/v into the key/value buffer, second stream).
   void set_fused_kernels(bool on);
   bool fused_kernels() const { return fused_kernels_; }
@@ -311,7 +311,7 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 
 // True when the fused kernels may replace the reference ops for activations like x: they were compiled
-// in, x is on CUDA and CUDA autocast runs in bf16. (The inference-only ones also need grad mode off.)
+// in, x is on CUDA and CUDA autocast runs in bf16 or fp16. (The inference-only ones also need grad mode off.)
 bool fused_path(const torch::Tensor& x);
 
 // Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:
