@@ -698,6 +698,24 @@ ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::
   return cache;
 }
 
+void SparseStructureFlowTdfyWrapperImpl::condition_cache_into(const torch::Tensor& cond, ConditionCache& dst) {
+  SIMU_CHECK(dst.kv.size() == block_list_.size(), "condition_cache_into: the cache has {} blocks, the model {}", dst.kv.size(),
+             block_list_.size());
+  auto cond32 = cond.to(torch::kFloat32);
+  for (size_t b = 0; b < block_list_.size(); ++b) {
+    auto& per_stream = dst.kv[b];
+    SIMU_CHECK(per_stream.size() == block_list_[b]->cross_attn.size(), "condition_cache_into: stream count differs");
+    for (size_t i = 0; i < per_stream.size(); ++i) {
+      auto [k, v] = block_list_[b]->cross_attn[i]->context_kv(cond32);
+      SIMU_CHECK(k.sizes() == per_stream[i].first.sizes() && v.sizes() == per_stream[i].second.sizes(),
+                 "condition_cache_into: keys [{}] do not fit the cache's [{}]", fmt::join(k.sizes(), ", "),
+                 fmt::join(per_stream[i].first.sizes(), ", "));
+      per_stream[i].first.copy_(k);
+      per_stream[i].second.copy_(v);
+    }
+  }
+}
+
 Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
                                                     const c10::optional<torch::Tensor>& d, const ConditionCache* cache) {
   SIMU_CHECK(!cache || (cache->cond.is_same(cond) && cache->kv.size() == block_list_.size()),

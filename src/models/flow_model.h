@@ -277,6 +277,9 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
                   const c10::optional<torch::Tensor>& d = c10::nullopt, const ConditionCache* cache = nullptr);
   // Cross-attention keys/values of cond for every block (run under the same autocast as forward).
   ConditionCache condition_cache(const torch::Tensor& cond);
+  // The same keys/values written into an existing cache's tensors (same shapes; dst.cond is left as it
+  // is): the buffers a CUDA graph reads stay where they are. One block's keys/values exist at a time.
+  void condition_cache_into(const torch::Tensor& cond, ConditionCache& dst);
 
   const FlowModelConfig& config() const { return config_; }
   // Every transformer block of forward runs through wrapper (empty: blocks run directly).
