@@ -71,8 +71,6 @@ int main(int argc, char** argv) {
   app.add_option("--decoder-bias", decoder_bias, "added to the decoder's output bias (random weights: occupancy)")
       ->capture_default_str();
   app.add_flag("--small", small, "fixture-size models (CPU smoke run of this program)");
-  bool cudnn_attention = false;
-  app.add_flag("--cudnn-attention", cudnn_attention, "the flow model's attention through cuDNN (set_cudnn_attention)");
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -101,7 +99,6 @@ int main(int argc, char** argv) {
       SIMU_CHECK(params.contains("out_layer.2.bias"), "decoder has no out_layer.2.bias");
       params["out_layer.2.bias"].add_(decoder_bias);
     }
-    if (cudnn_attention) rs.generator()->backbone()->set_cudnn_attention(true);
     const auto& mc = rs.generator()->config().backbone;
     fmt::print("device {}; {}; generator {} ({} ch, {} blocks); embedder {} ({} tokens/object); decoder {}; {} steps, "
                "rescale_t {}, CFG {} on [{}, {}]; occupancy {}^3\n",

@@ -76,8 +76,6 @@ int main(int argc, char** argv) {
   app.add_flag("--fp32", fp32, "same as --precision fp32");
   app.add_flag("--profile", profile, "print the GPU kernels of one forward by time (Kineto/CUPTI)");
   app.add_flag("--one-stream", one_stream, "run the pose stream on the same CUDA stream as the shape stream");
-  bool cudnn_attention = false;
-  app.add_flag("--cudnn-attention", cudnn_attention, "attention through cuDNN's fused kernel (set_cudnn_attention)");
   app.add_option("--sdp-backend", sdp, "attention backend tried first: default | flash | cudnn | efficient")
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
   simu::cli::CommonOptions common;
@@ -106,7 +104,6 @@ int main(int argc, char** argv) {
     auto gen = simu::models::load_generator(config, "", dev, common.sets);
     const auto& mc = gen->config().backbone;
     if (one_stream) gen->backbone()->set_stream_overlap(false);
-    if (cudnn_attention) gen->backbone()->set_cudnn_attention(true);
     if (fp32) precision = "fp32";
     const auto prec = dev.is_cuda() ? simu::models::parse_precision(precision, dev, "--precision") : simu::models::Precision::kFp32;
     fmt::print("device {}, config {}\nmodel: {} channels, {} blocks, {} heads, streams [{}], cond {} ch; {}\n", device,

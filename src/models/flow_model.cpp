@@ -3,13 +3,11 @@
 #include <ATen/autocast_mode.h>
 #include <fmt/ranges.h>
 
-#include <atomic>
 #include <cmath>
 #include <set>
 
 #include "common/config.h"
 #include "common/error.h"
-#include "common/log.h"
 #include "models/official_yaml.h"
 #include "models/fused_ops.h"
 
@@ -37,35 +35,14 @@ void register_dict(torch::nn::Module& owner, const std::string& name, const std:
 // where allowed (not in training mode) and when no graph is recorded.
 bool inference_only_ok(bool inference_kernels) { return inference_kernels && !at::GradMode::is_enabled(); }
 
-// SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend: the
-// reference). With `cudnn` (inference only: no grad mode, CUDA, q/k/v of one 16-bit dtype, head dim a
-// multiple of 8 up to 128) cuDNN's fused attention is called directly; if cuDNN refuses the shapes
-// the reference runs (a warning, once).
-std::atomic<bool> g_cudnn_refused{false};
-std::atomic<int64_t> g_cudnn_calls{0};
-torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v, bool cudnn = false) {
-  auto qp = q.permute({0, 2, 1, 3}), kp = k.permute({0, 2, 1, 3}), vp = v.permute({0, 2, 1, 3});  // [B, H, L, D]
-  const int64_t D = q.size(-1);
-  if (cudnn && !g_cudnn_refused.load() && q.is_cuda() && !at::GradMode::is_enabled() &&
-      fused::is_low_precision(q.scalar_type()) && k.scalar_type() == q.scalar_type() &&
-      v.scalar_type() == q.scalar_type() && D % 8 == 0 && D <= 128) {
-    try {
-      auto r = at::_scaled_dot_product_cudnn_attention(qp, kp, vp, c10::nullopt, /*compute_log_sumexp=*/false);
-      ++g_cudnn_calls;
-      return std::get<0>(r).permute({0, 2, 1, 3});  // [B, L, H, D]
-    } catch (const std::exception& e) {
-      if (!g_cudnn_refused.exchange(true))
-        log::warn("cuDNN attention refused [{}] x [{}] {}: {}; using scaled_dot_product_attention",
-                  fmt::join(qp.sizes(), ", "), fmt::join(kp.sizes(), ", "), c10::toString(q.scalar_type()), e.what());
-    }
-  }
-  auto out = at::scaled_dot_product_attention(qp, kp, vp);  // [B, H, L, D]
-  return out.permute({0, 2, 1, 3});                         // [B, L, H, D]
+// SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend).
+torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
+  auto out = at::scaled_dot_product_attention(q.permute({0, 2, 1, 3}), k.permute({0, 2, 1, 3}),
+                                              v.permute({0, 2, 1, 3}));  // [B, H, L, D]
+  return out.permute({0, 2, 1, 3});                                       // [B, L, H, D]
 }
 
 }  // namespace
-
-int64_t cudnn_attention_count() { return g_cudnn_calls.load(); }
 
 // ---------------------------------------------------------------------------------------------
 // Config
@@ -322,7 +299,7 @@ torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Te
   const int64_t B = x.size(0), L = x.size(1);
   auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
-  auto h = attention(q, k, v, cudnn_attention).reshape({B, L, -1});  // [B, L, C]
+  auto h = attention(q, k, v).reshape({B, L, -1});  // [B, L, C]
   return to_out->forward(h);
 }
 
@@ -390,14 +367,14 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward_fused(const std::vector
   std::vector<size_t> others;
   for (size_t i = 0; i < S; ++i) {
     if (is_protected[i]) {
-      h[i] = attention(q[i], k[i], v[i], cudnn_attention);
+      h[i] = attention(q[i], k[i], v[i]);
     } else {
       others.push_back(i);
       oq.push_back(q[i]);
     }
   }
   if (!others.empty()) {
-    auto ho = attention(oq.size() == 1 ? oq[0] : torch::cat(oq, 1), k_all, v_all, cudnn_attention);  // [B, L_others, H, D]
+    auto ho = attention(oq.size() == 1 ? oq[0] : torch::cat(oq, 1), k_all, v_all);  // [B, L_others, H, D]
     int64_t start = 0;
     for (size_t i : others) {
       h[i] = ho.narrow(1, start, x[i].size(1));
@@ -435,7 +412,7 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch
   std::vector<size_t> others;
   for (size_t i = 0; i < S; ++i) {
     if (is_protected[i]) {
-      h[i] = attention(q[i], k[i], v[i], cudnn_attention);
+      h[i] = attention(q[i], k[i], v[i]);
       pk.push_back(k[i].detach());
       pv.push_back(v[i].detach());
     } else {
@@ -450,7 +427,7 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch
     auto keys = ok, values = ov;
     keys.insert(keys.end(), pk.begin(), pk.end());
     values.insert(values.end(), pv.begin(), pv.end());
-    auto ho = attention(torch::cat(oq, 1), torch::cat(keys, 1), torch::cat(values, 1), cudnn_attention);  // [B, sum L, H, D]
+    auto ho = attention(torch::cat(oq, 1), torch::cat(keys, 1), torch::cat(values, 1));  // [B, sum L, H, D]
     int64_t start = 0;
     for (size_t i : others) {
       const int64_t L = x[i].size(1);
@@ -592,12 +569,12 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
         torch::Tensor qo;
         self_attn->project_qkv_fused(o, n1o, qo, k_all.narrow(1, 0, Lo), v_all.narrow(1, 0, Lo));
         shape_kv_ready.block(side);
-        auto ho = self_attn->to_out[o]->forward(attention(qo, k_all, v_all, self_attn->cudnn_attention).reshape({B, Lo, -1}));
+        auto ho = self_attn->to_out[o]->forward(attention(qo, k_all, v_all).reshape({B, Lo, -1}));
         xo_out = rest_of(o, xo, ho);
         other_done.record(side);
       }
       // Protected stream attends to itself only.
-      auto hp = self_attn->to_out[p]->forward(attention(qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp), self_attn->cudnn_attention).reshape({B, Lp, -1}));
+      auto hp = self_attn->to_out[p]->forward(attention(qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp)).reshape({B, Lp, -1}));
       x[p] = rest_of(p, xp, hp);
       x[o] = xo_out;
       // Join. Tensors the side stream used stay referenced until here, so their memory is not reused
@@ -693,14 +670,6 @@ void SparseStructureFlowTdfyWrapperImpl::set_fused_kernels(bool on) {
     block->fused_kernels = on;
     block->self_attn->fused_kernels = on;
     for (auto& m : block->mlp) m->fused_kernels = on;
-  }
-}
-
-void SparseStructureFlowTdfyWrapperImpl::set_cudnn_attention(bool on) {
-  cudnn_attention_ = on;
-  for (auto& block : block_list_) {
-    block->self_attn->cudnn_attention = on;
-    for (auto& ca : block->cross_attn) ca->cudnn_attention = on;
   }
 }
 

@@ -161,7 +161,6 @@ class CrossAttentionImpl : public torch::nn::Module {
   Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
   int64_t num_heads;
-  bool cudnn_attention = false;  // see SparseStructureFlowTdfyWrapperImpl::set_cudnn_attention
 };
 TORCH_MODULE(CrossAttention);
 
@@ -184,7 +183,6 @@ class MOTSelfAttentionImpl : public torch::nn::Module {
   // set_fused_kernels switches them. Without a graph and with inference_kernels, q/k/v are also written
   // straight into the attention's key/value layout (no backward); otherwise the differentiable split.
   bool fused_kernels = true;
-  bool cudnn_attention = false;  // see SparseStructureFlowTdfyWrapperImpl::set_cudnn_attention
   bool inference_kernels = true;
 
  private:
@@ -299,11 +297,6 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   bool training_kernels() const { return training_kernels_; }
   // On the fused path, run the non-protected stream on a second CUDA stream (MOTBlockImpl::stream_overlap).
   void set_stream_overlap(bool on);
-  // Attention through cuDNN's fused kernel (at::_scaled_dot_product_cudnn_attention) instead of
-  // scaled_dot_product_attention's default choice, where it applies: no grad mode, CUDA, 16-bit q/k/v,
-  // head dim <= 128. Off by default; the reference is SDPA (a gpu test compares them).
-  void set_cudnn_attention(bool on);
-  bool cudnn_attention() const { return cudnn_attention_; }
 
   TimestepEmbedder t_embedder{nullptr}, d_embedder{nullptr};
   torch::nn::Sequential adaLN_modulation{nullptr};  // share_mod only
@@ -317,15 +310,12 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   BlockWrapper block_wrapper_;
   bool fused_kernels_ = true;
   bool training_kernels_ = false;
-  bool cudnn_attention_ = false;
 };
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 
 // True when the fused kernels may replace the reference ops for activations like x: they were compiled
 // in, x is on CUDA and CUDA autocast runs in bf16 or fp16. (The inference-only ones also need grad mode off.)
 bool fused_path(const torch::Tensor& x);
-// cuDNN attention calls so far in this process (set_cudnn_attention; tests check that it really ran).
-int64_t cudnn_attention_count();
 
 // Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:
 // per block and per stream of T tokens: self qkv 2*T*C*3C + out 2*T*C*C; self attention QK^T and PV

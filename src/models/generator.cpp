@@ -370,7 +370,6 @@ uint64_t graph_fingerprint(SparseStructureFlowTdfyWrapper& bb) {
       mix(l->adapter_enabled());
     }
   mix(bb->fused_kernels());
-  mix(bb->cudnn_attention());
   mix(bb->training_kernels());
   mix(bb->is_training());
   return h;
