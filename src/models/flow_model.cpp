@@ -297,6 +297,16 @@ std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::context_kv(const tor
 
 torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
   const int64_t B = x.size(0), L = x.size(1);
+  if (k.size(0) < B) {
+    // Rows k.size(0).. of x have an all-zero condition (ConditionCache::zero_from): every key there is
+    // to_kv's bias (through k_rms_norm), the same for all condition tokens, so the softmax is uniform
+    // and the attention output is the value bias itself: to_out(v(0)) for every query, whatever L_c.
+    const int64_t Bk = k.size(0);
+    auto head = attend(x.narrow(0, 0, Bk), k, v);                                        // [Bk, L, C]
+    auto v0 = context_kv(torch::zeros({1, 1, to_kv->in_features}, x.options().dtype(torch::kFloat32))).second;  // [1, 1, H, D]
+    auto tail = to_out->forward(v0.reshape({1, 1, -1})).to(head.scalar_type());         // [1, 1, C]
+    return torch::cat({head, tail.expand({B - Bk, L, tail.size(2)})}, 0);               // [B, L, C]
+  }
   auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
   auto h = attention(q, k, v).reshape({B, L, -1});  // [B, L, C]
@@ -686,10 +696,13 @@ void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap(bool on) {
   for (auto& block : block_list_) block->stream_overlap = on;
 }
 
-ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond) {
+ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond, int64_t zero_from) {
+  SIMU_CHECK(zero_from < 0 || (zero_from > 0 && zero_from <= cond.size(0)),
+             "condition_cache: zero_from {} must be in [1, {}] (or negative: none)", zero_from, cond.size(0));
   ConditionCache cache;
   cache.cond = cond;
-  auto cond32 = cond.to(torch::kFloat32);
+  cache.zero_from = zero_from;
+  auto cond32 = (zero_from >= 0 ? cond.narrow(0, 0, zero_from) : cond).to(torch::kFloat32);
   for (auto& block : block_list_) {
     std::vector<std::pair<torch::Tensor, torch::Tensor>> per_stream;
     for (auto& ca : block->cross_attn) per_stream.push_back(ca->context_kv(cond32));
@@ -701,7 +714,7 @@ ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::
 void SparseStructureFlowTdfyWrapperImpl::condition_cache_into(const torch::Tensor& cond, ConditionCache& dst) {
   SIMU_CHECK(dst.kv.size() == block_list_.size(), "condition_cache_into: the cache has {} blocks, the model {}", dst.kv.size(),
              block_list_.size());
-  auto cond32 = cond.to(torch::kFloat32);
+  auto cond32 = (dst.zero_from >= 0 ? cond.narrow(0, 0, dst.zero_from) : cond).to(torch::kFloat32);
   for (size_t b = 0; b < block_list_.size(); ++b) {
     auto& per_stream = dst.kv[b];
     SIMU_CHECK(per_stream.size() == block_list_[b]->cross_attn.size(), "condition_cache_into: stream count differs");

@@ -270,7 +270,11 @@ PreparedCondition ClassifierFreeGuidanceImpl::prepare(const torch::Tensor& cond,
   PreparedCondition pc;
   pc.cond = cond;
   torch::Tensor cond_u = cond;
-  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) cond_u = cond * 0;
+  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) {
+    cond_u = cond * 0;
+    // All zero unless cond holds inf/NaN (0 * inf = NaN): then the shortcut would hide them.
+    pc.zero_unconditional = cache && (!cond.is_floating_point() || torch::isfinite(cond).all().item<bool>());
+  }
   pc.pair = torch::cat({cond, cond_u}, 0);
   pc.cache = cache;
   return pc;
@@ -297,10 +301,11 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
   // Backbone forward: through a persistent CUDA graph when enabled, else eager (with the condition's
   // keys/values computed once per call when pc.cache).
   auto run = [&](std::shared_ptr<SamplingGraph>& graph, const Latents& xs, const torch::Tensor& c,
-                 c10::optional<ConditionCache>& kv, const torch::Tensor& t, const c10::optional<torch::Tensor>& d) -> Latents {
+                 c10::optional<ConditionCache>& kv, const torch::Tensor& t, const c10::optional<torch::Tensor>& d,
+                 int64_t zero_from) -> Latents {
     if (pc.graphs && pc.cache) {
       try {
-        if (!graph) graph = attach_graph(c, xs, t, d);
+        if (!graph) graph = attach_graph(c, xs, t, d, zero_from);
         auto y = graph->graph->run(xs, t, d);
         if (!graph->weights_known) {
           // The 16-bit weight copies the capture read from the autocast cache (cached_cast returns the
@@ -322,13 +327,13 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
         graph.reset();
       }
     }
-    if (pc.cache && !kv) kv = backbone->condition_cache(c);
+    if (pc.cache && !kv) kv = backbone->condition_cache(c, zero_from);
     return backbone->forward(xs, t, c, d, kv ? &*kv : nullptr);
   };
   if (!guided) {
     c10::optional<torch::Tensor> d;
     if (d_scaled) d = torch::full({1}, *d_scaled, opts);
-    return run(pc.single_graph, x, cond, pc.single_kv, torch::full({1}, t_scaled, opts), d);
+    return run(pc.single_graph, x, cond, pc.single_kv, torch::full({1}, t_scaled, opts), d, -1);
   }
   // One batched forward: first half conditional, second half unconditional.
   Latents x2;
@@ -340,7 +345,7 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
     else
       d2 = torch::full({1}, *d_scaled, opts);
   }
-  auto y = run(pc.pair_graph, x2, pc.pair, pc.pair_kv, torch::full({1}, t_scaled, opts), d2);
+  auto y = run(pc.pair_graph, x2, pc.pair, pc.pair_kv, torch::full({1}, t_scaled, opts), d2, pc.zero_unconditional ? B : -1);
   Latents out;
   for (const auto& [k, v] : y) {
     auto yc = v.narrow(0, 0, B), yu = v.narrow(0, B, B);
@@ -378,13 +383,15 @@ uint64_t graph_fingerprint(SparseStructureFlowTdfyWrapper& bb) {
 
 std::shared_ptr<SamplingGraph> ClassifierFreeGuidanceImpl::attach_graph(const torch::Tensor& c, const Latents& xs,
                                                                        const torch::Tensor& t,
-                                                                       const c10::optional<torch::Tensor>& d) {
+                                                                       const c10::optional<torch::Tensor>& d,
+                                                                       int64_t zero_from) {
   // The shapes, dtypes and autocast state the capture is valid for.
   std::string key = fmt::format("{} {} [{}] {} t[{}] d[{}] ac {} {}", c.device().str(), c10::toString(c.scalar_type()),
                                 fmt::join(c.sizes(), ","), xs.size(), fmt::join(t.sizes(), ","),
                                 d ? fmt::format("{}", fmt::join(d->sizes(), ",")) : std::string("-"),
                                 at::autocast::is_autocast_enabled(at::kCUDA),
                                 c10::toString(at::autocast::get_autocast_dtype(at::kCUDA)));
+  key += fmt::format(" zero_from {}", zero_from);
   for (const auto& [k, v] : xs) key += fmt::format(" {}[{}]{}", k, fmt::join(v.sizes(), ","), c10::toString(v.scalar_type()));
   const uint64_t fp = graph_fingerprint(backbone);
   auto& gs = graph_cache.graphs;
@@ -406,7 +413,7 @@ std::shared_ptr<SamplingGraph> ClassifierFreeGuidanceImpl::attach_graph(const to
     g->key = key;
     g->fingerprint = fp;
     g->cond = c.clone();
-    g->kv = backbone->condition_cache(g->cond);
+    g->kv = backbone->condition_cache(g->cond, zero_from);
     g->graph = std::make_unique<GraphedForward>(backbone, g->cond, &g->kv);
     g->last_use = ++graph_cache.tick;
     gs.push_back(g);

@@ -172,6 +172,9 @@ struct PreparedCondition {
   torch::Tensor cond;  // [B, L, Cc]
   torch::Tensor pair;  // [2B, L, Cc]: cond, then the unconditional condition
   bool cache = false;
+  // The unconditional half of `pair` is cond * 0 (force_zeros_cond or "zeros"): its cross attention
+  // is the value bias (ConditionCache::zero_from), no attention over the condition tokens.
+  bool zero_unconditional = false;
   c10::optional<ConditionCache> single_kv, pair_kv;
   // Persistent CUDA graphs of the unguided (B) and guided (2B) forwards when enabled, attached (and
   // refreshed with this condition) on first use in this call; `graphs` turns off after a failed capture.
@@ -202,7 +205,7 @@ class ClassifierFreeGuidanceImpl : public torch::nn::Module {
   // The persistent graph for a forward of backbone on (c, xs, t, d), found or created, its inputs
   // refreshed for this call (condition, keys/values, weight copies).
   std::shared_ptr<SamplingGraph> attach_graph(const torch::Tensor& c, const Latents& xs, const torch::Tensor& t,
-                                              const c10::optional<torch::Tensor>& d);
+                                              const c10::optional<torch::Tensor>& d, int64_t zero_from);
 };
 TORCH_MODULE(ClassifierFreeGuidance);
 

@@ -224,6 +224,15 @@ TEST(FusedOpsGpu, FlowForwardFp16FusedMatchesReference) {
     EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5) << simu::models::precision_name(p);
     auto cache = gen->backbone()->condition_cache(cond);
     auto cached = gen->backbone()->forward(x, t, cond, d, &cache);
+    // CFG's pair with an all-zero second row: the value-bias shortcut (ConditionCache::zero_from) on
+    // the fused path against the full cache.
+    auto pair = torch::cat({cond.narrow(0, 0, 1), cond.narrow(0, 0, 1) * 0}, 0);
+    auto full = gen->backbone()->condition_cache(pair), skip = gen->backbone()->condition_cache(pair, 1);
+    auto y_full = gen->backbone()->forward(x, t, pair, d, &full), y_skip = gen->backbone()->forward(x, t, pair, d, &skip);
+    for (const auto& [k, v] : y_full) {
+      fmt::print("{} {}: zero-row shortcut vs full cache {:.2e}\n", simu::models::precision_name(p), k, rel(y_skip.at(k), v));
+      EXPECT_LE(rel(y_skip.at(k), v), p == simu::models::Precision::kFp16 ? 2.5e-3 : 2e-2) << k;
+    }
     for (const auto& [k, v] : want) {
       const double e = rel(got.at(k), v), e32 = rel(got.at(k), fp32.at(k)), e32ref = rel(v, fp32.at(k));
       fmt::print("{} {}: fused vs reference {:.2e}, fused vs fp32 {:.2e}, reference vs fp32 {:.2e}\n",
