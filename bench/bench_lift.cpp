@@ -71,6 +71,8 @@ int main(int argc, char** argv) {
   app.add_option("--decoder-bias", decoder_bias, "added to the decoder's output bias (random weights: occupancy)")
       ->capture_default_str();
   app.add_flag("--small", small, "fixture-size models (CPU smoke run of this program)");
+  bool cuda_graphs = false;
+  app.add_flag("--cuda-graphs", cuda_graphs, "sample through persistent CUDA graphs (captured in the warm-up call)");
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -91,6 +93,7 @@ int main(int argc, char** argv) {
       cfg.generator_overrides = {"flow_model.cond_channels=48"};
     }
     simu::resample::apply_precision(cfg, precision);
+    cfg.cuda_graphs = cuda_graphs;
     cfg.random_weights = true;  // a benchmark: random init, banner logged
     torch::NoGradGuard no_grad;
     simu::resample::Resampler rs(cfg);

@@ -370,8 +370,11 @@ torch::Tensor clean_depth(torch::Tensor z) {
 
 torch::Tensor read_depth(const std::string& path) {
   const std::string ext = lower_ext(path);
+  // A missing file of a depth format is "not found" whatever this build reads (an image format in a
+  // build without OpenCV included); an unknown extension is reported as such below.
+  const bool depth_format = ext == ".npy" || ext == ".png" || ext == ".tif" || ext == ".tiff" || ext == ".exr";
+  SIMU_CHECK(!depth_format || std::filesystem::exists(path), "{}: depth file not found", path);
   if (ext == ".npy") {
-    SIMU_CHECK(std::filesystem::exists(path), "{}: depth file not found", path);
     auto t = read_npy(path);
     if (t.dim() == 3 && t.size(2) == 1) t = t.squeeze(2);
     if (t.dim() == 3 && t.size(0) == 1) t = t.squeeze(0);

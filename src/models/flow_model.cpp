@@ -297,6 +297,16 @@ std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::context_kv(const tor
 
 torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
   const int64_t B = x.size(0), L = x.size(1);
+  if (k.size(0) < B) {
+    // Rows k.size(0).. of x have an all-zero condition (ConditionCache::zero_from): every key there is
+    // to_kv's bias (through k_rms_norm), the same for all condition tokens, so the softmax is uniform
+    // and the attention output is the value bias itself: to_out(v(0)) for every query, whatever L_c.
+    const int64_t Bk = k.size(0);
+    auto head = attend(x.narrow(0, 0, Bk), k, v);                                        // [Bk, L, C]
+    auto v0 = context_kv(torch::zeros({1, 1, to_kv->in_features}, x.options().dtype(torch::kFloat32))).second;  // [1, 1, H, D]
+    auto tail = to_out->forward(v0.reshape({1, 1, -1})).to(head.scalar_type());         // [1, 1, C]
+    return torch::cat({head, tail.expand({B - Bk, L, tail.size(2)})}, 0);               // [B, L, C]
+  }
   auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
   auto h = attention(q, k, v).reshape({B, L, -1});  // [B, L, C]
@@ -327,7 +337,7 @@ MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, cons
 
 bool fused_path(const torch::Tensor& x) {
   return fused::compiled() && x.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
-         at::autocast::get_autocast_dtype(at::kCUDA) == at::kBFloat16;
+         fused::is_low_precision(at::autocast::get_autocast_dtype(at::kCUDA));
 }
 
 void MOTSelfAttentionImpl::project_qkv_fused(size_t i, const torch::Tensor& x, torch::Tensor& q, torch::Tensor k,
@@ -351,7 +361,7 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward_fused(const std::vector
   }
   std::vector<torch::Tensor> q(S), k(S), v(S), h(S);
   const int64_t D = x[0].size(2) / num_heads;
-  auto k_all = torch::empty({B, L_total, num_heads, D}, x[0].options().dtype(torch::kBFloat16));
+  auto k_all = torch::empty({B, L_total, num_heads, D}, x[0].options().dtype(at::autocast::get_autocast_dtype(at::kCUDA)));
   auto v_all = torch::empty_like(k_all);
   int64_t off_other = 0, off_prot = L_others;
   for (size_t i = 0; i < S; ++i) {
@@ -492,6 +502,8 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   // projection (fused_ops.h); same fp32 arithmetic, one rounding.
   bool fast = fused_kernels && fused_path(x_in[0]) && (one_row || m.size(0) == x_in[0].size(0));
   for (const auto& xi : x_in) fast = fast && fused::supports_layer_norm_affine(xi);
+  // The 16-bit type the fast path stores: the autocast dtype (bf16 in training, fp16 as released).
+  const auto low = fast ? at::autocast::get_autocast_dtype(at::kCUDA) : torch::kBFloat16;
   // The streams share the modulation: in the fast path its fp32 affine rows [1 or B, C] (weight
   // 1 + scale, bias shift) are made once per block and passed in as `affine`.
   using Affine = std::pair<torch::Tensor, torch::Tensor>;
@@ -501,7 +513,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   const Affine affine_msa = affine_of(scale_msa, shift_msa), affine_mlp = affine_of(scale_mlp, shift_mlp);
   auto modulate = [&](LayerNorm32& norm, const torch::Tensor& xi, const torch::Tensor& scale, const torch::Tensor& shift,
                       const Affine& affine) {
-    if (fast) return fused::layer_norm_affine_bf16(xi, affine.first, affine.second, norm->eps);
+    if (fast) return fused::layer_norm_affine_bf16(xi, affine.first, affine.second, norm->eps, low);
     if (one_row) {
       auto w = (1 + scale).reshape({-1}).to(torch::kFloat32), b = shift.reshape({-1}).to(torch::kFloat32);
       return at::layer_norm(xi.to(torch::kFloat32), {xi.size(-1)}, w, b, norm->eps).to(xi.scalar_type());
@@ -514,7 +526,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
                              const torch::Tensor& w, const torch::Tensor& b, double eps) {
       if (fused::supports_residual_layer_norm_affine(xi, hi)) return fused::residual_layer_norm_affine_bf16(xi, hi, gate, w, b, eps);
       auto xn = gate.defined() ? torch::addcmul(xi, hi, gate.unsqueeze(1)) : xi + hi;
-      return std::make_pair(xn, fused::layer_norm_affine_bf16(xn, w, b, eps));
+      return std::make_pair(xn, fused::layer_norm_affine_bf16(xn, w, b, eps, low));
     };
     const auto gate_a = gate_msa.squeeze(1), gate_m = gate_mlp.squeeze(1);  // [1 or B, C]
     std::vector<torch::Tensor> mlp_out(S);
@@ -522,7 +534,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     auto norm1_of = [&](size_t i) {
       if (!incoming.h.empty())
         return residual_norm(x[i], incoming.h[i], incoming.gate, affine_msa.first, affine_msa.second, norm1[i]->eps);
-      return std::make_pair(x[i], fused::layer_norm_affine_bf16(x[i], affine_msa.first, affine_msa.second, norm1[i]->eps));
+      return std::make_pair(x[i], fused::layer_norm_affine_bf16(x[i], affine_msa.first, affine_msa.second, norm1[i]->eps, low));
     };
     // Stream i after self attention (ha): gated residual + norm2 -> cross attention -> residual +
     // modulated norm3 -> MLP; the MLP's gated residual is left to the carry when there is one.
@@ -552,7 +564,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
       inputs_ready.record(main);
       inputs_ready.block(side);
       // Keys/values of both streams, the other's first (the reference's concatenation order).
-      auto k_all = torch::empty({B, Lo + Lp, H, head_dim}, x[p].options().dtype(torch::kBFloat16));
+      auto k_all = torch::empty({B, Lo + Lp, H, head_dim}, x[p].options().dtype(low));
       auto v_all = torch::empty_like(k_all);
       // Protected stream: norm1, q/k/v (its keys into k_all), then the other stream may attend.
       auto [xp, n1p] = norm1_of(p);
@@ -597,7 +609,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   for (size_t i = 0; i < S; ++i) x[i] = torch::addcmul(x[i], h[i], gate_msa);
   // Cross attention over the condition on the affine norm2 (no modulation).
   for (size_t i = 0; i < S; ++i) {
-    auto hi = fast ? fused::layer_norm_affine_bf16(x[i], norm2[i]->weight.unsqueeze(0), norm2[i]->bias.unsqueeze(0), norm2[i]->eps)
+    auto hi = fast ? fused::layer_norm_affine_bf16(x[i], norm2[i]->weight.unsqueeze(0), norm2[i]->bias.unsqueeze(0), norm2[i]->eps, low)
                    : norm2[i]->forward(x[i]);
     x[i] = x[i] + (kv ? cross_attn[i]->attend(hi, (*kv)[i].first, (*kv)[i].second) : cross_attn[i]->forward(hi, cond));
   }
@@ -684,16 +696,37 @@ void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap(bool on) {
   for (auto& block : block_list_) block->stream_overlap = on;
 }
 
-ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond) {
+ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond, int64_t zero_from) {
+  SIMU_CHECK(zero_from < 0 || (zero_from > 0 && zero_from <= cond.size(0)),
+             "condition_cache: zero_from {} must be in [1, {}] (or negative: none)", zero_from, cond.size(0));
   ConditionCache cache;
   cache.cond = cond;
-  auto cond32 = cond.to(torch::kFloat32);
+  cache.zero_from = zero_from;
+  auto cond32 = (zero_from >= 0 ? cond.narrow(0, 0, zero_from) : cond).to(torch::kFloat32);
   for (auto& block : block_list_) {
     std::vector<std::pair<torch::Tensor, torch::Tensor>> per_stream;
     for (auto& ca : block->cross_attn) per_stream.push_back(ca->context_kv(cond32));
     cache.kv.push_back(std::move(per_stream));
   }
   return cache;
+}
+
+void SparseStructureFlowTdfyWrapperImpl::condition_cache_into(const torch::Tensor& cond, ConditionCache& dst) {
+  SIMU_CHECK(dst.kv.size() == block_list_.size(), "condition_cache_into: the cache has {} blocks, the model {}", dst.kv.size(),
+             block_list_.size());
+  auto cond32 = (dst.zero_from >= 0 ? cond.narrow(0, 0, dst.zero_from) : cond).to(torch::kFloat32);
+  for (size_t b = 0; b < block_list_.size(); ++b) {
+    auto& per_stream = dst.kv[b];
+    SIMU_CHECK(per_stream.size() == block_list_[b]->cross_attn.size(), "condition_cache_into: stream count differs");
+    for (size_t i = 0; i < per_stream.size(); ++i) {
+      auto [k, v] = block_list_[b]->cross_attn[i]->context_kv(cond32);
+      SIMU_CHECK(k.sizes() == per_stream[i].first.sizes() && v.sizes() == per_stream[i].second.sizes(),
+                 "condition_cache_into: keys [{}] do not fit the cache's [{}]", fmt::join(k.sizes(), ", "),
+                 fmt::join(per_stream[i].first.sizes(), ", "));
+      per_stream[i].first.copy_(k);
+      per_stream[i].second.copy_(v);
+    }
+  }
 }
 
 Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
@@ -737,11 +770,11 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   }
   const auto input_dtype = h.front().scalar_type();
   for (auto& hi : h) hi = hi.to(torch::kFloat32);
-  // The condition once in the dtype its projections use: bf16 under CUDA bf16 autocast (the cast every
-  // to_kv would otherwise repeat, same values), else fp32.
-  const bool bf16_autocast = cond.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
-                             at::autocast::get_autocast_dtype(at::kCUDA) == at::kBFloat16;
-  auto cond32 = cond.to(bf16_autocast ? torch::kBFloat16 : torch::kFloat32);
+  // The condition once in the dtype its projections use: bf16 / fp16 under CUDA autocast in that dtype
+  // (the cast every to_kv would otherwise repeat, same values), else fp32.
+  const bool low_autocast = cond.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
+                            fused::is_low_precision(at::autocast::get_autocast_dtype(at::kCUDA));
+  auto cond32 = cond.to(low_autocast ? at::autocast::get_autocast_dtype(at::kCUDA) : torch::kFloat32);
 
   // Transformer blocks; each leaves its last residual to the next one's first LayerNorm (fused path).
   ResidualCarry carry;

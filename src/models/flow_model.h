@@ -157,6 +157,8 @@ class CrossAttentionImpl : public torch::nn::Module {
   // Keys (RMS-normed when enabled) and values of the context: [B, Lc, H, D] each.
   std::pair<torch::Tensor, torch::Tensor> context_kv(const torch::Tensor& context);
   // Attention of x over precomputed keys/values, then to_out: [B, L, C].
+  // k, v may hold fewer batch rows than x: the rows past them have an all-zero condition
+  // (ConditionCache::zero_from) and get to_out(value bias), what attention over identical keys gives.
   torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
   Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
@@ -195,6 +197,10 @@ TORCH_MODULE(MOTSelfAttention);
 struct ConditionCache {
   torch::Tensor cond;  // the condition they were computed from
   std::vector<std::vector<std::pair<torch::Tensor, torch::Tensor>>> kv;
+  // >= 0: rows [zero_from, B) of cond are all zero (CFG's unconditional half with force_zeros_cond):
+  // kv holds rows [0, zero_from) only, and cross attention gives those rows the value bias directly
+  // (CrossAttentionImpl::attend: identical keys, uniform softmax), not an attention over L_c tokens.
+  int64_t zero_from = -1;
 };
 
 // One MOT block: adaLN-modulated self attention, cross attention, MLP; per-stream weights.
@@ -276,15 +282,20 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   Latents forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
                   const c10::optional<torch::Tensor>& d = c10::nullopt, const ConditionCache* cache = nullptr);
   // Cross-attention keys/values of cond for every block (run under the same autocast as forward).
-  ConditionCache condition_cache(const torch::Tensor& cond);
+  // zero_from >= 0: the caller guarantees rows [zero_from, B) of cond are all zero (see ConditionCache).
+  ConditionCache condition_cache(const torch::Tensor& cond, int64_t zero_from = -1);
+  // The same keys/values written into an existing cache's tensors (same shapes; dst.cond is left as it
+  // is): the buffers a CUDA graph reads stay where they are. One block's keys/values exist at a time.
+  // (dst.zero_from applies as in condition_cache.)
+  void condition_cache_into(const torch::Tensor& cond, ConditionCache& dst);
 
   const FlowModelConfig& config() const { return config_; }
   // Every transformer block of forward runs through wrapper (empty: blocks run directly).
   void set_block_wrapper(BlockWrapper wrapper) { block_wrapper_ = std::move(wrapper); }
 
   // Fused CUDA kernels (fused_ops.h) replace the plain ATen ops for the norms, modulation, residuals and
-  // q/k RMS norm when fused_path() holds: CUDA and bf16 autocast. On by default; the same results up to
-  // bf16 rounding order. With a graph (grad mode) only the kernels that have a backward run; without
+  // q/k RMS norm when fused_path() holds: CUDA and bf16 or fp16 autocast. On by default; the same results up to
+  // 16-bit rounding order. With a graph (grad mode) only the kernels that have a backward run; without
   // one, also the inference-only ones (GELU epilogue, q/k/v into the key/value buffer, second stream).
   void set_fused_kernels(bool on);
   bool fused_kernels() const { return fused_kernels_; }
@@ -311,7 +322,7 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 
 // True when the fused kernels may replace the reference ops for activations like x: they were compiled
-// in, x is on CUDA and CUDA autocast runs in bf16. (The inference-only ones also need grad mode off.)
+// in, x is on CUDA and CUDA autocast runs in bf16 or fp16. (The inference-only ones also need grad mode off.)
 bool fused_path(const torch::Tensor& x);
 
 // Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:

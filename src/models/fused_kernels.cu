@@ -7,6 +7,23 @@ namespace simu::models::kernels {
 
 namespace {
 
+// The 16-bit storage types of the kernels: bf16 (training, bf16 autocast) and fp16 (the released
+// inference precision). Pairs of values are read and written as one 4-byte word.
+template <typename T>
+struct Half2;
+template <>
+struct Half2<__nv_bfloat16> {
+  using T2 = __nv_bfloat162;
+  static __device__ __forceinline__ float2 to_float2(T2 v) { return __bfloat1622float2(v); }
+  static __device__ __forceinline__ T2 pack(float a, float b) { return __floats2bfloat162_rn(a, b); }
+};
+template <>
+struct Half2<__half> {
+  using T2 = __half2;
+  static __device__ __forceinline__ float2 to_float2(T2 v) { return __half22float2(v); }
+  static __device__ __forceinline__ T2 pack(float a, float b) { return __floats2half2_rn(a, b); }
+};
+
 __device__ __forceinline__ float warp_sum(float v) {
   for (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync(0xffffffffu, v, o);
   return v;
@@ -32,10 +49,10 @@ __device__ __forceinline__ void row_mean_rstd(const float4 (&v)[VPL], float eps,
 
 // The LayerNorm + affine of one row held in registers by one warp (row_mean_rstd), then
 // y = (v - mean) * rstd * w + b stored as bf16.
-template <int VPL>
+template <typename T, int VPL>
 __device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], int lane, int64_t row,
                                                         const float* __restrict__ w, const float* __restrict__ b,
-                                                        __nv_bfloat16* __restrict__ y, int64_t rows_per_w, float eps) {
+                                                        T* __restrict__ y, int64_t rows_per_w, float eps) {
   constexpr int C = 128 * VPL;
   float mean, rstd;
   row_mean_rstd<VPL>(v, eps, mean, rstd);
@@ -43,7 +60,7 @@ __device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], 
   const int64_t wr = row / rows_per_w;
   const float4* wv = reinterpret_cast<const float4*>(w + wr * C);
   const float4* bv = b ? reinterpret_cast<const float4*>(b + wr * C) : nullptr;
-  __nv_bfloat162* yr = reinterpret_cast<__nv_bfloat162*>(y + row * C);
+  typename Half2<T>::T2* yr = reinterpret_cast<typename Half2<T>::T2*>(y + row * C);
 #pragma unroll
   for (int i = 0; i < VPL; ++i) {
     const int j = lane + 32 * i;
@@ -51,15 +68,15 @@ __device__ __forceinline__ void layer_norm_affine_store(const float4 (&v)[VPL], 
     const float4 bb = bv ? bv[j] : make_float4(0.f, 0.f, 0.f, 0.f);
     const float o0 = (v[i].x - mean) * rstd * ww.x + bb.x, o1 = (v[i].y - mean) * rstd * ww.y + bb.y;
     const float o2 = (v[i].z - mean) * rstd * ww.z + bb.z, o3 = (v[i].w - mean) * rstd * ww.w + bb.w;
-    yr[2 * j] = __floats2bfloat162_rn(o0, o1);
-    yr[2 * j + 1] = __floats2bfloat162_rn(o2, o3);
+    yr[2 * j] = Half2<T>::pack(o0, o1);
+    yr[2 * j + 1] = Half2<T>::pack(o2, o3);
   }
 }
 
 // One warp per row; each lane keeps VPL float4 of the row in registers (C = 128 * VPL).
-template <int VPL>
-__global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const float* __restrict__ w,
-                                              const float* __restrict__ b, __nv_bfloat16* __restrict__ y, int64_t rows,
+template <typename T, int VPL>
+__global__ void layer_norm_affine_kernel(const float* __restrict__ x, const float* __restrict__ w,
+                                              const float* __restrict__ b, T* __restrict__ y, int64_t rows,
                                               int64_t rows_per_w, float eps) {
   constexpr int C = 128 * VPL;
   const int lane = threadIdx.x & 31;
@@ -69,23 +86,23 @@ __global__ void layer_norm_affine_bf16_kernel(const float* __restrict__ x, const
   float4 v[VPL];
 #pragma unroll
   for (int i = 0; i < VPL; ++i) v[i] = xr[lane + 32 * i];
-  layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
+  layer_norm_affine_store<T, VPL>(v, lane, row, w, b, y, rows_per_w, eps);
 }
 
-// layer_norm_affine_bf16_kernel with the residual update in front: x_out = x + h * gate (fp32), then
+// layer_norm_affine_kernel with the residual update in front: x_out = x + h * gate (fp32), then
 // the LayerNorm + affine of x_out stored as bf16. One warp per row, VPL float4 per lane.
-template <int VPL>
-__global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__ x, const __nv_bfloat16* __restrict__ h,
+template <typename T, int VPL>
+__global__ void residual_layer_norm_affine_kernel(const float* __restrict__ x, const T* __restrict__ h,
                                                        const float* __restrict__ gate, int64_t rows_per_gate,
                                                        float* __restrict__ x_out, const float* __restrict__ w,
-                                                       const float* __restrict__ b, __nv_bfloat16* __restrict__ y,
+                                                       const float* __restrict__ b, T* __restrict__ y,
                                                        int64_t rows, int64_t rows_per_w, float eps) {
   constexpr int C = 128 * VPL;
   const int lane = threadIdx.x & 31;
   const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
   if (row >= rows) return;
   const float4* xr = reinterpret_cast<const float4*>(x + row * C);
-  const __nv_bfloat162* hr = reinterpret_cast<const __nv_bfloat162*>(h + row * C);
+  const typename Half2<T>::T2* hr = reinterpret_cast<const typename Half2<T>::T2*>(h + row * C);
   const float4* gr = gate ? reinterpret_cast<const float4*>(gate + (row / rows_per_gate) * C) : nullptr;
   float4* xo = reinterpret_cast<float4*>(x_out + row * C);
   // Residual update (x + h * gate, as addcmul computes it), written out.
@@ -94,7 +111,7 @@ __global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__
   for (int i = 0; i < VPL; ++i) {
     const int j = lane + 32 * i;
     const float4 a = xr[j];
-    const float2 h01 = __bfloat1622float2(hr[2 * j]), h23 = __bfloat1622float2(hr[2 * j + 1]);
+    const float2 h01 = Half2<T>::to_float2(hr[2 * j]), h23 = Half2<T>::to_float2(hr[2 * j + 1]);
     if (gr) {
       const float4 g = gr[j];
       v[i] = make_float4(a.x + h01.x * g.x, a.y + h01.y * g.y, a.z + h23.x * g.z, a.w + h23.y * g.w);
@@ -103,7 +120,7 @@ __global__ void residual_layer_norm_affine_bf16_kernel(const float* __restrict__
     }
     xo[j] = v[i];
   }
-  layer_norm_affine_store<VPL>(v, lane, row, w, b, y, rows_per_w, eps);
+  layer_norm_affine_store<T, VPL>(v, lane, row, w, b, y, rows_per_w, eps);
 }
 
 // The (batch, token, head) item of this warp over B x L x H items (bl = batch * L + token); false past
@@ -123,8 +140,8 @@ __device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, TokenHea
 }
 
 // One warp per (token, head); each lane handles D / 64 pairs of channels of q, k and v.
-template <int PPL>
-__global__ void split_qkv_rms_norm_kernel(const __nv_bfloat16* __restrict__ qkv, const float* __restrict__ gq,
+template <typename T, int PPL>
+__global__ void split_qkv_rms_norm_kernel(const T* __restrict__ qkv, const float* __restrict__ gq,
                                           const float* __restrict__ gk, float scale, QkvOut q, QkvOut k, QkvOut v,
                                           int B, int L, int H) {
   constexpr int D = 64 * PPL;
@@ -134,32 +151,32 @@ __global__ void split_qkv_rms_norm_kernel(const __nv_bfloat16* __restrict__ qkv,
   const int h = th.h, l = th.l, bi = th.bi;
   const int64_t bl = th.bl;
   const int64_t HD = static_cast<int64_t>(H) * D;
-  const __nv_bfloat162* src = reinterpret_cast<const __nv_bfloat162*>(qkv + bl * 3 * HD + static_cast<int64_t>(h) * D);
+  const typename Half2<T>::T2* src = reinterpret_cast<const typename Half2<T>::T2*>(qkv + bl * 3 * HD + static_cast<int64_t>(h) * D);
   const int64_t off = static_cast<int64_t>(h) * D;
-  // q and k: fp32 L2 norm over the head's D channels, then * gamma * scale, rounded once to bf16.
+  // q and k: fp32 L2 norm over the head's D channels, then * gamma * scale, rounded once to T.
 #pragma unroll
   for (int part = 0; part < 2; ++part) {
-    const __nv_bfloat162* s = src + part * (HD / 2);
+    const typename Half2<T>::T2* s = src + part * (HD / 2);
     float2 f[PPL];
     float ss = 0.f;
 #pragma unroll
     for (int i = 0; i < PPL; ++i) {
-      f[i] = __bfloat1622float2(s[lane + 32 * i]);
+      f[i] = Half2<T>::to_float2(s[lane + 32 * i]);
       ss += f[i].x * f[i].x + f[i].y * f[i].y;
     }
     const float inv = 1.f / fmaxf(sqrtf(warp_sum(ss)), 1e-12f);
     const float* g = (part == 0 ? gq : gk) + off;
     const QkvOut& o = part == 0 ? q : k;
-    __nv_bfloat162* dst = reinterpret_cast<__nv_bfloat162*>(o.ptr + bi * o.sb + l * o.sl + off);
+    typename Half2<T>::T2* dst = reinterpret_cast<typename Half2<T>::T2*>(static_cast<T*>(o.ptr) + bi * o.sb + l * o.sl + off);
 #pragma unroll
     for (int i = 0; i < PPL; ++i) {
       const int j = lane + 32 * i;
-      dst[j] = __floats2bfloat162_rn(f[i].x * inv * (g[2 * j] * scale), f[i].y * inv * (g[2 * j + 1] * scale));
+      dst[j] = Half2<T>::pack(f[i].x * inv * (g[2 * j] * scale), f[i].y * inv * (g[2 * j + 1] * scale));
     }
   }
   // v: copied.
-  const __nv_bfloat162* sv = src + HD;
-  __nv_bfloat162* dv = reinterpret_cast<__nv_bfloat162*>(v.ptr + bi * v.sb + l * v.sl + off);
+  const typename Half2<T>::T2* sv = src + HD;
+  typename Half2<T>::T2* dv = reinterpret_cast<typename Half2<T>::T2*>(static_cast<T*>(v.ptr) + bi * v.sb + l * v.sl + off);
 #pragma unroll
   for (int i = 0; i < PPL; ++i) dv[lane + 32 * i] = sv[lane + 32 * i];
 }
@@ -170,12 +187,12 @@ __global__ void split_qkv_rms_norm_kernel(const __nv_bfloat16* __restrict__ qkv,
 //   dx = rstd * (g - mean(g) - xhat * mean(g * xhat)) [+ gx_in],
 // and with dh: dh = dx * gate (bf16; gate null: dx), the gradient of the residual's sublayer output.
 // mean and rstd are recomputed from x as in the forward. gy null: no LayerNorm gradient (dx = gx_in).
-template <int VPL>
+template <typename T, int VPL>
 __global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, const float* __restrict__ w,
-                                                  int64_t rows_per_w, const __nv_bfloat16* __restrict__ gy,
+                                                  int64_t rows_per_w, const T* __restrict__ gy,
                                                   const float* __restrict__ gx_in, const float* __restrict__ gate,
                                                   int64_t rows_per_gate, float* __restrict__ dx,
-                                                  __nv_bfloat16* __restrict__ dh, int64_t rows, float eps) {
+                                                  T* __restrict__ dh, int64_t rows, float eps) {
   constexpr int C = 128 * VPL;
   const int lane = threadIdx.x & 31;
   const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
@@ -185,13 +202,13 @@ __global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, c
   if (gy) {
     const float4* xr = reinterpret_cast<const float4*>(x + row * C);
     const float4* wv = reinterpret_cast<const float4*>(w + (row / rows_per_w) * C);
-    const __nv_bfloat162* gr = reinterpret_cast<const __nv_bfloat162*>(gy + row * C);
+    const typename Half2<T>::T2* gr = reinterpret_cast<const typename Half2<T>::T2*>(gy + row * C);
 #pragma unroll
     for (int i = 0; i < VPL; ++i) {
       const int j = lane + 32 * i;
       v[i] = xr[j];
       const float4 ww = wv[j];
-      const float2 g01 = __bfloat1622float2(gr[2 * j]), g23 = __bfloat1622float2(gr[2 * j + 1]);
+      const float2 g01 = Half2<T>::to_float2(gr[2 * j]), g23 = Half2<T>::to_float2(gr[2 * j + 1]);
       g[i] = make_float4(g01.x * ww.x, g01.y * ww.y, g23.x * ww.z, g23.y * ww.w);
     }
     float mean, rstd;
@@ -217,7 +234,7 @@ __global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, c
   const float4* gi = gx_in ? reinterpret_cast<const float4*>(gx_in + row * C) : nullptr;
   const float4* gt = gate ? reinterpret_cast<const float4*>(gate + (row / rows_per_gate) * C) : nullptr;
   float4* dxr = reinterpret_cast<float4*>(dx + row * C);
-  __nv_bfloat162* dhr = dh ? reinterpret_cast<__nv_bfloat162*>(dh + row * C) : nullptr;
+  typename Half2<T>::T2* dhr = dh ? reinterpret_cast<typename Half2<T>::T2*>(dh + row * C) : nullptr;
 #pragma unroll
   for (int i = 0; i < VPL; ++i) {
     const int j = lane + 32 * i;
@@ -229,8 +246,8 @@ __global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, c
     dxr[j] = d;
     if (dhr) {
       const float4 m = gt ? gt[j] : make_float4(1.f, 1.f, 1.f, 1.f);
-      dhr[2 * j] = __floats2bfloat162_rn(d.x * m.x, d.y * m.y);
-      dhr[2 * j + 1] = __floats2bfloat162_rn(d.z * m.z, d.w * m.w);
+      dhr[2 * j] = Half2<T>::pack(d.x * m.x, d.y * m.y);
+      dhr[2 * j + 1] = Half2<T>::pack(d.z * m.z, d.w * m.w);
     }
   }
 }
@@ -238,10 +255,10 @@ __global__ void layer_norm_affine_backward_kernel(const float* __restrict__ x, c
 // Backward of split_qkv_rms_norm_kernel: one warp per (token, head). For q and k,
 //   u = dy * gamma * scale, n = |x|: dx = u / n - x * (u . x) / n^3 (n > 1e-12; else u / 1e-12);
 // v's gradient is copied. Incoming gradients are read through strides (null: zero).
-template <int PPL>
-__global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restrict__ qkv, const float* __restrict__ gq,
+template <typename T, int PPL>
+__global__ void split_qkv_rms_norm_backward_kernel(const T* __restrict__ qkv, const float* __restrict__ gq,
                                                    const float* __restrict__ gk, float scale, QkvGrad dq, QkvGrad dk,
-                                                   QkvGrad dv, __nv_bfloat16* __restrict__ dqkv, int B, int L, int H) {
+                                                   QkvGrad dv, T* __restrict__ dqkv, int B, int L, int H) {
   constexpr int D = 64 * PPL;
   const int lane = threadIdx.x & 31;
   TokenHead th;
@@ -249,17 +266,17 @@ __global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restri
   const int h = th.h, l = th.l, bi = th.bi;
   const int64_t bl = th.bl;
   const int64_t HD = static_cast<int64_t>(H) * D, off = static_cast<int64_t>(h) * D;
-  const __nv_bfloat162* src = reinterpret_cast<const __nv_bfloat162*>(qkv + bl * 3 * HD + off);
-  __nv_bfloat162* dst = reinterpret_cast<__nv_bfloat162*>(dqkv + bl * 3 * HD + off);
+  const typename Half2<T>::T2* src = reinterpret_cast<const typename Half2<T>::T2*>(qkv + bl * 3 * HD + off);
+  typename Half2<T>::T2* dst = reinterpret_cast<typename Half2<T>::T2*>(dqkv + bl * 3 * HD + off);
 #pragma unroll
   for (int part = 0; part < 3; ++part) {
     const QkvGrad& gsrc = part == 0 ? dq : part == 1 ? dk : dv;
-    __nv_bfloat162* o = dst + part * (HD / 2);
-    const __nv_bfloat162* gp =
-        gsrc.ptr ? reinterpret_cast<const __nv_bfloat162*>(gsrc.ptr + bi * gsrc.sb + l * gsrc.sl + h * gsrc.sh) : nullptr;
+    typename Half2<T>::T2* o = dst + part * (HD / 2);
+    const typename Half2<T>::T2* gp =
+        gsrc.ptr ? reinterpret_cast<const typename Half2<T>::T2*>(static_cast<const T*>(gsrc.ptr) + bi * gsrc.sb + l * gsrc.sl + h * gsrc.sh) : nullptr;
     if (!gp) {
 #pragma unroll
-      for (int i = 0; i < PPL; ++i) o[lane + 32 * i] = __floats2bfloat162_rn(0.f, 0.f);
+      for (int i = 0; i < PPL; ++i) o[lane + 32 * i] = Half2<T>::pack(0.f, 0.f);
       continue;
     }
     if (part == 2) {
@@ -267,15 +284,15 @@ __global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restri
       for (int i = 0; i < PPL; ++i) o[lane + 32 * i] = gp[lane + 32 * i];
       continue;
     }
-    const __nv_bfloat162* s = src + part * (HD / 2);
+    const typename Half2<T>::T2* s = src + part * (HD / 2);
     const float* g = (part == 0 ? gq : gk) + off;
     float2 xv[PPL], u[PPL];
     float ss = 0.f, ux = 0.f;
 #pragma unroll
     for (int i = 0; i < PPL; ++i) {
       const int j = lane + 32 * i;
-      xv[i] = __bfloat1622float2(s[j]);
-      const float2 dy = __bfloat1622float2(gp[j]);
+      xv[i] = Half2<T>::to_float2(s[j]);
+      const float2 dy = Half2<T>::to_float2(gp[j]);
       u[i] = make_float2(dy.x * (g[2 * j] * scale), dy.y * (g[2 * j + 1] * scale));
       ss += xv[i].x * xv[i].x + xv[i].y * xv[i].y;
       ux += u[i].x * xv[i].x + u[i].y * xv[i].y;
@@ -287,7 +304,7 @@ __global__ void split_qkv_rms_norm_backward_kernel(const __nv_bfloat16* __restri
     const float c = clamped ? 0.f : dot * r * r * r;
 #pragma unroll
     for (int i = 0; i < PPL; ++i)
-      o[lane + 32 * i] = __floats2bfloat162_rn(u[i].x * r - xv[i].x * c, u[i].y * r - xv[i].y * c);
+      o[lane + 32 * i] = Half2<T>::pack(u[i].x * r - xv[i].x * c, u[i].y * r - xv[i].y * c);
   }
 }
 }  // namespace
@@ -327,47 +344,67 @@ const dim3 kBlock(32 * kWarps);
 
 }  // namespace
 
-cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
-                                   int64_t rows_per_w, int C, float eps, cudaStream_t stream) {
+template <typename T>
+cudaError_t layer_norm_affine(const float* x, const float* w, const float* b, T* y, int64_t rows, int64_t rows_per_w,
+                              int C, float eps, cudaStream_t stream) {
   return by_channels(C, [&](auto v) {
-    layer_norm_affine_bf16_kernel<decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps);
+    layer_norm_affine_kernel<T, decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(x, w, b, y, rows, rows_per_w, eps);
   });
 }
 
-cudaError_t residual_layer_norm_affine_bf16(const float* x, const __nv_bfloat16* h, const float* gate,
-                                            int64_t rows_per_gate, float* x_out, const float* w, const float* b,
-                                            __nv_bfloat16* y, int64_t rows, int64_t rows_per_w, int C, float eps,
-                                            cudaStream_t stream) {
+template <typename T>
+cudaError_t residual_layer_norm_affine(const float* x, const T* h, const float* gate, int64_t rows_per_gate, float* x_out,
+                                       const float* w, const float* b, T* y, int64_t rows, int64_t rows_per_w, int C,
+                                       float eps, cudaStream_t stream) {
   return by_channels(C, [&](auto v) {
-    residual_layer_norm_affine_bf16_kernel<decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
+    residual_layer_norm_affine_kernel<T, decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
         x, h, gate, rows_per_gate, x_out, w, b, y, rows, rows_per_w, eps);
   });
 }
 
-cudaError_t split_qkv_rms_norm(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale, QkvOut q,
-                               QkvOut k, QkvOut v, int B, int L, int H, int D, cudaStream_t stream) {
+template <typename T>
+cudaError_t split_qkv_rms_norm(const T* qkv, const float* gq, const float* gk, float scale, QkvOut q, QkvOut k, QkvOut v,
+                               int B, int L, int H, int D, cudaStream_t stream) {
   return by_head_dim(D, [&](auto p) {
-    split_qkv_rms_norm_kernel<decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
+    split_qkv_rms_norm_kernel<T, decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
         qkv, gq, gk, scale, q, k, v, B, L, H);
   });
 }
 
-cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const __nv_bfloat16* gy,
-                                       const float* gx_in, const float* gate, int64_t rows_per_gate, float* dx,
-                                       __nv_bfloat16* dh, int64_t rows, int C, float eps, cudaStream_t stream) {
+template <typename T>
+cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const T* gy, const float* gx_in,
+                                       const float* gate, int64_t rows_per_gate, float* dx, T* dh, int64_t rows, int C,
+                                       float eps, cudaStream_t stream) {
   return by_channels(C, [&](auto v) {
-    layer_norm_affine_backward_kernel<decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
+    layer_norm_affine_backward_kernel<T, decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
         x, w, rows_per_w, gy, gx_in, gate, rows_per_gate, dx, dh, rows, eps);
   });
 }
 
-cudaError_t split_qkv_rms_norm_backward(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale,
-                                        QkvGrad dq, QkvGrad dk, QkvGrad dv, __nv_bfloat16* dqkv, int B, int L, int H,
-                                        int D, cudaStream_t stream) {
+template <typename T>
+cudaError_t split_qkv_rms_norm_backward(const T* qkv, const float* gq, const float* gk, float scale, QkvGrad dq, QkvGrad dk,
+                                        QkvGrad dv, T* dqkv, int B, int L, int H, int D, cudaStream_t stream) {
   return by_head_dim(D, [&](auto p) {
-    split_qkv_rms_norm_backward_kernel<decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
+    split_qkv_rms_norm_backward_kernel<T, decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
         qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H);
   });
 }
+
+// The two storage types.
+#define SIMU_INSTANTIATE(T)                                                                                              \
+  template cudaError_t layer_norm_affine<T>(const float*, const float*, const float*, T*, int64_t, int64_t, int, float,  \
+                                            cudaStream_t);                                                               \
+  template cudaError_t residual_layer_norm_affine<T>(const float*, const T*, const float*, int64_t, float*, const float*, \
+                                                     const float*, T*, int64_t, int64_t, int, float, cudaStream_t);      \
+  template cudaError_t split_qkv_rms_norm<T>(const T*, const float*, const float*, float, QkvOut, QkvOut, QkvOut, int,   \
+                                             int, int, int, cudaStream_t);                                               \
+  template cudaError_t layer_norm_affine_backward<T>(const float*, const float*, int64_t, const T*, const float*,        \
+                                                     const float*, int64_t, float*, T*, int64_t, int, float,             \
+                                                     cudaStream_t);                                                      \
+  template cudaError_t split_qkv_rms_norm_backward<T>(const T*, const float*, const float*, float, QkvGrad, QkvGrad,     \
+                                                      QkvGrad, T*, int, int, int, int, cudaStream_t);
+SIMU_INSTANTIATE(__nv_bfloat16)
+SIMU_INSTANTIATE(__half)
+#undef SIMU_INSTANTIATE
 
 }  // namespace simu::models::kernels

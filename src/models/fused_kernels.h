@@ -1,52 +1,58 @@
 // Launchers of the flow model's fused CUDA kernels (src/models/fused_kernels.cu). Plain pointers and a
 // stream so that the .cu file needs no torch headers; the checked, tensor-level API is fused_ops.h.
+// T, the 16-bit storage type, is __nv_bfloat16 (bf16 autocast, training) or __half (fp16 autocast, the
+// released inference precision); both are instantiated. Arithmetic is fp32 either way.
 #pragma once
 
 #include <cstdint>
 
 #include <cuda_bf16.h>
+#include <cuda_fp16.h>
 #include <cuda_runtime_api.h>
 
 namespace simu::models::kernels {
 
-// y[r, :] = (x[r, :] - mean) * rstd * w[r / rows_per_w, :] + b[r / rows_per_w, :] in fp32, stored as bf16.
+// y[r, :] = (x[r, :] - mean) * rstd * w[r / rows_per_w, :] + b[r / rows_per_w, :] in fp32, stored as T.
 // x: [rows, C] fp32 contiguous; w, b: [rows / rows_per_w, C] fp32 (b may be null); C % 128 == 0, C <= 1024.
-cudaError_t layer_norm_affine_bf16(const float* x, const float* w, const float* b, __nv_bfloat16* y, int64_t rows,
-                                   int64_t rows_per_w, int C, float eps, cudaStream_t stream);
+template <typename T>
+cudaError_t layer_norm_affine(const float* x, const float* w, const float* b, T* y, int64_t rows, int64_t rows_per_w,
+                              int C, float eps, cudaStream_t stream);
 
 // x_out[r, :] = x[r, :] + h[r, :] * gate[r / rows_per_gate, :] (gate null: + h) in fp32, then
-// y = layer_norm_affine_bf16(x_out, w, b). h: [rows, C] bf16 contiguous; gate: [rows / rows_per_gate, C] fp32.
-cudaError_t residual_layer_norm_affine_bf16(const float* x, const __nv_bfloat16* h, const float* gate,
-                                            int64_t rows_per_gate, float* x_out, const float* w, const float* b,
-                                            __nv_bfloat16* y, int64_t rows, int64_t rows_per_w, int C, float eps,
-                                            cudaStream_t stream);
+// y = layer_norm_affine(x_out, w, b). h: [rows, C] T contiguous; gate: [rows / rows_per_gate, C] fp32.
+template <typename T>
+cudaError_t residual_layer_norm_affine(const float* x, const T* h, const float* gate, int64_t rows_per_gate, float* x_out,
+                                       const float* w, const float* b, T* y, int64_t rows, int64_t rows_per_w, int C,
+                                       float eps, cudaStream_t stream);
 
-// From a fused projection qkv [B, L, 3, H, D] (bf16, contiguous) writes, per token and head,
-//   q = bf16(q / max(|q|, 1e-12) * gq[h] * scale), k likewise with gk, v copied,
-// into outputs addressed as out + b*sb + l*sl + h*D + d (strides in elements). D % 64 == 0, D <= 256.
+// From a fused projection qkv [B, L, 3, H, D] (T, contiguous) writes, per token and head,
+//   q = T(q / max(|q|, 1e-12) * gq[h] * scale), k likewise with gk, v copied,
+// into outputs (of type T) addressed as out + b*sb + l*sl + h*D + d (strides in elements). D % 64 == 0, D <= 256.
 struct QkvOut {
-  __nv_bfloat16* ptr;
+  void* ptr;
   int64_t sb, sl;
 };
-cudaError_t split_qkv_rms_norm(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale, QkvOut q,
-                               QkvOut k, QkvOut v, int B, int L, int H, int D, cudaStream_t stream);
+template <typename T>
+cudaError_t split_qkv_rms_norm(const T* qkv, const float* gq, const float* gk, float scale, QkvOut q, QkvOut k, QkvOut v,
+                               int B, int L, int H, int D, cudaStream_t stream);
 
-// Backward of layer_norm_affine_bf16 (and of residual_layer_norm_affine_bf16) with respect to x only:
+// Backward of layer_norm_affine (and of residual_layer_norm_affine) with respect to x only:
 //   dx = LN'(x)^T (gy * w[r / rows_per_w]) + gx_in   (fp32; gy null: LayerNorm term 0; gx_in null: 0)
-//   dh = dx * gate[r / rows_per_gate] stored as bf16 (gate null: dx; dh null: not written).
-// x: the LayerNorm's fp32 input [rows, C]; gy: [rows, C] bf16; mean/rstd are recomputed from x.
-cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const __nv_bfloat16* gy,
-                                       const float* gx_in, const float* gate, int64_t rows_per_gate, float* dx,
-                                       __nv_bfloat16* dh, int64_t rows, int C, float eps, cudaStream_t stream);
+//   dh = dx * gate[r / rows_per_gate] stored as T (gate null: dx; dh null: not written).
+// x: the LayerNorm's fp32 input [rows, C]; gy: [rows, C] T; mean/rstd are recomputed from x.
+template <typename T>
+cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t rows_per_w, const T* gy, const float* gx_in,
+                                       const float* gate, int64_t rows_per_gate, float* dx, T* dh, int64_t rows, int C,
+                                       float eps, cudaStream_t stream);
 
-// Backward of split_qkv_rms_norm: the gradients of q, k, v ([B, L, H, D] bf16 read at
-// ptr + b*sb + l*sl + h*sh + d; ptr null: zero) -> dqkv [B, L, 3, H, D] bf16 contiguous.
+// Backward of split_qkv_rms_norm: the gradients of q, k, v ([B, L, H, D] T read at
+// ptr + b*sb + l*sl + h*sh + d; ptr null: zero) -> dqkv [B, L, 3, H, D] T contiguous.
 struct QkvGrad {
-  const __nv_bfloat16* ptr;
+  const void* ptr;
   int64_t sb, sl, sh;
 };
-cudaError_t split_qkv_rms_norm_backward(const __nv_bfloat16* qkv, const float* gq, const float* gk, float scale,
-                                        QkvGrad dq, QkvGrad dk, QkvGrad dv, __nv_bfloat16* dqkv, int B, int L, int H,
-                                        int D, cudaStream_t stream);
+template <typename T>
+cudaError_t split_qkv_rms_norm_backward(const T* qkv, const float* gq, const float* gk, float scale, QkvGrad dq, QkvGrad dk,
+                                        QkvGrad dv, T* dqkv, int B, int L, int H, int D, cudaStream_t stream);
 
 }  // namespace simu::models::kernels

@@ -25,7 +25,22 @@ std::atomic<int64_t> g_launches{0};
 void check_cuda(cudaError_t e, const char* what) {
   SIMU_CHECK(e == cudaSuccess, "fused kernel {}: {}", what, cudaGetErrorString(e));
 }
+
+// Calls f(T{}) with T the kernels' storage type of dtype (bf16 or fp16).
+template <typename F>
+void by_dtype(torch::ScalarType dtype, F&& f) {
+  if (dtype == torch::kHalf) f(__half{});
+  else f(__nv_bfloat16{});
+}
+template <typename T>
+T* ptr(const torch::Tensor& t) {
+  return reinterpret_cast<T*>(t.data_ptr());
+}
 #endif
+
+void check_low(torch::ScalarType dtype, const char* what) {
+  SIMU_CHECK(is_low_precision(dtype), "{}: the output dtype must be bfloat16 or float16, got {}", what, c10::toString(dtype));
+}
 
 // [B, L, H, D] output view with the last two dims contiguous: (batch stride, token stride) in elements.
 void check_out(const torch::Tensor& o, const torch::Tensor& qkv, const char* name) {
@@ -33,13 +48,16 @@ void check_out(const torch::Tensor& o, const torch::Tensor& qkv, const char* nam
                  o.size(3) == qkv.size(4),
              "split_qkv_rms_norm: {} must be [{}, {}, {}, {}], got [{}]", name, qkv.size(0), qkv.size(1), qkv.size(3),
              qkv.size(4), fmt::join(o.sizes(), ", "));
-  SIMU_CHECK(o.scalar_type() == torch::kBFloat16 && o.stride(3) == 1 && o.stride(2) == o.size(3) && o.device() == qkv.device(),
-             "split_qkv_rms_norm: {} must be a bfloat16 view on {} with contiguous heads", name, qkv.device().str());
+  SIMU_CHECK(o.scalar_type() == qkv.scalar_type() && o.stride(3) == 1 && o.stride(2) == o.size(3) && o.device() == qkv.device(),
+             "split_qkv_rms_norm: {} must be a {} view (qkv's dtype) on {} with contiguous heads", name,
+             c10::toString(qkv.scalar_type()), qkv.device().str());
 }
 
 }  // namespace
 
 int64_t launch_count() { return g_launches.load(); }
+
+bool is_low_precision(torch::ScalarType dtype) { return dtype == torch::kBFloat16 || dtype == torch::kHalf; }
 
 bool compiled() {
 #ifdef SIMU_HAVE_CUDA_KERNELS
@@ -56,16 +74,19 @@ bool supports_layer_norm_affine(const torch::Tensor& x) {
 }
 
 torch::Tensor layer_norm_affine_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b,
-                                               double eps) {
+                                               double eps, torch::ScalarType out) {
+  check_low(out, "layer_norm_affine reference");
   auto n = at::layer_norm(x.to(torch::kFloat32), {x.size(-1)}, {}, {}, eps);  // [B, L, C]
   auto y = n * w.to(torch::kFloat32).unsqueeze(1);
   if (b.defined()) y = y + b.to(torch::kFloat32).unsqueeze(1);
-  return y.to(torch::kBFloat16);
+  return y.to(out);
 }
 
 namespace {
 // The forward kernel of layer_norm_affine_bf16 (no autograd).
-torch::Tensor layer_norm_affine_launch(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
+torch::Tensor layer_norm_affine_launch(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps,
+                                       torch::ScalarType out) {
+  check_low(out, "layer_norm_affine_bf16");
   const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
   SIMU_CHECK(w.dim() == 2 && w.size(1) == C && (w.size(0) == 1 || w.size(0) == B) && w.scalar_type() == torch::kFloat32,
              "layer_norm_affine_bf16: weight must be [1 or {}, {}] float32, got [{}] {}", B, C, fmt::join(w.sizes(), ", "),
@@ -76,58 +97,67 @@ torch::Tensor layer_norm_affine_launch(const torch::Tensor& x, const torch::Tens
              fmt::join(x.sizes(), ", "), c10::toString(x.scalar_type()), x.device().str());
   auto wc = w.contiguous();
   auto bc = b.defined() ? b.contiguous() : b;
-  auto y = torch::empty({B, L, C}, x.options().dtype(torch::kBFloat16));
+  auto y = torch::empty({B, L, C}, x.options().dtype(out));
   const int64_t rows_per_w = w.size(0) == 1 ? B * L : L;
   ++g_launches;
-  check_cuda(kernels::layer_norm_affine_bf16(x.data_ptr<float>(), wc.data_ptr<float>(),
-                                             bc.defined() ? bc.data_ptr<float>() : nullptr,
-                                             reinterpret_cast<__nv_bfloat16*>(y.data_ptr<at::BFloat16>()), B * L,
+  by_dtype(out, [&](auto t) {
+    using T = decltype(t);
+    check_cuda(kernels::layer_norm_affine<T>(x.data_ptr<float>(), wc.data_ptr<float>(),
+                                             bc.defined() ? bc.data_ptr<float>() : nullptr, ptr<T>(y), B * L,
                                              std::max<int64_t>(rows_per_w, 1), static_cast<int>(C), static_cast<float>(eps),
                                              c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
-             "layer_norm_affine_bf16");
+               "layer_norm_affine");
+  });
   return y;
 #else
-  return layer_norm_affine_bf16_reference(x, w, b, eps);
+  return layer_norm_affine_bf16_reference(x, w, b, eps, out);
 #endif
 }
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
 // dx of LN(x) * w (+ b) given gy (undefined: 0), plus gx_in (undefined: 0); with_dh: also
-// dh = dx * gate as bf16 (the residual's sublayer gradient). x: [B, L, C] fp32; w, gate: [1 or B, C] fp32.
+// dh = dx * gate as `low` (the residual's sublayer gradient; gy is read as `low` too). x: [B, L, C] fp32;
+// w, gate: [1 or B, C] fp32.
 std::pair<torch::Tensor, torch::Tensor> layer_norm_affine_backward_launch(const torch::Tensor& x, const torch::Tensor& w,
                                                                           const torch::Tensor& gy, const torch::Tensor& gx_in,
-                                                                          const torch::Tensor& gate, bool with_dh, double eps) {
+                                                                          const torch::Tensor& gate, bool with_dh, double eps,
+                                                                          torch::ScalarType low) {
   const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
-  auto gyc = gy.defined() ? gy.to(torch::kBFloat16).contiguous() : gy;
+  auto gyc = gy.defined() ? gy.to(low).contiguous() : gy;
   auto gxc = gx_in.defined() ? gx_in.to(torch::kFloat32).contiguous() : gx_in;
   auto dx = torch::empty_like(x);
-  auto dh = with_dh ? torch::empty({B, L, C}, x.options().dtype(torch::kBFloat16)) : torch::Tensor();
+  auto dh = with_dh ? torch::empty({B, L, C}, x.options().dtype(low)) : torch::Tensor();
   ++g_launches;
-  check_cuda(kernels::layer_norm_affine_backward(
-                 x.data_ptr<float>(), w.data_ptr<float>(), w.size(0) == 1 ? B * L : L,
-                 gyc.defined() ? reinterpret_cast<const __nv_bfloat16*>(gyc.data_ptr<at::BFloat16>()) : nullptr,
-                 gxc.defined() ? gxc.data_ptr<float>() : nullptr, gate.defined() ? gate.data_ptr<float>() : nullptr,
-                 gate.defined() && gate.size(0) == B ? L : B * L, dx.data_ptr<float>(),
-                 with_dh ? reinterpret_cast<__nv_bfloat16*>(dh.data_ptr<at::BFloat16>()) : nullptr, B * L,
-                 static_cast<int>(C), static_cast<float>(eps), c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
-             "layer_norm_affine_backward");
+  by_dtype(low, [&](auto t) {
+    using T = decltype(t);
+    check_cuda(kernels::layer_norm_affine_backward<T>(
+                   x.data_ptr<float>(), w.data_ptr<float>(), w.size(0) == 1 ? B * L : L,
+                   gyc.defined() ? ptr<const T>(gyc) : nullptr, gxc.defined() ? gxc.data_ptr<float>() : nullptr,
+                   gate.defined() ? gate.data_ptr<float>() : nullptr, gate.defined() && gate.size(0) == B ? L : B * L,
+                   dx.data_ptr<float>(), with_dh ? ptr<T>(dh) : nullptr, B * L, static_cast<int>(C),
+                   static_cast<float>(eps), c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
+               "layer_norm_affine_backward");
+  });
   return {dx, dh};
 }
 
 // Autograd node of layer_norm_affine_bf16: gradient for x only (w, b are frozen).
 struct LayerNormAffineFn : public torch::autograd::Function<LayerNormAffineFn> {
   static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x, const torch::Tensor& w,
-                               const torch::Tensor& b, double eps) {
+                               const torch::Tensor& b, double eps, int64_t out) {
     auto wc = w.contiguous();
     ctx->save_for_backward({x, wc});
     ctx->saved_data["eps"] = eps;
-    return layer_norm_affine_launch(x, wc, b, eps);
+    ctx->saved_data["dtype"] = out;
+    return layer_norm_affine_launch(x, wc, b, eps, static_cast<torch::ScalarType>(out));
   }
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grad) {
     const auto saved = ctx->get_saved_variables();
-    auto dx = layer_norm_affine_backward_launch(saved[0], saved[1], grad[0], {}, {}, false, ctx->saved_data["eps"].toDouble()).first;
-    return {dx, torch::Tensor(), torch::Tensor(), torch::Tensor()};
+    auto dx = layer_norm_affine_backward_launch(saved[0], saved[1], grad[0], {}, {}, false, ctx->saved_data["eps"].toDouble(),
+                                                static_cast<torch::ScalarType>(ctx->saved_data["dtype"].toInt()))
+                  .first;
+    return {dx, torch::Tensor(), torch::Tensor(), torch::Tensor(), torch::Tensor()};
   }
 };
 #endif
@@ -143,17 +173,23 @@ bool graph_through(std::initializer_list<torch::Tensor> tensors) {
 }
 }  // namespace
 
-torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps) {
-  if (graph_through({w, b})) return layer_norm_affine_bf16_reference(x, w, b, eps);
+torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps,
+                                     torch::ScalarType out) {
+  if (graph_through({w, b})) return layer_norm_affine_bf16_reference(x, w, b, eps, out);
 #ifdef SIMU_HAVE_CUDA_KERNELS
   // (Autograd functions take defined tensors only: a missing bias is a zero one, the same sums.)
-  if (graph_through({x})) return LayerNormAffineFn::apply(x, w, b.defined() ? b : torch::zeros_like(w), eps);
+  if (graph_through({x}))
+    return LayerNormAffineFn::apply(x, w, b.defined() ? b : torch::zeros_like(w), eps, static_cast<int64_t>(out));
 #endif
-  return layer_norm_affine_launch(x, w, b, eps);
+  return layer_norm_affine_launch(x, w, b, eps, out);
+}
+
+torch::ScalarType residual_output_dtype(const torch::Tensor& h) {
+  return h.scalar_type() == torch::kHalf ? torch::kHalf : torch::kBFloat16;
 }
 
 bool supports_residual_layer_norm_affine(const torch::Tensor& x, const torch::Tensor& h) {
-  return supports_layer_norm_affine(x) && h.is_cuda() && h.scalar_type() == torch::kBFloat16 && h.is_contiguous() &&
+  return supports_layer_norm_affine(x) && h.is_cuda() && is_low_precision(h.scalar_type()) && h.is_contiguous() &&
          h.sizes() == x.sizes();
 }
 
@@ -163,7 +199,7 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_referenc
                                                                                    const torch::Tensor& w,
                                                                                    const torch::Tensor& b, double eps) {
   auto x_new = gate.defined() ? torch::addcmul(x, h, gate.unsqueeze(1)) : x + h;  // [B, L, C] float32
-  return {x_new, layer_norm_affine_bf16_reference(x_new, w, b, eps)};
+  return {x_new, layer_norm_affine_bf16_reference(x_new, w, b, eps, residual_output_dtype(h))};
 }
 
 namespace {
@@ -186,16 +222,17 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_launch(const 
   auto bc = b.defined() ? b.contiguous() : b;
   auto gc = gate.defined() ? gate.to(torch::kFloat32).contiguous() : gate;
   auto x_new = torch::empty_like(x);
-  auto y = torch::empty({B, L, C}, x.options().dtype(torch::kBFloat16));
+  auto y = torch::empty({B, L, C}, x.options().dtype(h.scalar_type()));
   ++g_launches;
-  check_cuda(kernels::residual_layer_norm_affine_bf16(
-                 x.data_ptr<float>(), reinterpret_cast<const __nv_bfloat16*>(h.data_ptr<at::BFloat16>()),
-                 gc.defined() ? gc.data_ptr<float>() : nullptr, gc.defined() && gc.size(0) == B ? L : B * L,
-                 x_new.data_ptr<float>(), wc.data_ptr<float>(), bc.defined() ? bc.data_ptr<float>() : nullptr,
-                 reinterpret_cast<__nv_bfloat16*>(y.data_ptr<at::BFloat16>()), B * L,
-                 w.size(0) == 1 ? B * L : L, static_cast<int>(C), static_cast<float>(eps),
-                 c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
-             "residual_layer_norm_affine_bf16");
+  by_dtype(h.scalar_type(), [&](auto t) {
+    using T = decltype(t);
+    check_cuda(kernels::residual_layer_norm_affine<T>(
+                   x.data_ptr<float>(), ptr<const T>(h), gc.defined() ? gc.data_ptr<float>() : nullptr,
+                   gc.defined() && gc.size(0) == B ? L : B * L, x_new.data_ptr<float>(), wc.data_ptr<float>(),
+                   bc.defined() ? bc.data_ptr<float>() : nullptr, ptr<T>(y), B * L, w.size(0) == 1 ? B * L : L,
+                   static_cast<int>(C), static_cast<float>(eps), c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
+               "residual_layer_norm_affine");
+  });
   return {x_new, y};
 #else
   return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
@@ -214,14 +251,15 @@ struct ResidualLayerNormAffineFn : public torch::autograd::Function<ResidualLaye
     auto [x_new, y] = residual_layer_norm_affine_launch(x, h, gc, wc, b, eps);
     ctx->save_for_backward({x_new, wc, gc});
     ctx->saved_data["eps"] = eps;
+    ctx->saved_data["dtype"] = static_cast<int64_t>(h.scalar_type());
     return {x_new, y};
   }
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grad) {
     const auto saved = ctx->get_saved_variables();
-    auto [dx, dh] = layer_norm_affine_backward_launch(saved[0], saved[1], grad[1], grad[0],
-                                                      saved[2], true,
-                                                      ctx->saved_data["eps"].toDouble());
+    auto [dx, dh] = layer_norm_affine_backward_launch(saved[0], saved[1], grad[1], grad[0], saved[2], true,
+                                                      ctx->saved_data["eps"].toDouble(),
+                                                      static_cast<torch::ScalarType>(ctx->saved_data["dtype"].toInt()));
     return {dx, dh, torch::Tensor(), torch::Tensor(), torch::Tensor(), torch::Tensor()};
   }
 };
@@ -252,7 +290,7 @@ torch::Tensor multi_head_rms_norm_reference(const torch::Tensor& x, const torch:
 }
 
 bool supports_split_qkv(const torch::Tensor& qkv) {
-  if (!(compiled() && qkv.is_cuda() && qkv.dim() == 5 && qkv.size(2) == 3 && qkv.scalar_type() == torch::kBFloat16 &&
+  if (!(compiled() && qkv.is_cuda() && qkv.dim() == 5 && qkv.size(2) == 3 && is_low_precision(qkv.scalar_type()) &&
         qkv.is_contiguous()))
     return false;
   const int64_t D = qkv.size(4);
@@ -278,15 +316,16 @@ void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, 
   SIMU_CHECK(supports_split_qkv(qkv), "split_qkv_rms_norm: unsupported qkv [{}] {} on {}", fmt::join(qkv.sizes(), ", "),
              c10::toString(qkv.scalar_type()), qkv.device().str());
   auto gq = gamma_q.to(torch::kFloat32).contiguous(), gk = gamma_k.to(torch::kFloat32).contiguous();
-  auto out = [](torch::Tensor& t) {
-    return kernels::QkvOut{reinterpret_cast<__nv_bfloat16*>(t.data_ptr<at::BFloat16>()), t.stride(0), t.stride(1)};
-  };
+  auto out = [](torch::Tensor& t) { return kernels::QkvOut{t.data_ptr(), t.stride(0), t.stride(1)}; };
   ++g_launches;
-  check_cuda(kernels::split_qkv_rms_norm(reinterpret_cast<const __nv_bfloat16*>(qkv.data_ptr<at::BFloat16>()),
-                                         gq.data_ptr<float>(), gk.data_ptr<float>(), static_cast<float>(scale), out(q),
-                                         out(k), out(v), static_cast<int>(B), static_cast<int>(L), static_cast<int>(H),
-                                         static_cast<int>(D), c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
-             "split_qkv_rms_norm");
+  by_dtype(qkv.scalar_type(), [&](auto t) {
+    using T = decltype(t);
+    check_cuda(kernels::split_qkv_rms_norm<T>(ptr<const T>(qkv), gq.data_ptr<float>(), gk.data_ptr<float>(),
+                                              static_cast<float>(scale), out(q), out(k), out(v), static_cast<int>(B),
+                                              static_cast<int>(L), static_cast<int>(H), static_cast<int>(D),
+                                              c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
+               "split_qkv_rms_norm");
+  });
 #else
   split_qkv_rms_norm_reference(qkv, gamma_q, gamma_k, scale, q, k, v);
 #endif
@@ -317,27 +356,29 @@ struct SplitQkvRmsNormFn : public torch::autograd::Function<SplitQkvRmsNormFn> {
     const auto saved = ctx->get_saved_variables();
     const auto& qkv = saved[0];
     const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
-    // Incoming gradients as strided bf16 views with contiguous channels and 4-byte aligned rows.
+    // Incoming gradients as strided views in qkv's dtype with contiguous channels and 4-byte aligned rows.
     std::vector<torch::Tensor> keep;
     auto view = [&](const torch::Tensor& g) {
       if (!g.defined()) return kernels::QkvGrad{nullptr, 0, 0, 0};
-      auto t = g.to(torch::kBFloat16);
+      auto t = g.to(qkv.scalar_type());
       const bool ok = t.stride(3) == 1 && t.stride(0) % 2 == 0 && t.stride(1) % 2 == 0 && t.stride(2) % 2 == 0 &&
                       reinterpret_cast<uintptr_t>(t.data_ptr()) % 4 == 0;
       if (!ok) t = t.contiguous();
       keep.push_back(t);
-      return kernels::QkvGrad{reinterpret_cast<const __nv_bfloat16*>(t.data_ptr<at::BFloat16>()), t.stride(0), t.stride(1),
-                              t.stride(2)};
+      return kernels::QkvGrad{t.data_ptr(), t.stride(0), t.stride(1), t.stride(2)};
     };
     const auto dq = view(grad[0]), dk = view(grad[1]), dv = view(grad[2]);
     auto dqkv = torch::empty_like(qkv);
     ++g_launches;
-    check_cuda(kernels::split_qkv_rms_norm_backward(
-                   reinterpret_cast<const __nv_bfloat16*>(qkv.data_ptr<at::BFloat16>()), saved[1].data_ptr<float>(),
-                   saved[2].data_ptr<float>(), static_cast<float>(ctx->saved_data["scale"].toDouble()), dq, dk, dv,
-                   reinterpret_cast<__nv_bfloat16*>(dqkv.data_ptr<at::BFloat16>()), static_cast<int>(B), static_cast<int>(L),
-                   static_cast<int>(H), static_cast<int>(D), c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
-               "split_qkv_rms_norm_backward");
+    by_dtype(qkv.scalar_type(), [&](auto tag) {
+      using T = decltype(tag);
+      check_cuda(kernels::split_qkv_rms_norm_backward<T>(
+                     ptr<const T>(qkv), saved[1].data_ptr<float>(), saved[2].data_ptr<float>(),
+                     static_cast<float>(ctx->saved_data["scale"].toDouble()), dq, dk, dv, ptr<T>(dqkv), static_cast<int>(B),
+                     static_cast<int>(L), static_cast<int>(H), static_cast<int>(D),
+                     c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
+                 "split_qkv_rms_norm_backward");
+    });
     return {dqkv, torch::Tensor(), torch::Tensor(), torch::Tensor()};
   }
 };
@@ -363,8 +404,17 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autog
 
 bool supports_linear_gelu(const torch::Tensor& x) { return compiled() && x.is_cuda() && x.dim() >= 2; }
 
+torch::ScalarType linear_gelu_dtype(const torch::Tensor& x) {
+  if (x.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA)) {
+    const auto d = at::autocast::get_autocast_dtype(at::kCUDA);
+    if (is_low_precision(d)) return d;
+  }
+  return x.scalar_type() == torch::kHalf ? torch::kHalf : torch::kBFloat16;
+}
+
 torch::Tensor linear_gelu_tanh_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b) {
-  auto y = torch::linear(x.to(torch::kBFloat16), w.to(torch::kBFloat16), b.to(torch::kBFloat16));
+  const auto lp = linear_gelu_dtype(x);
+  auto y = torch::linear(x.to(lp), w.to(lp), b.to(lp));
   return torch::gelu(y, "tanh");
 }
 
@@ -374,11 +424,12 @@ torch::Tensor linear_gelu_tanh_bf16(const torch::Tensor& x, const torch::Tensor&
   SIMU_CHECK(w.dim() == 2 && w.size(1) == x.size(-1) && b.dim() == 1 && b.size(0) == w.size(0),
              "linear_gelu_tanh_bf16: weight [{}] / bias [{}] do not fit an input of {} features", fmt::join(w.sizes(), ", "),
              fmt::join(b.sizes(), ", "), x.size(-1));
-  // The autocast cache holds the bf16 weight copies for the whole autocast region (as for linear).
-  const bool ac = at::autocast::is_autocast_enabled(at::kCUDA);
-  auto wb = ac ? at::autocast::cached_cast(at::kBFloat16, w, c10::DeviceType::CUDA) : w.to(torch::kBFloat16);
-  auto bb = ac ? at::autocast::cached_cast(at::kBFloat16, b, c10::DeviceType::CUDA) : b.to(torch::kBFloat16);
-  auto x2 = x.to(torch::kBFloat16).reshape({-1, x.size(-1)});
+  // The autocast cache holds the 16-bit weight copies for the whole autocast region (as for linear).
+  const auto lp = linear_gelu_dtype(x);
+  const bool ac = at::autocast::is_autocast_enabled(at::kCUDA) && at::autocast::get_autocast_dtype(at::kCUDA) == lp;
+  auto wb = ac ? at::autocast::cached_cast(lp, w, c10::DeviceType::CUDA) : w.to(lp);
+  auto bb = ac ? at::autocast::cached_cast(lp, b, c10::DeviceType::CUDA) : b.to(lp);
+  auto x2 = x.to(lp).reshape({-1, x.size(-1)});
   ++g_launches;
   auto y = at::_addmm_activation(bb, x2, wb.t(), 1, 1, /*use_gelu=*/true);  // [rows, N]
   auto shape = x.sizes().vec();

@@ -8,6 +8,11 @@
 // base's and get no gradient: when one of them requires a gradient under grad mode, the function
 // takes its ATen reference instead. split_qkv_rms_norm and linear_gelu_tanh_bf16 have no backward
 // (inference only).
+//
+// 16-bit storage: the names say bf16 (the training recipe's autocast), but every kernel also stores
+// fp16, the released inference precision (pipeline.yaml `dtype: float16`): the low-precision tensors
+// (outputs, h, qkv, gradients) are bf16 or fp16 (is_low_precision), arithmetic stays fp32. The
+// references take the same dtype, so fast and reference paths are compared in both.
 #pragma once
 
 #include <torch/torch.h>
@@ -18,21 +23,27 @@ namespace simu::models::fused {
 bool compiled();
 // Number of fused kernel launches so far in this process (tests check that a fast path really ran).
 int64_t launch_count();
+// bf16 or fp16: the 16-bit types the kernels store.
+bool is_low_precision(torch::ScalarType dtype);
 
-// LayerNorm (no affine of its own, fp32 math) followed by a per-row-group affine, stored as bf16:
+// LayerNorm (no affine of its own, fp32 math) followed by a per-row-group affine, stored as `out`
+// (bf16 by default, or fp16):
 //   x: [B, L, C] float32 contiguous; w, b: [G, C] float32 with G = 1 or G = B (b may be undefined).
-//   y[b, l] = LN(x[b, l]) * w[b or 0] + b[b or 0]  -> [B, L, C] bfloat16.
+//   y[b, l] = LN(x[b, l]) * w[b or 0] + b[b or 0]  -> [B, L, C] out.
 // This is norm1/norm3 + the adaLN modulation (w = 1 + scale, b = shift) and the affine norm2.
 bool supports_layer_norm_affine(const torch::Tensor& x);
-torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps);
+torch::Tensor layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b, double eps,
+                                     torch::ScalarType out = torch::kBFloat16);
 torch::Tensor layer_norm_affine_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b,
-                                               double eps);
+                                               double eps, torch::ScalarType out = torch::kBFloat16);
 
 // The residual update in front of a LayerNorm + affine, in one pass:
 //   x_new = x + h * gate  (fp32; as torch::addcmul(x, h, gate); gate undefined: x + h)
 //   y = layer_norm_affine_bf16(x_new, w, b, eps)
-// x: [B, L, C] float32 contiguous; h: [B, L, C] bfloat16 contiguous (a sublayer's output); gate: [G, C]
-// (any float dtype, G = 1 or B) or undefined; w, b as for layer_norm_affine_bf16. Returns {x_new, y}.
+// x: [B, L, C] float32 contiguous; h: [B, L, C] bf16 or fp16 contiguous (a sublayer's output); gate: [G, C]
+// (any float dtype, G = 1 or B) or undefined; w, b as for layer_norm_affine_bf16. Returns {x_new, y}, y in
+// h's dtype (residual_output_dtype: the reference gives fp16 for an fp16 h, else bf16).
+torch::ScalarType residual_output_dtype(const torch::Tensor& h);
 bool supports_residual_layer_norm_affine(const torch::Tensor& x, const torch::Tensor& h);
 std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
                                                                          const torch::Tensor& gate, const torch::Tensor& w,
@@ -47,7 +58,7 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_referenc
 // over the last dim in fp32, back to x's dtype. x: [..., H, D]; gamma: [H, D].
 torch::Tensor multi_head_rms_norm_reference(const torch::Tensor& x, const torch::Tensor& gamma, double scale);
 
-// Splits a fused projection qkv: [B, L, 3, H, D] bfloat16 into q, k, v, with the official multi-head
+// Splits a fused projection qkv: [B, L, 3, H, D] bf16 or fp16 into q, k, v (qkv's dtype), with the official multi-head
 // RMS norm on q and k (q / max(|q|, 1e-12) * gamma * scale in fp32, gamma: [H, D] float32).
 // Writes into the given outputs ([B, L, H, D] views, last two dims contiguous, any batch/token strides),
 // so that k and v can land directly in a larger key/value buffer.
@@ -57,9 +68,11 @@ void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, 
 void split_qkv_rms_norm_reference(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k,
                                   double scale, torch::Tensor q, torch::Tensor k, torch::Tensor v);
 
-// y = gelu_tanh(x @ w^T + b) with the GELU in the matrix product's epilogue (cuBLASLt), bf16:
-//   x: [..., K] (cast to bf16), w: [N, K], b: [N] (the fp32 parameters; bf16 copies from the autocast
-//   cache when autocast is on) -> [..., N] bfloat16. Reference: linear, then gelu(approximate="tanh").
+// y = gelu_tanh(x @ w^T + b) with the GELU in the matrix product's epilogue (cuBLASLt), in
+// linear_gelu_dtype(x): the CUDA autocast dtype when autocast is on in bf16 or fp16, else fp16 for an
+// fp16 x, else bf16:
+//   x: [..., K] (cast to that dtype), w: [N, K], b: [N] (the fp32 parameters; 16-bit copies from the
+//   autocast cache when autocast is on) -> [..., N]. Reference: linear, then gelu(approximate="tanh").
 // split_qkv_rms_norm into new contiguous q, k, v [B, L, H, D] (same kernel), differentiable with respect to
 // qkv: the backward kernel takes the three gradients (any token/head strides) and writes dqkv in one pass.
 // qkv: [B, L, 3, H, D] bf16 contiguous (supports_split_qkv). Without kernels: the reference, unbound.
@@ -69,6 +82,7 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autog
                                                                                    double scale);
 
 bool supports_linear_gelu(const torch::Tensor& x);
+torch::ScalarType linear_gelu_dtype(const torch::Tensor& x);
 torch::Tensor linear_gelu_tanh_bf16(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b);
 torch::Tensor linear_gelu_tanh_bf16_reference(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b);
 

@@ -2,6 +2,7 @@
 
 #include <fmt/ranges.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <limits>
@@ -11,7 +12,10 @@
 #include "models/official_yaml.h"
 #include "common/log.h"
 #include "data/safetensors.h"
+#include "models/linear.h"
 #include "models/weights.h"
+
+#include <ATen/autocast_mode.h>
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
 #include <ATen/cuda/CUDAGraph.h>
@@ -189,9 +193,11 @@ GraphedForward::~GraphedForward() = default;
 
 namespace {
 std::atomic<int64_t> g_graph_replays{0};
+std::atomic<int64_t> g_graph_captures{0};
 }  // namespace
 
 int64_t GraphedForward::replay_count() { return g_graph_replays.load(); }
+int64_t GraphedForward::capture_count() { return g_graph_captures.load(); }
 
 Latents GraphedForward::run(const Latents& x, const torch::Tensor& t, const c10::optional<torch::Tensor>& d) {
   auto& s = *s_;
@@ -226,6 +232,7 @@ Latents GraphedForward::run(const Latents& x, const torch::Tensor& t, const c10:
         }
         graph->capture_end();
         s.graph = std::move(graph);
+        ++g_graph_captures;
         side.synchronize();
       }
     }
@@ -263,7 +270,11 @@ PreparedCondition ClassifierFreeGuidanceImpl::prepare(const torch::Tensor& cond,
   PreparedCondition pc;
   pc.cond = cond;
   torch::Tensor cond_u = cond;
-  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) cond_u = cond * 0;
+  if (unconditional_handling == "zeros" || backbone->config().force_zeros_cond) {
+    cond_u = cond * 0;
+    // All zero unless cond holds inf/NaN (0 * inf = NaN): then the shortcut would hide them.
+    pc.zero_unconditional = cache && (!cond.is_floating_point() || torch::isfinite(cond).all().item<bool>());
+  }
   pc.pair = torch::cat({cond, cond_u}, 0);
   pc.cache = cache;
   return pc;
@@ -287,26 +298,42 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
   const bool guided = strength > 0.0 && interval.first <= tf && tf <= interval.second;
   // t (and d) as one value for the whole batch ([1], like the official ShortCut): the modulation is
   // then computed once and broadcast, which lets the blocks fuse it into the LayerNorms.
-  // Backbone forward: through a CUDA graph when the condition allows it, else eager.
-  auto run = [&](std::shared_ptr<GraphedForward>& graph, const Latents& xs, const torch::Tensor& c, const ConditionCache* kv,
-                 const torch::Tensor& t, const c10::optional<torch::Tensor>& d) -> Latents {
-    if (pc.graphs && kv) {
+  // Backbone forward: through a persistent CUDA graph when enabled, else eager (with the condition's
+  // keys/values computed once per call when pc.cache).
+  auto run = [&](std::shared_ptr<SamplingGraph>& graph, const Latents& xs, const torch::Tensor& c,
+                 c10::optional<ConditionCache>& kv, const torch::Tensor& t, const c10::optional<torch::Tensor>& d,
+                 int64_t zero_from) -> Latents {
+    if (pc.graphs && pc.cache) {
       try {
-        if (!graph) graph = std::make_shared<GraphedForward>(backbone, c, kv);
-        return graph->run(xs, t, d);
+        if (!graph) graph = attach_graph(c, xs, t, d, zero_from);
+        auto y = graph->graph->run(xs, t, d);
+        if (!graph->weights_known) {
+          // The 16-bit weight copies the capture read from the autocast cache (cached_cast returns the
+          // cached copy): kept alive with the graph and refreshed at every later call.
+          graph->weights_known = true;
+          if (at::autocast::is_autocast_enabled(at::kCUDA)) {
+            const auto low = at::autocast::get_autocast_dtype(at::kCUDA);
+            for (const auto& p : backbone->parameters())
+              if (p.is_cuda() && p.scalar_type() == torch::kFloat32 && p.requires_grad() && p.is_leaf())
+                graph->weights.emplace_back(p, at::autocast::cached_cast(low, p, c10::DeviceType::CUDA));
+          }
+        }
+        return y;
       } catch (const std::exception& e) {
         log::warn("sampling: CUDA graph capture failed, continuing with eager launches: {}", e.what());
         pc.graphs = false;
+        auto& gs = graph_cache.graphs;
+        gs.erase(std::remove(gs.begin(), gs.end(), graph), gs.end());
         graph.reset();
       }
     }
-    return backbone->forward(xs, t, c, d, kv);
+    if (pc.cache && !kv) kv = backbone->condition_cache(c, zero_from);
+    return backbone->forward(xs, t, c, d, kv ? &*kv : nullptr);
   };
   if (!guided) {
     c10::optional<torch::Tensor> d;
     if (d_scaled) d = torch::full({1}, *d_scaled, opts);
-    if (pc.cache && !pc.single_kv) pc.single_kv = backbone->condition_cache(cond);
-    return run(pc.single_graph, x, cond, pc.single_kv ? &*pc.single_kv : nullptr, torch::full({1}, t_scaled, opts), d);
+    return run(pc.single_graph, x, cond, pc.single_kv, torch::full({1}, t_scaled, opts), d, -1);
   }
   // One batched forward: first half conditional, second half unconditional.
   Latents x2;
@@ -318,14 +345,85 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
     else
       d2 = torch::full({1}, *d_scaled, opts);
   }
-  if (pc.cache && !pc.pair_kv) pc.pair_kv = backbone->condition_cache(pc.pair);
-  auto y = run(pc.pair_graph, x2, pc.pair, pc.pair_kv ? &*pc.pair_kv : nullptr, torch::full({1}, t_scaled, opts), d2);
+  auto y = run(pc.pair_graph, x2, pc.pair, pc.pair_kv, torch::full({1}, t_scaled, opts), d2, pc.zero_unconditional ? B : -1);
   Latents out;
   for (const auto& [k, v] : y) {
     auto yc = v.narrow(0, 0, B), yu = v.narrow(0, B, B);
     out[k] = (1 + strength) * yc - strength * yu;  // y = (1+s) y_cond - s y_uncond
   }
   return out;
+}
+
+namespace {
+// What a captured forward depends on besides its inputs: every parameter's storage and dtype (an
+// in-place update keeps it, a reload or .to() does not), which Linear adapters are on, the kernel
+// switches and the train/eval mode.
+uint64_t graph_fingerprint(SparseStructureFlowTdfyWrapper& bb) {
+  uint64_t h = 1469598103934665603ull;
+  auto mix = [&](uint64_t v) {
+    h ^= v;
+    h *= 1099511628211ull;
+  };
+  for (const auto& p : bb->parameters()) {
+    mix(reinterpret_cast<uintptr_t>(p.data_ptr()));
+    mix(static_cast<uint64_t>(p.scalar_type()));
+    mix(p.requires_grad());
+  }
+  for (const auto& m : bb->modules())
+    if (const auto* l = dynamic_cast<const LinearImpl*>(m.get())) {
+      mix(reinterpret_cast<uintptr_t>(l->adapter().get()));
+      mix(l->adapter_enabled());
+    }
+  mix(bb->fused_kernels());
+  mix(bb->training_kernels());
+  mix(bb->is_training());
+  return h;
+}
+}  // namespace
+
+std::shared_ptr<SamplingGraph> ClassifierFreeGuidanceImpl::attach_graph(const torch::Tensor& c, const Latents& xs,
+                                                                       const torch::Tensor& t,
+                                                                       const c10::optional<torch::Tensor>& d,
+                                                                       int64_t zero_from) {
+  // The shapes, dtypes and autocast state the capture is valid for.
+  std::string key = fmt::format("{} {} [{}] {} t[{}] d[{}] ac {} {}", c.device().str(), c10::toString(c.scalar_type()),
+                                fmt::join(c.sizes(), ","), xs.size(), fmt::join(t.sizes(), ","),
+                                d ? fmt::format("{}", fmt::join(d->sizes(), ",")) : std::string("-"),
+                                at::autocast::is_autocast_enabled(at::kCUDA),
+                                c10::toString(at::autocast::get_autocast_dtype(at::kCUDA)));
+  key += fmt::format(" zero_from {}", zero_from);
+  for (const auto& [k, v] : xs) key += fmt::format(" {}[{}]{}", k, fmt::join(v.sizes(), ","), c10::toString(v.scalar_type()));
+  const uint64_t fp = graph_fingerprint(backbone);
+  auto& gs = graph_cache.graphs;
+  std::shared_ptr<SamplingGraph> g;
+  for (auto it = gs.begin(); it != gs.end(); ++it)
+    if ((*it)->key == key) {
+      if ((*it)->fingerprint == fp) g = *it;
+      else gs.erase(it);  // the model changed under it: capture again
+      break;
+    }
+  if (g) {
+    // A later call: this call's condition and its keys/values into the graph's buffers, and the
+    // weights' current values into the copies the graph reads.
+    g->cond.copy_(c);
+    backbone->condition_cache_into(g->cond, g->kv);
+    for (auto& [p, w] : g->weights) w.copy_(p);
+  } else {
+    g = std::make_shared<SamplingGraph>();
+    g->key = key;
+    g->fingerprint = fp;
+    g->cond = c.clone();
+    g->kv = backbone->condition_cache(g->cond, zero_from);
+    g->graph = std::make_unique<GraphedForward>(backbone, g->cond, &g->kv);
+    g->last_use = ++graph_cache.tick;
+    gs.push_back(g);
+    while (gs.size() > std::max<size_t>(graph_cache.max_graphs, 1)) {
+      auto oldest = std::min_element(gs.begin(), gs.end(), [](const auto& a, const auto& b) { return a->last_use < b->last_use; });
+      gs.erase(oldest);
+    }
+  }
+  g->last_use = ++graph_cache.tick;
+  return g;
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -75,12 +75,13 @@ struct SampleOptions {
   // Compute the condition's cross-attention keys/values once and reuse them at every step (same
   // result up to rounding order: none, the same ops run once instead of per step).
   bool cache_condition = true;
-  // On CUDA, with cache_condition: capture the backbone forward (once per batch shape: guided and
-  // unguided steps) as a CUDA graph and replay it at every step. The same kernels run on the same
-  // inputs, without the per-kernel launch gaps. Falls back to eager launches (with a warning) where
-  // capture fails. Off by default: the capture (an eager warm-up forward, the capture, instantiation)
-  // happens per sample() call and costs more than 25 steps save (H100, bench_stage1: 808 ms with
-  // graphs vs 725 ms eager at 2,800 condition tokens); it pays for long solves (many steps, rk4).
+  // On CUDA, with cache_condition: replay the backbone forward from a CUDA graph at every step. The
+  // same kernels run on the same inputs, without the per-kernel launch gaps. Graphs persist across
+  // sample() calls (ClassifierFreeGuidanceImpl::graph_cache): one per shape (batch, condition length,
+  // latents, autocast dtype, device), captured on first use after an eager warm-up forward and
+  // replayed from then on; each call copies its condition, the condition's keys/values and the
+  // current weights' 16-bit copies into the graph's buffers. Falls back to eager launches (with a
+  // warning) where capture fails.
   bool cuda_graphs = false;
   // Unconditional branch for CFG: "" keeps the generator config's, else "add_flag" or "zeros" (the
   // official inference forces "add_flag").
@@ -134,23 +135,51 @@ class GraphedForward {
   ~GraphedForward();
   // x: latents [B, T, ch] on the condition's device; t: [1] or [B]; d: like t, or nullopt.
   Latents run(const Latents& x, const torch::Tensor& t, const c10::optional<torch::Tensor>& d);
-  // Graph replays so far in this process (tests check that the graph path really ran).
+  // Graph replays and captures so far in this process (tests check that the graph path really ran
+  // and that graphs are reused).
   static int64_t replay_count();
+  static int64_t capture_count();
 
  private:
   struct State;
   std::unique_ptr<State> s_;
 };
 
+// A persistent CUDA graph of one backbone forward for sampling: its own condition buffer and
+// keys/values (the graph's inputs besides x, t, d), and the 16-bit weight copies the graph reads (under
+// autocast the forward reads the autocast cache's copies, which live only as long as one autocast
+// region; these are refreshed from the parameters at every call). `fingerprint` covers what changes
+// the captured kernels (parameter storage, adapters on/off, kernel switches): a mismatch recaptures.
+struct SamplingGraph {
+  std::string key;
+  uint64_t fingerprint = 0;
+  int64_t last_use = 0;
+  torch::Tensor cond;  // [B, L, Cc] static condition buffer
+  ConditionCache kv;   // keys/values of `cond`, static
+  std::unique_ptr<GraphedForward> graph;
+  std::vector<std::pair<torch::Tensor, torch::Tensor>> weights;  // (parameter, the 16-bit copy the graph reads)
+  bool weights_known = false;
+};
+
+// The persistent sampling graphs of one generator, least recently used dropped beyond `max_graphs`.
+struct SamplingGraphCache {
+  std::vector<std::shared_ptr<SamplingGraph>> graphs;
+  int64_t tick = 0;
+  size_t max_graphs = 4;
+};
+
 struct PreparedCondition {
   torch::Tensor cond;  // [B, L, Cc]
   torch::Tensor pair;  // [2B, L, Cc]: cond, then the unconditional condition
   bool cache = false;
+  // The unconditional half of `pair` is cond * 0 (force_zeros_cond or "zeros"): its cross attention
+  // is the value bias (ConditionCache::zero_from), no attention over the condition tokens.
+  bool zero_unconditional = false;
   c10::optional<ConditionCache> single_kv, pair_kv;
-  // CUDA graphs of the unguided (B) and guided (2B) forwards when enabled; `graphs` turns off after a
-  // failed capture.
+  // Persistent CUDA graphs of the unguided (B) and guided (2B) forwards when enabled, attached (and
+  // refreshed with this condition) on first use in this call; `graphs` turns off after a failed capture.
   bool graphs = false;
-  std::shared_ptr<GraphedForward> single_graph, pair_graph;
+  std::shared_ptr<SamplingGraph> single_graph, pair_graph;
 };
 
 // ClassifierFreeGuidance: holds the backbone; `forward` evaluates the guided velocity at one time.
@@ -166,8 +195,17 @@ class ClassifierFreeGuidanceImpl : public torch::nn::Module {
                   double strength, std::pair<double, double> interval);
   // The unconditional condition of the official handling ("add_flag" + force_zeros_cond / "zeros": cond * 0).
   PreparedCondition prepare(const torch::Tensor& cond, bool cache);
+  // Drops the persistent sampling graphs (and their memory).
+  void clear_graphs() { graph_cache.graphs.clear(); }
   SparseStructureFlowTdfyWrapper backbone{nullptr};
   std::string unconditional_handling;
+  SamplingGraphCache graph_cache;
+
+ private:
+  // The persistent graph for a forward of backbone on (c, xs, t, d), found or created, its inputs
+  // refreshed for this call (condition, keys/values, weight copies).
+  std::shared_ptr<SamplingGraph> attach_graph(const torch::Tensor& c, const Latents& xs, const torch::Tensor& t,
+                                              const c10::optional<torch::Tensor>& d, int64_t zero_from);
 };
 TORCH_MODULE(ClassifierFreeGuidance);
 

@@ -4,9 +4,8 @@
 // (train_fmdpo) uses bf16 autocast, the paper's recipe. On the CPU everything runs in float32.
 //   fp32: no autocast;  bf16 / fp16: CUDA autocast with that dtype (matmuls, convolutions and
 //   attention in the low precision, LayerNorm / softmax reductions in fp32 as autocast does).
-// The fused CUDA kernels of the flow model (fused_ops.h) are bf16 kernels: they run under bf16
-// autocast only; under fp16 the flow model takes the plain ATen reference path (same math, autocast
-// fp16), see flow_model.cpp `fused_path`.
+// The fused CUDA kernels of the flow model (fused_ops.h) store bf16 or fp16: they run under either
+// autocast (flow_model.cpp `fused_path`); set_fused_kernels(false) gives the plain ATen reference path.
 #pragma once
 
 #include <torch/torch.h>

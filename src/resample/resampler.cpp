@@ -57,6 +57,7 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   if (r.has("bf16")) {  // the earlier switch: bf16 true -> bf16, false -> fp32
     c.precision = r.require<bool>("bf16") ? "bf16" : "fp32";
   }
+  r.field("cuda_graphs", c.cuda_graphs);
   r.field("num_samples", c.num_samples);
   r.field("decode_batch", c.decode_batch);
   r.field("pose_convention", c.pose_convention);
@@ -146,6 +147,7 @@ models::SampleOptions Resampler::sample_options() const {
   // With shortcut on, the CFG strength is the configured one (7 unless changed), as before.
   o.cfg_strength = config_.cfg_strength;
   o.precision = precision_;
+  o.cuda_graphs = config_.cuda_graphs;
   return o;
 }
 

@@ -70,6 +70,9 @@ struct ResamplerConfig {
   // Inference precision of embedder, generator and decoder (models/precision.h): auto = fp16 on CUDA
   // (the released pipeline.yaml dtype), fp32 on CPU; fp16 | bf16 need CUDA; fp32.
   std::string precision = "auto";
+  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs): pays from the second
+  // call on (a probe loop, a long-lived process); the first call captures (slower).
+  bool cuda_graphs = false;
   int num_samples = 1;    // shapes drawn per object
   int decode_batch = 8;   // objects per decoder forward
   std::string pose_convention = "ScaleShiftInvariant";  // see models::PoseDecodeOptions

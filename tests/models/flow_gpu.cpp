@@ -91,3 +91,66 @@ TEST(FlowModelGpu, CudaGraphSamplingMatchesEager) {
     }
   }
 }
+
+namespace {
+double max_rel(const simu::models::Latents& a, const simu::models::Latents& b) {
+  double e = 0;
+  for (const auto& [k, v] : b)
+    e = std::max(e, (a.at(k) - v).abs().max().item<double>() / std::max(v.abs().max().item<double>(), 1e-30));
+  return e;
+}
+}  // namespace
+
+// Graphs persist across sample() calls: the second call captures nothing and replays only; a new
+// condition of the same shape, weights changed in place and fp16 or bf16 autocast all give the eager
+// numbers; a model change (adapters off/on, another precision) is a new capture, not a stale replay.
+TEST(FlowModelGpu, CudaGraphsPersistAcrossSampleCalls) {
+  SIMU_REQUIRE_CUDA();
+  const torch::Device dev(torch::kCUDA);
+  auto gen = small_generator(dev);
+  gen->reverse_fn->clear_graphs();
+  auto io = simu::data::load_safetensors(simu::testing::fixture("ss_generator_small_io.safetensors"));
+  auto o = simu::models::SampleOptions::from(gen->config());
+  o.cfg_interval = {0.0, 500.0};
+  const auto cond_a = io.at("in.cond").to(dev);
+  for (const auto precision : {simu::models::Precision::kFp16, simu::models::Precision::kBf16}) {
+    SCOPED_TRACE(simu::models::precision_name(precision));
+    o.precision = precision;
+    auto run = [&](bool graphs, const torch::Tensor& cond) {
+      o.cuda_graphs = graphs;
+      auto g = at::make_generator<at::CPUGeneratorImpl>(11);
+      return gen->sample(cond, gen->noise(2, g, dev), o);
+    };
+    const auto c0 = simu::models::GraphedForward::capture_count();
+    const auto first = run(true, cond_a);
+    // One graph per batch shape the solve uses (guided 2B, unguided B).
+    const int64_t n = simu::models::GraphedForward::capture_count() - c0;
+    EXPECT_GE(n, 1);
+    // Second call: replays only, the same numbers.
+    const auto r0 = simu::models::GraphedForward::replay_count();
+    const auto second = run(true, cond_a);
+    EXPECT_EQ(simu::models::GraphedForward::capture_count() - c0, n) << "graphs re-captured instead of reused";
+    EXPECT_EQ(simu::models::GraphedForward::replay_count() - r0, o.steps);
+    EXPECT_LE(max_rel(second, first), 1e-6);
+    EXPECT_LE(max_rel(second, run(false, cond_a)), 1e-6);
+    // Another condition of the same shape through the same graphs.
+    const auto cond_b = cond_a.flip(1) * 0.5 + 0.1;
+    EXPECT_LE(max_rel(run(true, cond_b), run(false, cond_b)), 1e-6) << "condition not refreshed";
+    // Weights updated in place (a training step, say): the graphs read the new values.
+    {
+      torch::NoGradGuard ng;
+      for (auto& p : gen->backbone()->parameters()) p.mul_(1.01);
+    }
+    const auto g_new = run(true, cond_a), e_new = run(false, cond_a);
+    EXPECT_LE(max_rel(g_new, e_new), 1e-6) << "weights not refreshed";
+    EXPECT_GT(max_rel(g_new, second), 1e-4) << "the weight change should show";
+    EXPECT_EQ(simu::models::GraphedForward::capture_count() - c0, n);
+    // Kernel switch off: a different forward, so new captures that match eager.
+    gen->backbone()->set_fused_kernels(false);
+    EXPECT_LE(max_rel(run(true, cond_a), run(false, cond_a)), 1e-6);
+    EXPECT_EQ(simu::models::GraphedForward::capture_count() - c0, 2 * n);
+    gen->backbone()->set_fused_kernels(true);
+  }
+  EXPECT_LE(gen->reverse_fn->graph_cache.graphs.size(), gen->reverse_fn->graph_cache.max_graphs);
+  gen->reverse_fn->clear_graphs();
+}

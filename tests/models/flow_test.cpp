@@ -123,6 +123,35 @@ TEST(Generator, BatchedCfgEqualsTwoForwards) {
   for (const auto& [k, v] : plain) EXPECT_TRUE(simu::testing::close(v, yc100.at(k), 1e-6, k));
 }
 
+// An all-zero condition row (CFG's unconditional half under force_zeros_cond) makes every key the
+// same, so cross attention there is the value bias: a cache that skips those rows (zero_from) gives
+// the forward of the full cache, and the sampler that uses it still matches the official fixture
+// (SmallSampleCfgMatchesOfficial).
+TEST(FlowModel, ZeroConditionRowsTakeTheValueBias) {
+  for (const char* name : {"ss_generator_small", "ss_generator_variant"}) {
+    auto f = load(name);
+    torch::NoGradGuard ng;
+    auto x1 = with_prefix(f.io, "in.latent.");
+    Latents x;
+    for (const auto& [k, v] : x1) x[k] = torch::cat({v.narrow(0, 0, 1), v.narrow(0, 0, 1)}, 0);
+    auto c = f.io.at("in.cond").narrow(0, 0, 1);
+    auto pair = torch::cat({c, c * 0}, 0);  // [2, L, Cc]
+    auto t = torch::full({1}, 700.0);
+    auto bb = f.gen->backbone();
+    auto full = bb->condition_cache(pair);
+    auto skip = bb->condition_cache(pair, 1);
+    ASSERT_EQ(skip.kv[0][0].first.size(0), 1) << "the zero row's keys should not be computed";
+    auto want = bb->forward(x, t, pair, c10::nullopt, &full);
+    auto got = bb->forward(x, t, pair, c10::nullopt, &skip);
+    for (const auto& [k, v] : want) EXPECT_TRUE(simu::testing::close(got.at(k), v, 1e-5, std::string(name) + "." + k));
+    // Independent: the uncached forward of the zero row alone.
+    Latents xu;
+    for (const auto& [k, v] : x1) xu[k] = v.narrow(0, 0, 1);
+    auto yu = bb->forward(xu, t, c * 0);
+    for (const auto& [k, v] : yu) EXPECT_TRUE(simu::testing::close(got.at(k).narrow(0, 1, 1), v, 1e-5, std::string(name) + ".u." + k));
+  }
+}
+
 // The shape stream never attends to pose tokens: changing every pose input leaves the shape output.
 TEST(FlowModel, ShapeOutputIndependentOfPose) {
   for (const char* name : {"ss_generator_small", "ss_generator_variant"}) {

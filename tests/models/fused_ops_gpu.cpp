@@ -1,5 +1,9 @@
 // The flow model's fused CUDA kernels against their plain-ATen references, and the whole forward with
-// and without them (bf16 autocast on CUDA).
+// and without them, in both 16-bit storage types: bf16 (bf16 autocast, training) and fp16 (fp16
+// autocast, the released inference precision). Tolerances: one rounding of the same fp32 value to the
+// storage type on both sides, i.e. one unit in the last place of the largest value: 1/128 for bf16
+// (8 significant bits), 1/1024 for fp16 (11 bits); we allow that ulp, measured max rel errors are
+// printed by the tests that compare whole forwards.
 #include <ATen/CPUGeneratorImpl.h>
 
 #include <fstream>
@@ -9,6 +13,7 @@
 #include "models/flow_model.h"
 #include "models/fused_ops.h"
 #include "models/generator.h"
+#include "models/precision.h"
 #include "flow_mid_config.h"
 #include "test_util.h"
 
@@ -18,6 +23,10 @@ double rel(const torch::Tensor& a, const torch::Tensor& b) {
   auto fa = a.to(torch::kFloat32).cpu(), fb = b.to(torch::kFloat32).cpu();
   return (fa - fb).abs().max().item<double>() / std::max(fb.abs().max().item<double>(), 1e-30);
 }
+// The two storage types of the kernels, and one unit in the last place at 1 for each.
+const std::vector<torch::ScalarType> kLow = {torch::kBFloat16, torch::kHalf};
+double ulp(torch::ScalarType t) { return t == torch::kHalf ? 1.0 / 1024 : 1.0 / 128; }
+const char* name(torch::ScalarType t) { return t == torch::kHalf ? "fp16" : "bf16"; }
 }  // namespace
 
 TEST(FusedOpsGpu, LayerNormAffineMatchesReference) {
@@ -25,22 +34,29 @@ TEST(FusedOpsGpu, LayerNormAffineMatchesReference) {
   ASSERT_TRUE(simu::models::fused::compiled()) << "built without nvcc: no fused kernels to test";
   torch::manual_seed(1);
   const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  for (const auto dt : kLow)
   for (const int64_t C : {256, 1024}) {
     // Residual-stream-like input (offset and spread) with per-batch and shared affine rows.
     auto x = torch::randn({2, 1031, C}, f32) * 3 + 0.5;
     for (const int64_t G : {1, 2}) {
       auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
       const auto before = simu::models::fused::launch_count();
-      auto got = simu::models::fused::layer_norm_affine_bf16(x, w, b, 1e-6);
+      auto got = simu::models::fused::layer_norm_affine_bf16(x, w, b, 1e-6, dt);
       EXPECT_EQ(simu::models::fused::launch_count(), before + 1);
-      auto want = simu::models::fused::layer_norm_affine_bf16_reference(x, w, b, 1e-6);
-      ASSERT_EQ(got.scalar_type(), torch::kBFloat16);
-      // One bf16 rounding of the same fp32 value on both sides: at most one bf16 ulp apart.
-      EXPECT_LE(rel(got, want), 1.0 / 128) << "C " << C << " G " << G;
+      auto want = simu::models::fused::layer_norm_affine_bf16_reference(x, w, b, 1e-6, dt);
+      ASSERT_EQ(got.scalar_type(), dt);
+      ASSERT_EQ(want.scalar_type(), dt);
+      // One rounding of the same fp32 value on both sides: at most one ulp apart.
+      EXPECT_LE(rel(got, want), ulp(dt)) << name(dt) << " C " << C << " G " << G;
       EXPECT_LT((got.to(torch::kFloat32) - want.to(torch::kFloat32)).abs().mean().item<double>(), 1e-3);
+      // Independent: fp64 LayerNorm + affine, within the storage type's rounding.
+      auto x64 = x.to(torch::kFloat64);
+      auto m = x64.mean(-1, true), v = (x64 - m).pow(2).mean(-1, true);
+      auto y64 = (x64 - m) / (v + 1e-6).sqrt() * w.to(torch::kFloat64).unsqueeze(1) + b.to(torch::kFloat64).unsqueeze(1);
+      EXPECT_LE(rel(got, y64), ulp(dt)) << name(dt);
       // Without bias.
-      EXPECT_LE(rel(simu::models::fused::layer_norm_affine_bf16(x, w, {}, 1e-6),
-                    simu::models::fused::layer_norm_affine_bf16_reference(x, w, {}, 1e-6)), 1.0 / 128);
+      EXPECT_LE(rel(simu::models::fused::layer_norm_affine_bf16(x, w, {}, 1e-6, dt),
+                    simu::models::fused::layer_norm_affine_bf16_reference(x, w, {}, 1e-6, dt)), ulp(dt));
     }
   }
 }
@@ -52,23 +68,25 @@ TEST(FusedOpsGpu, ResidualLayerNormAffineMatchesReference) {
   const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
   const int64_t B = 2, L = 517, C = 1024;
   auto x = torch::randn({B, L, C}, f32) * 3 + 0.5;
-  auto h = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+  for (const auto dt : kLow)
   for (const int64_t G : {1, 2}) {
+    auto h = torch::randn({B, L, C}, f32).to(dt);
     auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
     // Gates as the modulation gives them (bf16 under autocast), per batch row or shared; and no gate.
-    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(torch::kBFloat16), torch::Tensor()}) {
+    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(dt), torch::Tensor()}) {
       const auto before = simu::models::fused::launch_count();
       auto [x_new, y] = simu::models::fused::residual_layer_norm_affine_bf16(x, h, gate, w, b, 1e-6);
       EXPECT_EQ(simu::models::fused::launch_count(), before + 1);
       auto [x_ref, y_ref] = simu::models::fused::residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, 1e-6);
       ASSERT_EQ(x_new.scalar_type(), torch::kFloat32);
-      ASSERT_EQ(y.scalar_type(), torch::kBFloat16);
+      ASSERT_EQ(y.scalar_type(), dt);
+      ASSERT_EQ(y_ref.scalar_type(), dt);
       // The fp32 residual: the same two operations (at most a fused multiply-add's rounding apart).
-      EXPECT_LE(rel(x_new, x_ref), 1e-6) << "G " << G << " gated " << gate.defined();
+      EXPECT_LE(rel(x_new, x_ref), 1e-6) << name(dt) << " G " << G << " gated " << gate.defined();
       // Independent check of the residual itself against fp64 math.
       auto want64 = x.to(torch::kFloat64) + h.to(torch::kFloat64) * (gate.defined() ? gate.to(torch::kFloat64).unsqueeze(1) : torch::ones({1}, f32.dtype(torch::kFloat64)));
       EXPECT_LE(rel(x_new.to(torch::kFloat64), want64), 1e-6);
-      EXPECT_LE(rel(y, y_ref), 1.0 / 128);
+      EXPECT_LE(rel(y, y_ref), ulp(dt)) << name(dt);
       EXPECT_LT((y.to(torch::kFloat32) - y_ref.to(torch::kFloat32)).abs().mean().item<double>(), 1e-3);
     }
   }
@@ -78,9 +96,11 @@ TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
   torch::manual_seed(2);
-  const auto bf = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kBFloat16);
+  for (const auto dt : kLow) {
+  SCOPED_TRACE(name(dt));
+  const auto bf = torch::TensorOptions().device(torch::kCUDA).dtype(dt);
   const int64_t B = 2, L = 517, H = 16, D = 64, extra = 5;
-  auto qkv = (torch::randn({B, L, 3, H, D}, bf.dtype(torch::kFloat32)) * 4).to(torch::kBFloat16);
+  auto qkv = (torch::randn({B, L, 3, H, D}, bf.dtype(torch::kFloat32)) * 4).to(dt);
   qkv.select(1, 3).select(1, 0).select(1, 0).zero_();  // a zero query (token 3, head 0): the clamp keeps it zero
   auto gq = 1 + 0.2 * torch::randn({H, D}, bf.dtype(torch::kFloat32)), gk = torch::randn({H, D}, bf.dtype(torch::kFloat32));
   // Keys and values land in a larger buffer at an offset (the pose stream's keys come first).
@@ -89,8 +109,8 @@ TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
   simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q, k_buf.narrow(1, extra, L), v_buf.narrow(1, extra, L));
   auto q_ref = torch::empty_like(q), k_ref = torch::empty_like(q), v_ref = torch::empty_like(q);
   simu::models::fused::split_qkv_rms_norm_reference(qkv, gq, gk, 8.0, q_ref, k_ref, v_ref);
-  EXPECT_LE(rel(q, q_ref), 1.0 / 128);
-  EXPECT_LE(rel(k_buf.narrow(1, extra, L), k_ref), 1.0 / 128);
+  EXPECT_LE(rel(q, q_ref), ulp(dt));
+  EXPECT_LE(rel(k_buf.narrow(1, extra, L), k_ref), ulp(dt));
   EXPECT_TRUE(torch::equal(v_buf.narrow(1, extra, L), v_ref));
   EXPECT_EQ(q.select(1, 3).select(1, 0).abs().max().item<float>(), 0.f);
   // The buffer outside the written slice is untouched.
@@ -101,6 +121,7 @@ TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
   auto norms = q.to(torch::kFloat32).norm(2, {-1});  // [B, L, H]
   norms.select(1, 3).select(1, 0).fill_(8.0);          // the zero query
   EXPECT_LT((norms - 8.0).abs().max().item<double>(), 8.0 * 0.01);
+  }
 }
 
 TEST(FusedOpsGpu, LinearGeluMatchesReference) {
@@ -108,20 +129,22 @@ TEST(FusedOpsGpu, LinearGeluMatchesReference) {
   ASSERT_TRUE(simu::models::fused::compiled());
   torch::manual_seed(3);
   const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
-  auto x = torch::randn({2, 301, 256}, f32).to(torch::kBFloat16);
   auto w = torch::randn({1024, 256}, f32) / 16, b = torch::randn({1024}, f32);
+  for (const auto dt : kLow)
   for (const bool autocast : {false, true}) {
-    simu::models::Bf16Autocast ac(autocast);
+    auto x = torch::randn({2, 301, 256}, f32).to(dt);
+    simu::models::Autocast ac(dt == torch::kHalf ? simu::models::Precision::kFp16 : simu::models::Precision::kBf16, autocast);
     auto got = simu::models::fused::linear_gelu_tanh_bf16(x, w, b);
     auto want = simu::models::fused::linear_gelu_tanh_bf16_reference(x, w, b);
     ASSERT_EQ(got.sizes(), want.sizes());
-    // The epilogue applies GELU before rounding to bf16, the reference after: about one bf16 ulp.
-    EXPECT_LE(rel(got, want), 2.0 / 128) << "autocast " << autocast;
-    // Independent: tanh-GELU of the fp32 product.
-    auto y = torch::matmul(x.to(torch::kFloat32), w.to(torch::kBFloat16).to(torch::kFloat32).t()) +
-             b.to(torch::kBFloat16).to(torch::kFloat32);
+    ASSERT_EQ(got.scalar_type(), dt);
+    ASSERT_EQ(want.scalar_type(), dt);
+    // The epilogue applies GELU before rounding, the reference after: about one ulp (two allowed).
+    EXPECT_LE(rel(got, want), 2 * ulp(dt)) << name(dt) << " autocast " << autocast;
+    // Independent: tanh-GELU of the fp32 product of the rounded operands.
+    auto y = torch::matmul(x.to(torch::kFloat32), w.to(dt).to(torch::kFloat32).t()) + b.to(dt).to(torch::kFloat32);
     auto g = 0.5 * y * (1 + torch::tanh(std::sqrt(2.0 / M_PI) * (y + 0.044715 * y.pow(3))));
-    EXPECT_LE(rel(got, g), 2.0 / 128);
+    EXPECT_LE(rel(got, g), 2 * ulp(dt)) << name(dt);
   }
 }
 
@@ -169,6 +192,60 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   }
 }
 
+// The whole forward under fp16 autocast (the released inference precision): the fused kernels store
+// fp16 and must agree with the reference path under the same autocast, as bf16 does above; both are
+// also compared with an fp32 forward (the fp16 error should be well under the bf16 one).
+TEST(FusedOpsGpu, FlowForwardFp16FusedMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  const torch::Device dev(torch::kCUDA);
+  const auto path = simu::testing::mid_flow_config("fused_flow_fp16");
+  auto gen = simu::models::load_generator(path, "", dev);
+  auto rng = at::make_generator<at::CPUGeneratorImpl>(7);
+  auto x = gen->noise(2, rng, dev);
+  auto cond = torch::randn({2, 77, gen->config().backbone.cond_channels}, rng).to(dev);
+  auto t = torch::full({1}, 400.0, torch::TensorOptions().device(dev));
+  c10::optional<torch::Tensor> d = torch::zeros({1}, torch::TensorOptions().device(dev));
+  torch::NoGradGuard ng;
+  simu::models::Latents fp32;
+  {
+    simu::models::Autocast ac(simu::models::Precision::kFp32);
+    fp32 = gen->backbone()->forward(x, t, cond, d);
+  }
+  for (const auto p : {simu::models::Precision::kFp16, simu::models::Precision::kBf16}) {
+    simu::models::Autocast ac(p);
+    gen->backbone()->set_fused_kernels(false);
+    const auto n0 = simu::models::fused::launch_count();
+    auto want = gen->backbone()->forward(x, t, cond, d);
+    EXPECT_EQ(simu::models::fused::launch_count(), n0);
+    gen->backbone()->set_fused_kernels(true);
+    auto got = gen->backbone()->forward(x, t, cond, d);
+    // Every block takes the fused path: 3 blocks x 2 streams x 5 launches, as in bf16.
+    EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5) << simu::models::precision_name(p);
+    auto cache = gen->backbone()->condition_cache(cond);
+    auto cached = gen->backbone()->forward(x, t, cond, d, &cache);
+    // CFG's pair with an all-zero second row: the value-bias shortcut (ConditionCache::zero_from) on
+    // the fused path against the full cache.
+    auto pair = torch::cat({cond.narrow(0, 0, 1), cond.narrow(0, 0, 1) * 0}, 0);
+    auto full = gen->backbone()->condition_cache(pair), skip = gen->backbone()->condition_cache(pair, 1);
+    auto y_full = gen->backbone()->forward(x, t, pair, d, &full), y_skip = gen->backbone()->forward(x, t, pair, d, &skip);
+    for (const auto& [k, v] : y_full) {
+      fmt::print("{} {}: zero-row shortcut vs full cache {:.2e}\n", simu::models::precision_name(p), k, rel(y_skip.at(k), v));
+      EXPECT_LE(rel(y_skip.at(k), v), p == simu::models::Precision::kFp16 ? 2.5e-3 : 2e-2) << k;
+    }
+    for (const auto& [k, v] : want) {
+      const double e = rel(got.at(k), v), e32 = rel(got.at(k), fp32.at(k)), e32ref = rel(v, fp32.at(k));
+      fmt::print("{} {}: fused vs reference {:.2e}, fused vs fp32 {:.2e}, reference vs fp32 {:.2e}\n",
+                 simu::models::precision_name(p), k, e, e32, e32ref);
+      // Same tolerance as bf16's (2e-2) for bf16; fp16 keeps 3 more mantissa bits: 8x tighter.
+      EXPECT_LE(e, p == simu::models::Precision::kFp16 ? 2.5e-3 : 2e-2) << k;
+      // The fused path is no further from fp32 than the reference path (up to the same slack).
+      EXPECT_LE(e32, e32ref * 1.5 + (p == simu::models::Precision::kFp16 ? 1e-3 : 8e-3)) << k;
+      EXPECT_LE(rel(cached.at(k), v), p == simu::models::Precision::kFp16 ? 2.5e-3 : 2e-2) << k;
+    }
+  }
+}
+
 namespace {
 // LayerNorm without affine over the last dim, in whatever dtype x has (fp64 for the references).
 torch::Tensor plain_layer_norm(const torch::Tensor& x, double eps) {
@@ -184,19 +261,21 @@ TEST(FusedOpsGpu, LayerNormAffineGradientMatchesFp64) {
   torch::manual_seed(11);
   const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
   const int64_t B = 2, L = 517, C = 1024;
+  for (const auto dt : kLow)
   for (const int64_t G : {1, 2}) {
     auto x = (torch::randn({B, L, C}, f32) * 3 + 0.5).requires_grad_();
     auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
-    auto gy = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+    auto gy = torch::randn({B, L, C}, f32).to(dt);
     const auto n0 = simu::models::fused::launch_count();
-    auto y = simu::models::fused::layer_norm_affine_bf16(x, w, b, 1e-6);
+    auto y = simu::models::fused::layer_norm_affine_bf16(x, w, b, 1e-6, dt);
+    ASSERT_EQ(y.scalar_type(), dt);
     y.backward(gy);
     EXPECT_EQ(simu::models::fused::launch_count(), n0 + 2) << "forward + backward kernel";
     // fp64 autograd of the same function.
     auto x64 = x.detach().to(torch::kFloat64).requires_grad_();
     auto y64 = plain_layer_norm(x64, 1e-6) * w.to(torch::kFloat64).unsqueeze(1) + b.to(torch::kFloat64).unsqueeze(1);
     y64.backward(gy.to(torch::kFloat64));
-    EXPECT_LE(rel(x.grad(), x64.grad()), 1e-4) << "G " << G;
+    EXPECT_LE(rel(x.grad(), x64.grad()), 1e-4) << name(dt) << " G " << G;
   }
   // A weight that requires a gradient: the reference runs (differentiable in w too).
   auto x = torch::randn({B, L, C}, f32).requires_grad_();
@@ -213,14 +292,15 @@ TEST(FusedOpsGpu, ResidualLayerNormAffineGradientMatchesFp64) {
   torch::manual_seed(12);
   const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
   const int64_t B = 2, L = 517, C = 1024;
+  for (const auto dt : kLow)
   for (const int64_t G : {1, 2}) {
     auto w = 1 + 0.1 * torch::randn({G, C}, f32), b = torch::randn({G, C}, f32);
-    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(torch::kBFloat16), torch::Tensor()}) {
-      // Gradients into both outputs (the residual stream and the normalised bf16 copy), or only y.
+    for (const auto& gate : {(0.3 * torch::randn({G, C}, f32)).to(dt), torch::Tensor()}) {
+      // Gradients into both outputs (the residual stream and the normalised 16-bit copy), or only y.
       for (const bool both : {true, false}) {
         auto x = (torch::randn({B, L, C}, f32) * 3 + 0.5).requires_grad_();
-        auto h = torch::randn({B, L, C}, f32).to(torch::kBFloat16).requires_grad_();
-        auto gx = torch::randn({B, L, C}, f32), gy = torch::randn({B, L, C}, f32).to(torch::kBFloat16);
+        auto h = torch::randn({B, L, C}, f32).to(dt).requires_grad_();
+        auto gx = torch::randn({B, L, C}, f32), gy = torch::randn({B, L, C}, f32).to(dt);
         const auto n0 = simu::models::fused::launch_count();
         auto [x_new, y] = simu::models::fused::residual_layer_norm_affine_bf16(x, h, gate, w, b, 1e-6);
         if (both) torch::autograd::backward({x_new, y}, {gx, gy});
@@ -232,11 +312,11 @@ TEST(FusedOpsGpu, ResidualLayerNormAffineGradientMatchesFp64) {
         auto y64 = plain_layer_norm(xn64, 1e-6) * w.to(torch::kFloat64).unsqueeze(1) + b.to(torch::kFloat64).unsqueeze(1);
         if (both) torch::autograd::backward({xn64, y64}, {gx.to(torch::kFloat64), gy.to(torch::kFloat64)});
         else y64.backward(gy.to(torch::kFloat64));
-        const std::string what = fmt::format("G {} gated {} both {}", G, gate.defined(), both);
+        const std::string what = fmt::format("{} G {} gated {} both {}", name(dt), G, gate.defined(), both);
         EXPECT_LE(rel(x.grad(), x64.grad()), 1e-4) << what;
-        // dh is stored as bf16: one rounding of the fp32 value.
-        EXPECT_LE(rel(h.grad(), h64.grad()), 1.0 / 128) << what;
-        EXPECT_EQ(h.grad().scalar_type(), torch::kBFloat16);
+        // dh is stored in h's dtype: one rounding of the fp32 value.
+        EXPECT_LE(rel(h.grad(), h64.grad()), ulp(dt)) << what;
+        EXPECT_EQ(h.grad().scalar_type(), dt);
       }
     }
   }
