@@ -15,6 +15,14 @@
 
 namespace sd = simu::data;
 
+namespace {
+// SIMU_FUZZ_VERBOSE=1: print each reader's error (to check what a seed or a crash input reaches).
+void note(const simu::Error& e) {
+  static const bool verbose = std::getenv("SIMU_FUZZ_VERBOSE") != nullptr;
+  if (verbose) std::fprintf(stderr, "error: %s\n", e.what());
+}
+}  // namespace
+
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size < 1) return 0;
   const uint8_t sel = data[0];
@@ -32,34 +40,40 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (sel < 64) {
     try {
       (void)sd::read_npy(path);
-    } catch (const simu::Error&) {
+    } catch (const simu::Error& e) {
+      note(e);
     }
     try {
       const auto z = sd::read_depth(path);
       (void)sd::unproject_depth(z, K);
-    } catch (const simu::Error&) {
+    } catch (const simu::Error& e) {
+      note(e);
     }
     try {
       const auto p = sd::read_pointmap(path);
       (void)sd::estimate_intrinsics(p, path);
-    } catch (const simu::Error&) {
+    } catch (const simu::Error& e) {
+      note(e);
     }
   } else if (sel < 192) {
     try {
       const auto z = sd::read_depth(path);
       (void)sd::unproject_depth(z, K);
-    } catch (const simu::Error&) {
+    } catch (const simu::Error& e) {
+      note(e);
     }
     if (sel < 128) {
       try {
         (void)sd::read_label_image(path);
-      } catch (const simu::Error&) {
+      } catch (const simu::Error& e) {
+        note(e);
       }
     }
   } else {
     try {
       (void)sd::read_intrinsics_json(path);
-    } catch (const simu::Error&) {
+    } catch (const simu::Error& e) {
+      note(e);
     }
   }
   return 0;

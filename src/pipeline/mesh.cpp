@@ -157,11 +157,36 @@ Mesh read_mesh(const std::string& path) {
     if (ext == ".ply" || std::memcmp(magic, "ply", 3) == 0) check_ply_header(path);
   }
   Assimp::Importer importer;
-  // Triangulate, bake node transforms into the vertices, merge duplicated vertices.
-  const unsigned flags = aiProcess_Triangulate | aiProcess_PreTransformVertices | aiProcess_JoinIdenticalVertices |
-                         aiProcess_SortByPType;
-  const aiScene* sc = importer.ReadFile(path, flags);
+  // Import and validate first (face indices inside the vertex array, no empty faces, ...): assimp's
+  // post-processing steps trust the data and abort() or read out of bounds on a malformed file.
+  const aiScene* sc = importer.ReadFile(path, aiProcess_ValidateDataStructure);
   if (!sc || !sc->mRootNode) fail("mesh file {}: assimp could not read it ({})", path, importer.GetErrorString());
+  // Validation skips some face checks when an importer left the primitive types unset (PLY), and a
+  // face with no indices then fails an ai_assert (abort) in assimp 5.2's triangulation step
+  // (fuzz/regressions/fuzz_scene/assimp_triangulate_assert.bin): check every face here, then set the
+  // primitive types from the faces.
+  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
+    aiMesh* am = sc->mMeshes[m];
+    SIMU_CHECK(am && (am->mNumFaces == 0 || am->mFaces), "mesh file {}: sub-mesh {} has no face array", path, m);
+    unsigned types = 0;
+    for (unsigned i = 0; i < am->mNumFaces; ++i) {
+      const aiFace& face = am->mFaces[i];
+      SIMU_CHECK(face.mNumIndices > 0 && face.mIndices, "mesh file {}: face {} of sub-mesh {} has no vertex indices",
+                 path, i, m);
+      for (unsigned k = 0; k < face.mNumIndices; ++k)
+        SIMU_CHECK(face.mIndices[k] < am->mNumVertices,
+                   "mesh file {}: face {} of sub-mesh {} uses vertex index {}, expected < {} (its vertex count)", path,
+                   i, m, face.mIndices[k], am->mNumVertices);
+      const unsigned n = face.mNumIndices;
+      types |= n == 1 ? aiPrimitiveType_POINT : n == 2 ? aiPrimitiveType_LINE : n == 3 ? aiPrimitiveType_TRIANGLE
+                                                                                        : aiPrimitiveType_POLYGON;
+    }
+    am->mPrimitiveTypes = types;
+  }
+  // Triangulate, bake node transforms into the vertices, merge duplicated vertices.
+  sc = importer.ApplyPostProcessing(aiProcess_Triangulate | aiProcess_PreTransformVertices |
+                                    aiProcess_JoinIdenticalVertices | aiProcess_SortByPType);
+  if (!sc || !sc->mRootNode) fail("mesh file {}: assimp could not process it ({})", path, importer.GetErrorString());
   // Concatenate the triangles of every sub-mesh.
   // Every vertex finite, every face index inside its sub-mesh, the total within int's range.
   std::vector<double> v;
