@@ -113,8 +113,10 @@ for t in "${TARGETS[@]}"; do
     if [[ $t == fuzz_pair_cache ]]; then
       # Behind the guard: libhdf5 1.10's own crashes end a fork-mode child, libFuzzer starts another.
       rm -f "$work"/crashes/*
-      SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
-        "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1 || true
+      TIMEFORMAT='%U %S'
+      { time SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
+        "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt" || true
+      cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
       execs=$(grep -o '^#[0-9]*' "$work/fuzz.log" | tail -n 1 | tr -d '#')
       # Triage with the guard on (as users run it): every input must end cleanly.
       r=ok
@@ -122,13 +124,21 @@ for t in "${TARGETS[@]}"; do
       if ((nart)) && ! "$exe" -rss_limit_mb=4096 -timeout=60 "$work"/crashes/* >"$work/triage.log" 2>&1; then
         r=CRASH; status=1
       fi
-      echo "$r: $t: ${execs:-?} executions in $(( $(date +%s) - start )) s behind the guard, $nart libhdf5 crash/hang" \
+      echo "$r: $t: ${execs:-?} executions in $(( $(date +%s) - start )) s ($cpu s CPU) behind the guard, $nart libhdf5 crash/hang" \
         "inputs, all clean with the guard on: $r; corpus $(ls "$work/corpus" | wc -l) files, log $work/fuzz.log"
       continue
     fi
-    if "$exe" "${args[@]}" "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; then r=ok; else r=CRASH; status=1; fi
+    # CPU seconds beside wall seconds: on a shared machine the CPU rate is the one to compare.
+    TIMEFORMAT='%U %S'
+    if { time "$exe" "${args[@]}" "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt"; then
+      r=ok
+    else
+      r=CRASH; status=1
+    fi
+    cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
     execs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$work/fuzz.log" | grep -o '[0-9]*$' | awk '{s+=$1} END {print s+0}')
-    echo "$r: $t: $execs executions in $(( $(date +%s) - start )) s, corpus $(ls "$work/corpus" | wc -l) files, log $work/fuzz.log"
+    echo "$r: $t: $execs executions in $(( $(date +%s) - start )) s ($cpu s CPU, $(( execs / (cpu > 0 ? cpu : 1) )) per CPU second)," \
+      "corpus $(ls "$work/corpus" | wc -l) files, log $work/fuzz.log"
     [[ $r == ok ]] || ls "$work/crashes"
   fi
 done

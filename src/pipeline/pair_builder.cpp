@@ -136,11 +136,11 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
   auto manifest = parse_manifest(simu::fs::read_file(manifest_path),
                                  std::filesystem::path(manifest_path).parent_path().string());
   report.records = manifest.records;
-  for (const auto& issue : manifest.issues) {
-    simu::log::warn("{}:{}: {}skipped: {}", manifest_path, issue.line, issue.id.empty() ? "" : "pair '" + issue.id + "' ",
-                    issue.message);
-    report.issues.push_back(issue);
-  }
+  auto add_issue = [&](int64_t line, const std::string& id, const std::string& message) {
+    simu::log::warn("{}:{}: {}skipped: {}", manifest_path, line, id.empty() ? "" : "pair '" + id + "' ", message);
+    report.issues.push_back({line, id, message});
+  };
+  for (const auto& issue : manifest.issues) add_issue(issue.line, issue.id, issue.message);
   auto& records = manifest.pairs;
 
   // Shapes of what the models produce: latent [T, C] and condition [L, Cc].

@@ -2,6 +2,7 @@
 // fuzz target fuzz/fuzz_manifest.cpp compiles it without the models).
 #include <cmath>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <nlohmann/json.hpp>
 #include <set>
@@ -57,7 +58,8 @@ PairManifestRecord parse_manifest_line(const std::string& text, const std::strin
   if (j.contains("weight")) {
     SIMU_CHECK(j["weight"].is_number(), "'weight' must be a number, got {}", j["weight"].dump());
     const double w = j["weight"].get<double>();
-    SIMU_CHECK(std::isfinite(w) && w >= 0, "'weight' must be finite and >= 0, got {}", w);
+    SIMU_CHECK(std::isfinite(w) && w >= 0 && w <= std::numeric_limits<float>::max(),
+               "'weight' must be finite, >= 0 and fit in float32 (the cache stores float32), got {}", w);
     r.weight = static_cast<float>(w);
   }
   // Paths: required per kind, the other kind's keys refused.

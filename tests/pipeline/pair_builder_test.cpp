@@ -193,6 +193,10 @@ TEST(PairBuilder, ManifestParsingKeepsLineNumbers) {
   EXPECT_EQ(m.issues[0].line, 5);
   EXPECT_NE(m.issues[0].message.find("not valid JSON"), std::string::npos);
   EXPECT_EQ(m.issues[1].line, 6);
+  // A weight that is finite as a double but not as the cache's float32.
+  const auto big = parse_manifest(R"({"id": "w", "kind": "clean_preservation", "image": "i", "mask": "m", "corrupted_mask": "c", "weight": 1e300})", "");
+  ASSERT_EQ(big.issues.size(), 1u);
+  EXPECT_NE(big.issues[0].message.find("'weight' must be finite"), std::string::npos);
   EXPECT_NE(m.issues[1].message.find("duplicate id (first on line 2)"), std::string::npos);
 }
 
