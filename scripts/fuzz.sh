@@ -64,6 +64,8 @@ fi
 # Sanitizers: any report aborts the run (a test failure); leaks are reported too.
 export ASAN_OPTIONS="${ASAN_OPTIONS:-abort_on_error=1:detect_leaks=1:symbolize=1:allocator_may_return_null=1}"
 export UBSAN_OPTIONS="${UBSAN_OPTIONS:-halt_on_error=1:print_stacktrace=1}"
+# Leaks inside third-party libraries (each one documented in the file) are not reports.
+export LSAN_OPTIONS="${LSAN_OPTIONS:-suppressions=$ROOT/fuzz/lsan.supp:print_suppressions=0}"
 TMP="$(mktemp -d)"
 trap 'rm -rf "$TMP"' EXIT
 export SIMU_FUZZ_TMP="$TMP"
