@@ -122,6 +122,23 @@ void check_ply_header(const std::string& path) {
   }
   if (!ended) bad(line_no, "no 'end_header' line");
   if (!have_format) bad(2, "no format line");
+  // An ASCII body is text: a NUL or other control byte makes assimp 5.2 allocate gigabytes
+  // (fuzz/regressions/fuzz_scene/assimp_ply_ascii_nul_oom.bin).
+  if (!binary) {
+    in.clear();
+    in.seekg(static_cast<std::streamoff>(pos));
+    char buf[65536];
+    uint64_t offset = pos;
+    while (in.read(buf, sizeof buf) || in.gcount() > 0) {
+      for (std::streamsize k = 0; k < in.gcount(); ++k) {
+        const unsigned char c = static_cast<unsigned char>(buf[k]);
+        SIMU_CHECK(!(c < 0x20 ? c != '\t' && c != '\n' && c != '\r' : c > 0x7e),
+                   "mesh file {}: ASCII PLY data holds byte 0x{:02x} at offset {} (expected text: numbers and spaces)",
+                   path, c, offset + static_cast<uint64_t>(k));
+      }
+      offset += static_cast<uint64_t>(in.gcount());
+    }
+  }
   // Element counts against the data bytes after the header.
   const uint64_t data_bytes = file_size - pos;
   uint64_t need = 0;
