@@ -127,13 +127,86 @@ def scene_seeds():
     out("fuzz_scene", "cube.ply", b"\xc0" + ply.encode())
 
 
+def manifest_seeds():
+    occ = {"id": "occ-0", "kind": "occlusion_completion", "image": "img/0.png", "mask": "mask/0.png",
+           "full_image": "img/0_full.png", "full_mask": "mask/0_full.png", "pointmap": "pm/0.safetensors",
+           "weight": 1.0}
+    clean = {"id": "clean-0", "kind": "clean_preservation", "image": "/abs/img/1.png", "mask": "mask/1.png",
+             "corrupted_mask": "mask/1_bad.png", "weight": 0.1}
+    lines = ["# build_pairs manifest", json.dumps(occ), "", json.dumps(clean),
+             json.dumps(dict(occ, id="occ-1", full_pointmap="pm/1.safetensors")), json.dumps(dict(clean, id="occ-0"))]
+    out("fuzz_manifest", "pairs.jsonl", "\n".join(lines).encode() + b"\r\n")
+    out("fuzz_manifest", "one_line.jsonl", json.dumps(occ).encode())
+
+
+def npy_bytes(a, fortran=False):
+    """A .npy file (format 1.0) as numpy.save writes it, without numpy's writer: descr, order, shape."""
+    descr = a.dtype.str
+    shape = repr(tuple(int(d) for d in a.shape))  # (), (5,), (5, 6)
+    h = "{'descr': '%s', 'fortran_order': %s, 'shape': %s, }" % (descr, "True" if fortran else "False", shape)
+    h += " " * ((64 - (10 + len(h) + 1) % 64) % 64) + "\n"
+    data = np.asfortranarray(a).tobytes(order="F") if fortran else a.tobytes()
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(h)) + h.encode() + data
+
+
+def exr_bytes(depth):
+    """A single-channel ('Y', float32) uncompressed scanline OpenEXR file."""
+    h, w = depth.shape
+    def attr(name, typ, value):
+        return name.encode() + b"\0" + typ.encode() + b"\0" + struct.pack("<i", len(value)) + value
+    chlist = b"Y\0" + struct.pack("<iB3xii", 2, 0, 1, 1) + b"\0"
+    box = struct.pack("<iiii", 0, 0, w - 1, h - 1)
+    head = (b"\x76\x2f\x31\x01" + struct.pack("<i", 2) + attr("channels", "chlist", chlist) +
+            attr("compression", "compression", b"\0") + attr("dataWindow", "box2i", box) +
+            attr("displayWindow", "box2i", box) + attr("lineOrder", "lineOrder", b"\0") +
+            attr("pixelAspectRatio", "float", struct.pack("<f", 1.0)) +
+            attr("screenWindowCenter", "v2f", struct.pack("<ff", 0, 0)) +
+            attr("screenWindowWidth", "float", struct.pack("<f", 1.0)) + b"\0")
+    first = len(head) + 8 * h
+    blocks, offsets = b"", []
+    for y in range(h):
+        offsets.append(first + len(blocks))
+        row = depth[y].astype("<f4").tobytes()
+        blocks += struct.pack("<ii", y, len(row)) + row
+    return head + b"".join(struct.pack("<Q", o) for o in offsets) + blocks
+
+
+def depth_seeds():
+    import io
+    from PIL import Image
+    H, W = 5, 6
+    z = (1.0 + 0.1 * np.arange(H * W, dtype=np.float32).reshape(H, W))
+    z[0, 0] = 0  # invalid
+    out("fuzz_depth", "depth_f4.npy", b"\x00" + npy_bytes(z))
+    out("fuzz_depth", "depth_u2_mm.npy", b"\x00" + npy_bytes((z * 1000).astype("<u2")))
+    out("fuzz_depth", "depth_f8_fortran_be.npy", b"\x00" + npy_bytes(z.astype(">f8"), fortran=True))
+    # MoGe-style point map [H, W, 3] of a pinhole camera (fx = fy = 50, cx = 3, cy = 2), one invalid point.
+    v, u = np.mgrid[0:H, 0:W].astype(np.float32)
+    pm = np.stack([(u - 3) / 50 * z, (v - 2) / 50 * z, z], -1).astype(np.float32)
+    pm[1, 1] = np.inf
+    out("fuzz_depth", "pointmap_f4.npy", b"\x00" + npy_bytes(pm))
+    buf = io.BytesIO()
+    Image.fromarray((z * 1000).astype(np.uint16)).save(buf, format="PNG")  # 16-bit grey, millimetres
+    out("fuzz_depth", "depth_mm16.png", b"\x40" + buf.getvalue())
+    buf = io.BytesIO()
+    Image.fromarray(np.arange(H * W, dtype=np.uint8).reshape(H, W) % 3).save(buf, format="PNG")  # labels / 8-bit
+    out("fuzz_depth", "labels_u8.png", b"\x40" + buf.getvalue())
+    out("fuzz_depth", "depth_f32.exr", b"\x80" + exr_bytes(z))
+    out("fuzz_depth", "K_keys.json", b"\xc0" + json.dumps({"fx": 500, "fy": 500, "cx": 320, "cy": 240, "width": 640}).encode())
+    out("fuzz_depth", "K_matrix.json", b"\xc0" + json.dumps({"K": [[500, 0, 320], [0, 500, 240], [0, 0, 1]]}).encode())
+    out("fuzz_depth", "K_flat.json", b"\xc0" + json.dumps([500, 0, 320, 0, 500, 240, 0, 0, 1]).encode())
+
+
 if __name__ == "__main__":
-    for t in ["fuzz_safetensors", "fuzz_peft", "fuzz_config", "fuzz_pair_cache", "fuzz_scene"]:
+    for t in ["fuzz_safetensors", "fuzz_peft", "fuzz_config", "fuzz_pair_cache", "fuzz_scene", "fuzz_manifest",
+              "fuzz_depth"]:
         shutil.rmtree(os.path.join(CORPUS, t), ignore_errors=True)
     safetensors_seeds()
     peft_seeds()
     config_seeds()
     pair_cache_seeds()
     scene_seeds()
+    manifest_seeds()
+    depth_seeds()
     for t in sorted(os.listdir(CORPUS)):
         print(t, len(os.listdir(os.path.join(CORPUS, t))), "seeds")

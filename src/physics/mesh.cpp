@@ -8,7 +8,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
+#include <fstream>
+#include <limits>
+#include <sstream>
 #include <vector>
 
 #include "common/error.h"
@@ -18,31 +22,218 @@
 
 namespace simu::physics {
 
+namespace {
+
+// Bytes per value of a PLY scalar type (0: not a PLY type).
+int ply_type_size(const std::string& t) {
+  if (t == "char" || t == "uchar" || t == "int8" || t == "uint8") return 1;
+  if (t == "short" || t == "ushort" || t == "int16" || t == "uint16") return 2;
+  if (t == "int" || t == "uint" || t == "int32" || t == "uint32" || t == "float" || t == "float32") return 4;
+  if (t == "double" || t == "float64") return 8;
+  return 0;
+}
+bool ply_integer_type(const std::string& t) { return ply_type_size(t) && t.rfind("float", 0) != 0 && t != "double"; }
+
+// Checks a PLY file's header before assimp sees it: assimp 5.2's PLY reader loops forever on some
+// malformed headers (an unknown property type, no end_header: fuzz/regressions/fuzz_scene/). Checks:
+// "ply", a format line (ascii | binary_little_endian | binary_big_endian 1.0), only printable ASCII,
+// element / property / comment / obj_info lines with known scalar types (list count and index types
+// integer), "end_header" within the first 64 KiB, a "vertex" element with x, y, z, and element counts
+// that fit in the bytes after the header (every element needs at least 1 byte per fixed-size value or
+// list count in binary, 2 per property in ASCII). Throws simu::Error naming the file, line and problem.
+void check_ply_header(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  SIMU_CHECK(in.good(), "mesh file {}: cannot open it", path);
+  std::error_code ec;
+  const uint64_t file_size = std::filesystem::file_size(path, ec);
+  SIMU_CHECK(!ec, "mesh file {}: cannot read its size ({})", path, ec.message());
+  constexpr size_t kMaxHeader = 64 * 1024;
+  std::string head(static_cast<size_t>(std::min<uint64_t>(file_size, kMaxHeader)), '\0');
+  in.read(head.data(), static_cast<std::streamsize>(head.size()));
+  head.resize(static_cast<size_t>(in.gcount()));
+  auto bad = [&](int line, const std::string& why) {
+    fail_hint("write the PLY with a standard tool (trimesh, Open3D, MeshLab, Blender)",
+              "mesh file {}: malformed PLY header (line {}): {}", path, line, why);
+  };
+  struct Element {
+    std::string name;
+    uint64_t count = 0;
+    uint64_t min_bytes = 0;  // per element, in the file's format
+    std::vector<std::string> props;
+  };
+  std::vector<Element> elements;
+  bool binary = false, have_format = false, ended = false;
+  size_t pos = 0;
+  int line_no = 0;
+  while (pos < head.size() && !ended) {
+    size_t end = head.find('\n', pos);
+    if (end == std::string::npos) bad(line_no + 1, "no 'end_header' line in the first 64 KiB");
+    std::string line = head.substr(pos, end - pos);
+    pos = end + 1;
+    ++line_no;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    for (unsigned char c : line)
+      if (c < 0x20 ? c != '\t' : c > 0x7e) bad(line_no, fmt::format("byte 0x{:02x} is not printable ASCII", c));
+    std::istringstream ss(line);
+    std::vector<std::string> tok;
+    for (std::string t; ss >> t;) tok.push_back(t);
+    if (line_no == 1) {
+      if (tok.size() != 1 || tok[0] != "ply") bad(1, "the first line must be 'ply'");
+      continue;
+    }
+    if (line_no == 2) {
+      if (tok.size() != 3 || tok[0] != "format" || tok[2] != "1.0" ||
+          (tok[1] != "ascii" && tok[1] != "binary_little_endian" && tok[1] != "binary_big_endian"))
+        bad(2, "expected 'format ascii|binary_little_endian|binary_big_endian 1.0'");
+      binary = tok[1] != "ascii";
+      have_format = true;
+      continue;
+    }
+    if (tok.empty() || tok[0] == "comment" || tok[0] == "obj_info") continue;
+    if (tok[0] == "end_header") {
+      if (tok.size() != 1) bad(line_no, "'end_header' takes nothing after it");
+      ended = true;
+    } else if (tok[0] == "element") {
+      if (tok.size() != 3) bad(line_no, "expected 'element NAME COUNT'");
+      const std::string& c = tok[2];
+      if (c.empty() || c.size() > 10 || c.find_first_not_of("0123456789") != std::string::npos ||
+          std::stoull(c) > std::numeric_limits<uint32_t>::max())
+        bad(line_no, fmt::format("element '{}' count '{}' is not an integer in [0, 2^32)", tok[1], c));
+      elements.push_back({tok[1], std::stoull(c), 0, {}});
+    } else if (tok[0] == "property") {
+      if (elements.empty()) bad(line_no, "a property before any element");
+      auto& e = elements.back();
+      if (tok.size() >= 2 && tok[1] == "list") {
+        if (tok.size() != 5 || !ply_integer_type(tok[2]) || !ply_integer_type(tok[3]))
+          bad(line_no, "expected 'property list COUNT_TYPE INDEX_TYPE NAME' with integer types (uchar, int, ...)");
+        e.min_bytes += binary ? static_cast<uint64_t>(ply_type_size(tok[2])) : 2;
+        e.props.push_back(tok[4]);
+      } else {
+        if (tok.size() != 3 || !ply_type_size(tok[1]))
+          bad(line_no, "expected 'property TYPE NAME' with TYPE one of char uchar short ushort int uint float double "
+                       "(or int8 ... float64)");
+        e.min_bytes += binary ? static_cast<uint64_t>(ply_type_size(tok[1])) : 2;
+        e.props.push_back(tok[2]);
+      }
+    } else {
+      bad(line_no, fmt::format("unknown keyword '{}' (expected element, property, comment, obj_info, end_header)",
+                               tok[0]));
+    }
+  }
+  if (!ended) bad(line_no, "no 'end_header' line");
+  if (!have_format) bad(2, "no format line");
+  // An ASCII body is text: a NUL or other control byte makes assimp 5.2 allocate gigabytes
+  // (fuzz/regressions/fuzz_scene/assimp_ply_ascii_nul_oom.bin).
+  if (!binary) {
+    in.clear();
+    in.seekg(static_cast<std::streamoff>(pos));
+    char buf[65536];
+    uint64_t offset = pos;
+    while (in.read(buf, sizeof buf) || in.gcount() > 0) {
+      for (std::streamsize k = 0; k < in.gcount(); ++k) {
+        const unsigned char c = static_cast<unsigned char>(buf[k]);
+        SIMU_CHECK(!(c < 0x20 ? c != '\t' && c != '\n' && c != '\r' : c > 0x7e),
+                   "mesh file {}: ASCII PLY data holds byte 0x{:02x} at offset {} (expected text: numbers and spaces)",
+                   path, c, offset + static_cast<uint64_t>(k));
+      }
+      offset += static_cast<uint64_t>(in.gcount());
+    }
+  }
+  // Element counts against the data bytes after the header.
+  const uint64_t data_bytes = file_size - pos;
+  uint64_t need = 0;
+  bool have_xyz = false;
+  for (const auto& e : elements) {
+    if (e.count > 0 && e.props.empty())
+      bad(line_no, fmt::format("element '{}' has {} entries but no properties", e.name, e.count));
+    // count < 2^32 and min_bytes < 2^16 * 8 (the header is < 64 KiB): no overflow.
+    const uint64_t b = e.count * e.min_bytes;
+    SIMU_CHECK(need + b <= data_bytes,
+               "mesh file {}: PLY header declares {} {} element(s) needing at least {} bytes, but only {} bytes follow "
+               "the header (truncated file or wrong counts)",
+               path, e.count, e.name, b, data_bytes);
+    need += b;
+    if (e.name == "vertex") {
+      auto has = [&](const char* n) { return std::find(e.props.begin(), e.props.end(), n) != e.props.end(); };
+      have_xyz = has("x") && has("y") && has("z");
+    }
+  }
+  SIMU_CHECK(have_xyz, "mesh file {}: the PLY header declares no 'vertex' element with x, y, z properties", path);
+}
+
+}  // namespace
+
 Mesh read_mesh(const std::string& path) {
   SIMU_CHECK(std::filesystem::is_regular_file(path), "mesh file {} does not exist", path);
+  {
+    // Assimp picks the PLY reader from the extension or the "ply" magic: check those headers first.
+    std::string ext = std::filesystem::path(path).extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
+    char magic[3] = {};
+    std::ifstream(path, std::ios::binary).read(magic, 3);
+    if (ext == ".ply" || std::memcmp(magic, "ply", 3) == 0) check_ply_header(path);
+  }
   Assimp::Importer importer;
-  // Triangulate, bake node transforms into the vertices, merge duplicated vertices.
-  const unsigned flags = aiProcess_Triangulate | aiProcess_PreTransformVertices | aiProcess_JoinIdenticalVertices |
-                         aiProcess_SortByPType;
-  const aiScene* sc = importer.ReadFile(path, flags);
+  // Import and validate first (face indices inside the vertex array, no empty faces, ...): assimp's
+  // post-processing steps trust the data and abort() or read out of bounds on a malformed file.
+  const aiScene* sc = importer.ReadFile(path, aiProcess_ValidateDataStructure);
   if (!sc || !sc->mRootNode) fail("mesh file {}: assimp could not read it ({})", path, importer.GetErrorString());
+  // Validation skips some face checks when an importer left the primitive types unset (PLY), and a
+  // face with no indices then fails an ai_assert (abort) in assimp 5.2's triangulation step
+  // (fuzz/regressions/fuzz_scene/assimp_triangulate_assert.bin): check every face here, then set the
+  // primitive types from the faces.
+  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
+    aiMesh* am = sc->mMeshes[m];
+    SIMU_CHECK(am && (am->mNumFaces == 0 || am->mFaces), "mesh file {}: sub-mesh {} has no face array", path, m);
+    unsigned types = 0;
+    for (unsigned i = 0; i < am->mNumFaces; ++i) {
+      const aiFace& face = am->mFaces[i];
+      SIMU_CHECK(face.mNumIndices > 0 && face.mIndices, "mesh file {}: face {} of sub-mesh {} has no vertex indices",
+                 path, i, m);
+      for (unsigned k = 0; k < face.mNumIndices; ++k)
+        SIMU_CHECK(face.mIndices[k] < am->mNumVertices,
+                   "mesh file {}: face {} of sub-mesh {} uses vertex index {}, expected < {} (its vertex count)", path,
+                   i, m, face.mIndices[k], am->mNumVertices);
+      const unsigned n = face.mNumIndices;
+      types |= n == 1 ? aiPrimitiveType_POINT : n == 2 ? aiPrimitiveType_LINE : n == 3 ? aiPrimitiveType_TRIANGLE
+                                                                                        : aiPrimitiveType_POLYGON;
+    }
+    am->mPrimitiveTypes = types;
+  }
+  // Triangulate, bake node transforms into the vertices, merge duplicated vertices.
+  sc = importer.ApplyPostProcessing(aiProcess_Triangulate | aiProcess_PreTransformVertices |
+                                    aiProcess_JoinIdenticalVertices | aiProcess_SortByPType);
+  if (!sc || !sc->mRootNode) fail("mesh file {}: assimp could not process it ({})", path, importer.GetErrorString());
   // Concatenate the triangles of every sub-mesh.
+  // Every vertex finite, every face index inside its sub-mesh, the total within int's range.
   std::vector<double> v;
   std::vector<int> f;
   for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
     const aiMesh* am = sc->mMeshes[m];
+    SIMU_CHECK(am && (am->mNumVertices == 0 || am->mVertices), "mesh file {}: sub-mesh {} has no vertex array", path, m);
+    SIMU_CHECK(v.size() / 3 + am->mNumVertices <= static_cast<size_t>(std::numeric_limits<int>::max()),
+               "mesh file {}: more than 2^31 - 1 vertices", path);
     const int base = static_cast<int>(v.size() / 3);
     for (unsigned i = 0; i < am->mNumVertices; ++i) {
-      v.push_back(am->mVertices[i].x);
-      v.push_back(am->mVertices[i].y);
-      v.push_back(am->mVertices[i].z);
+      const aiVector3D& p = am->mVertices[i];
+      SIMU_CHECK(std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z),
+                 "mesh file {}: vertex {} of sub-mesh {} is not finite ({}, {}, {})", path, i, m, p.x, p.y, p.z);
+      v.push_back(p.x);
+      v.push_back(p.y);
+      v.push_back(p.z);
     }
     for (unsigned i = 0; i < am->mNumFaces; ++i) {
       const aiFace& face = am->mFaces[i];
       if (face.mNumIndices != 3) continue;  // points and lines
-      for (int k = 0; k < 3; ++k) f.push_back(base + static_cast<int>(face.mIndices[k]));
+      for (int k = 0; k < 3; ++k) {
+        SIMU_CHECK(face.mIndices[k] < am->mNumVertices,
+                   "mesh file {}: face {} of sub-mesh {} uses vertex index {}, expected < {} (its vertex count)", path,
+                   i, m, face.mIndices[k], am->mNumVertices);
+        f.push_back(base + static_cast<int>(face.mIndices[k]));
+      }
     }
   }
+  SIMU_CHECK(!v.empty(), "mesh file {}: no vertices", path);
   SIMU_CHECK(!f.empty(), "mesh file {}: no triangles", path);
   Mesh mesh;
   mesh.V = Eigen::Map<Eigen::Matrix<double, -1, 3, Eigen::RowMajor>>(v.data(), static_cast<Eigen::Index>(v.size() / 3), 3);

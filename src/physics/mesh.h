@@ -10,8 +10,9 @@
 namespace simu::physics {
 
 // Reads every triangle of a mesh file (node transforms baked in, polygons triangulated, identical
-// vertices joined). Throws simu::Error naming the file when it is missing, unreadable or has no
-// triangles.
+// vertices joined). Throws simu::Error naming the file when it is missing or unreadable, has no
+// vertices or no triangles, a non-finite vertex or a face index outside its vertex array. A PLY file's
+// header is checked first (formats, types, counts against the file size): assimp 5.2 hangs on some.
 Mesh read_mesh(const std::string& path);
 // Writes a mesh atomically; the format follows the extension (.obj, .ply, .glb, .gltf, .stl).
 void write_mesh(const Mesh& mesh, const std::string& path);

@@ -341,7 +341,7 @@ Scene load_scene(const std::string& path) {
   json j;
   try {
     j = json::parse(text);
-  } catch (const json::parse_error& e) {
+  } catch (const json::exception& e) {  // parse_error, and out_of_range for a number like 1E2682402853032
     fail_hint("see docs/scene_format.md", "{}: not valid JSON ({})", path, e.what());
   }
   const auto dir = stdfs::absolute(stdfs::path(path)).parent_path().string();

@@ -23,20 +23,6 @@ namespace simu::resample {
 
 namespace {
 
-// A manifest path: absolute as is, else relative to the manifest's directory.
-std::string resolve(const std::string& path, const std::string& base_dir) {
-  if (path.empty() || std::filesystem::path(path).is_absolute() || base_dir.empty()) return path;
-  return (std::filesystem::path(base_dir) / path).lexically_normal().string();
-}
-
-// The string value of key `key` ("" when absent); an error when present but not a non-empty string.
-std::string string_field(const nlohmann::json& j, const char* key) {
-  if (!j.contains(key)) return "";
-  SIMU_CHECK(j[key].is_string() && !j[key].get<std::string>().empty(), "'{}' must be a non-empty string, got {}", key,
-             j[key].dump());
-  return j[key].get<std::string>();
-}
-
 // An existing file or an error naming the manifest key.
 const std::string& existing(const std::string& path, const char* key) {
   SIMU_CHECK(std::filesystem::is_regular_file(path), "{}: file not found: {}", key, path);
@@ -94,60 +80,6 @@ PreparedPair prepare_pair(const PairManifestRecord& r, const data::PreprocessCon
 
 }  // namespace
 
-PairManifestRecord parse_manifest_line(const std::string& text, const std::string& base_dir) {
-  nlohmann::json j;
-  try {
-    j = nlohmann::json::parse(text);
-  } catch (const std::exception& e) {
-    fail("not valid JSON: {}", e.what());
-  }
-  SIMU_CHECK(j.is_object(), "expected a JSON object, got {}", j.type_name());
-  static const std::set<std::string> known = {"id",        "kind",          "weight",   "image",
-                                              "mask",      "full_image",    "full_mask", "corrupted_mask",
-                                              "pointmap",  "full_pointmap"};
-  for (const auto& item : j.items())
-    SIMU_CHECK(known.count(item.key()), "unknown key '{}' (known: id, kind, weight, image, mask, full_image, "
-               "full_mask, corrupted_mask, pointmap, full_pointmap)", item.key());
-  PairManifestRecord r;
-  r.id = string_field(j, "id");
-  SIMU_CHECK(!r.id.empty(), "missing 'id'");
-  const std::string kind = string_field(j, "kind");
-  if (kind == "occlusion_completion")
-    r.kind = data::PairKind::OcclusionCompletion;
-  else if (kind == "clean_preservation")
-    r.kind = data::PairKind::CleanPreservation;
-  else
-    fail("'kind' must be \"occlusion_completion\" or \"clean_preservation\", got '{}'", kind);
-  r.weight = data::default_weight(r.kind);
-  if (j.contains("weight")) {
-    SIMU_CHECK(j["weight"].is_number(), "'weight' must be a number, got {}", j["weight"].dump());
-    const double w = j["weight"].get<double>();
-    SIMU_CHECK(std::isfinite(w) && w >= 0, "'weight' must be finite and >= 0, got {}", w);
-    r.weight = static_cast<float>(w);
-  }
-  // Paths: required per kind, the other kind's keys refused.
-  auto path = [&](const char* key, bool required) {
-    std::string p = string_field(j, key);
-    SIMU_CHECK(!required || !p.empty(), "{} record lacks '{}'", kind, key);
-    return resolve(p, base_dir);
-  };
-  const bool occ = r.kind == data::PairKind::OcclusionCompletion;
-  r.image = path("image", true);
-  r.mask = path("mask", true);
-  r.pointmap = path("pointmap", false);
-  if (occ) {
-    r.full_image = path("full_image", true);
-    r.full_mask = path("full_mask", true);
-    r.full_pointmap = path("full_pointmap", false);
-    SIMU_CHECK(!j.contains("corrupted_mask"), "'corrupted_mask' belongs to clean_preservation records");
-  } else {
-    r.corrupted_mask = path("corrupted_mask", true);
-    for (const char* k : {"full_image", "full_mask", "full_pointmap"})
-      SIMU_CHECK(!j.contains(k), "'{}' belongs to occlusion_completion records", k);
-  }
-  return r;
-}
-
 torch::Tensor load_pointmap_file(const std::string& path) {
   auto file = data::SafeTensorsFile::open(path);
   const auto keys = file.keys();
@@ -195,45 +127,15 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
   PairBuildReport report;
 
   // Manifest: parse every line; malformed ones and duplicate ids become issues.
-  const std::string text = simu::fs::read_file(manifest_path);
-  const std::string base_dir = std::filesystem::path(manifest_path).parent_path().string();
-  std::vector<PairManifestRecord> records;
-  std::map<std::string, int64_t> first_line;
+  auto manifest = parse_manifest(simu::fs::read_file(manifest_path),
+                                 std::filesystem::path(manifest_path).parent_path().string());
+  report.records = manifest.records;
   auto add_issue = [&](int64_t line, const std::string& id, const std::string& message) {
     simu::log::warn("{}:{}: {}skipped: {}", manifest_path, line, id.empty() ? "" : "pair '" + id + "' ", message);
     report.issues.push_back({line, id, message});
   };
-  {
-    size_t pos = 0;
-    int64_t line_no = 0;
-    while (pos <= text.size()) {
-      size_t end = text.find('\n', pos);
-      if (end == std::string::npos) end = text.size();
-      std::string line = text.substr(pos, end - pos);
-      pos = end + 1;
-      ++line_no;
-      if (!line.empty() && line.back() == '\r') line.pop_back();
-      const auto first = line.find_first_not_of(" \t");
-      if (first == std::string::npos || line[first] == '#') {
-        if (end == text.size()) break;
-        continue;
-      }
-      ++report.records;
-      try {
-        auto r = parse_manifest_line(line, base_dir);
-        r.line = line_no;
-        auto [it, fresh] = first_line.emplace(r.id, line_no);
-        if (!fresh) {
-          add_issue(line_no, r.id, fmt::format("duplicate id (first on line {})", it->second));
-        } else {
-          records.push_back(std::move(r));
-        }
-      } catch (const std::exception& e) {
-        add_issue(line_no, "", e.what());
-      }
-      if (end == text.size()) break;
-    }
-  }
+  for (const auto& issue : manifest.issues) add_issue(issue.line, issue.id, issue.message);
+  auto& records = manifest.pairs;
 
   // Shapes of what the models produce: latent [T, C] and condition [L, Cc].
   auto& gen = resampler.generator();

@@ -61,6 +61,21 @@ struct PairManifestRecord {
 // the line number) for malformed JSON, a missing/unknown key, an unknown kind or a bad weight.
 PairManifestRecord parse_manifest_line(const std::string& text, const std::string& base_dir);
 
+// A manifest line that was not turned into a pair.
+struct PairIssue {
+  int64_t line = 0;
+  std::string id;  // "" when the line has none
+  std::string message;
+};
+
+// A whole manifest: the good records in line order, the bad lines (malformed, duplicate id) as issues.
+struct ManifestParse {
+  std::vector<PairManifestRecord> pairs;
+  std::vector<PairIssue> issues;
+  int64_t records = 0;  // non-blank, non-comment lines
+};
+ManifestParse parse_manifest(const std::string& text, const std::string& base_dir);
+
 // Point map file: safetensors holding one tensor (or one named "pointmap") [3, H, W] or [H, W, 3],
 // float, points in the PyTorch3D camera frame (x left, y up, z forward; NaN = invalid). Returns [3, H, W].
 torch::Tensor load_pointmap_file(const std::string& path);
@@ -85,13 +100,6 @@ struct PairBuilderConfig {
   bool resume = true;                 // an existing `out` is kept and extended; false replaces it
   int64_t commit_every = 256;         // pairs between commits of `out` (0: only at the end)
   std::string created_by = "build_pairs";
-};
-
-// A manifest line that was not turned into a pair.
-struct PairIssue {
-  int64_t line = 0;
-  std::string id;  // "" when the line has none
-  std::string message;
 };
 
 struct PairBuildReport {

@@ -80,3 +80,17 @@ TEST(Scene, MalformedFileThrowsNamingIt) {
   }
   EXPECT_THROW(load_scene(dir + "/missing.json"), simu::Error);
 }
+
+// A number too large for a double is nlohmann's out_of_range (not a parse_error): still an error
+// naming the file, never std::terminate (fuzz/regressions/fuzz_scene/json_number_overflow.json.bin).
+TEST(Scene, NumberOverflowThrowsNamingTheFile) {
+  const auto dir = simu::testing::physics_temp_dir("scene_overflow");
+  std::ofstream(dir + "/big.json") << R"({"gravity_magnitude": 0.778E2682402853032})";
+  try {
+    load_scene(dir + "/big.json");
+    FAIL() << "expected simu::Error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("big.json"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("not valid JSON"), std::string::npos) << e.what();
+  }
+}

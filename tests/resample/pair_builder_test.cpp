@@ -178,6 +178,29 @@ TEST(PairBuilder, ManifestLineParsing) {
             std::string::npos);
 }
 
+// A whole manifest: comments, blank lines, CRLF, a bad line and a duplicate id become issues with
+// their line numbers; good records keep theirs.
+TEST(PairBuilder, ManifestParsingKeepsLineNumbers) {
+  const std::string ok = R"({"id": "a", "kind": "clean_preservation", "image": "i.png", "mask": "m.png", "corrupted_mask": "c.png"})";
+  const std::string text = "# comment\r\n" + ok + "\r\n\n  \t\n{nope\n" + ok + "\n" +
+                           R"({"id": "b", "kind": "clean_preservation", "image": "i.png", "mask": "m.png", "corrupted_mask": "c.png"})";
+  const auto m = parse_manifest(text, "/d");
+  EXPECT_EQ(m.records, 4);
+  ASSERT_EQ(m.pairs.size(), 2u);
+  EXPECT_EQ(m.pairs[0].line, 2);
+  EXPECT_EQ(m.pairs[0].image, "/d/i.png");
+  EXPECT_EQ(m.pairs[1].line, 7);
+  ASSERT_EQ(m.issues.size(), 2u);
+  EXPECT_EQ(m.issues[0].line, 5);
+  EXPECT_NE(m.issues[0].message.find("not valid JSON"), std::string::npos);
+  EXPECT_EQ(m.issues[1].line, 6);
+  // A weight that is finite as a double but not as the cache's float32.
+  const auto big = parse_manifest(R"({"id": "w", "kind": "clean_preservation", "image": "i", "mask": "m", "corrupted_mask": "c", "weight": 1e300})", "");
+  ASSERT_EQ(big.issues.size(), 1u);
+  EXPECT_NE(big.issues[0].message.find("'weight' must be finite"), std::string::npos);
+  EXPECT_NE(m.issues[1].message.find("duplicate id (first on line 2)"), std::string::npos);
+}
+
 TEST(PairBuilder, BuildsValidatesResumesAndTrains) {
 #ifndef SIMU_HAVE_OPENCV
   GTEST_SKIP() << "the test writes its image pairs as PNGs, which needs OpenCV (built with SIMU_WITH_OPENCV=OFF)";
