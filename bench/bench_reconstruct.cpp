@@ -25,7 +25,7 @@
 
 namespace sr = simu::reconstruct;
 namespace sp = simu::physics;
-namespace sr = simu::resample;
+namespace rs = simu::resample;
 using json = nlohmann::json;
 
 int main(int argc, char** argv) {
@@ -34,7 +34,7 @@ int main(int argc, char** argv) {
   uint64_t seed = 1;
   std::string out = "/tmp/bench_reconstruct", precision = "auto";
   bool lift = false, random_weights = false, no_probe = false;
-  sr::ResamplerConfig rcfg;
+  rs::ResamplerConfig rcfg;
   rcfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
   app.add_option("--objects", objects, "free objects asked of the generator (it places what fits)")->capture_default_str();
   app.add_option("--hanging", hanging, "hanging objects (0..2 placed)")->capture_default_str();
@@ -77,14 +77,14 @@ int main(int argc, char** argv) {
       if (!o.is_base) ++(o.dof == sp::PoseDof::Free ? n_free : n_hang);
     fmt::print("scene: {}x{}, {} objects ({} free, {} hanging) + {} base(s); generated and written in {:.2f} s\n", width,
                height, n_free + n_hang, n_free, n_hang, s.objects.size() - n_free - n_hang, t_gen);
-    std::unique_ptr<sr::Resampler> resampler;
+    std::unique_ptr<rs::Resampler> resampler;
     if (lift) {
-      const std::string banner = sr::check_lift_weights(rcfg, random_weights);
+      const std::string banner = rs::check_lift_weights(rcfg, random_weights);
       if (!banner.empty()) fmt::print(stderr, "*** {} ***\n", banner);
-      sr::apply_precision(rcfg, precision);
+      rs::apply_precision(rcfg, precision);
       rcfg.random_weights = random_weights;
       t0 = std::chrono::steady_clock::now();
-      resampler = std::make_unique<sr::Resampler>(rcfg);
+      resampler = std::make_unique<rs::Resampler>(rcfg);
       fmt::print("models loaded on {} in {:.2f} s\n", resampler->device().str(),
                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
     }
