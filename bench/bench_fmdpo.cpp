@@ -130,7 +130,7 @@ int main(int argc, char** argv) {
     auto pairs = std::make_shared<std::vector<Pair>>();
     torch::manual_seed(1);
     for (int64_t i = 0; i < n_pairs; ++i)
-      pairs->push_back(Pair{i, static_cast<int>(i % 2), torch::randn({T, fc.in_channels}), torch::randn({T, fc.in_channels}),
+      pairs->push_back(Pair{i, static_cast<simu::data::PairKind>(i % 2), torch::randn({T, fc.in_channels}), torch::randn({T, fc.in_channels}),
                             torch::randn({cond_len, fc.cond_channels})});
     auto source = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
       return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);

@@ -37,7 +37,7 @@ TEST(TrainerGpu, Bf16StepsKeepFp32AdaptersAndFollowFp32Cpu) {
   const auto shape = gen->noise(1, rng, torch::kCPU).at("shape")[0].sizes().vec();
   auto pairs = std::make_shared<std::vector<Pair>>();
   for (int64_t i = 0; i < 8; ++i)
-    pairs->push_back(Pair{i, static_cast<int>(i % 2), torch::randn(shape, rng), torch::randn(shape, rng),
+    pairs->push_back(Pair{i, static_cast<simu::data::PairKind>(i % 2), torch::randn(shape, rng), torch::randn(shape, rng),
                           torch::randn({77, gen->config().backbone.cond_channels}, rng)});
   auto source = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
     return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
