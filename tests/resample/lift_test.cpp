@@ -334,7 +334,7 @@ TEST(LiftCli, BadInputsNameFlagOrFile) {
        dir + "/nope.safetensors: weight file not found (--generator-weights)"},
       {" --random-weights --image " + photo.rgb + " --masks " + photo.labels + " --depth " + dir +
            "/missing.png --intrinsics " + photo.K + " --out " + dir + "/out",
-       dir + "/missing.png: depth image file not found"},
+       dir + "/missing.png: depth file not found"},
       {" --random-weights --image " + dir + "/K.json --masks " + photo.labels + " --depth " + photo.depth +
            " --intrinsics " + photo.K + " --out " + dir + "/out",
        dir + "/K.json"},
