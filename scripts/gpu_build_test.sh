@@ -2,7 +2,10 @@
 # Builds the tree on the GPU machine and runs every test, the `gpu`-labelled ones included.
 # Needs .carry/ from scripts/gpu_bundle.sh (run here first) carried with the device call:
 #   device run (carry .carry): bash scripts/gpu_build_test.sh [ctest args]
-# Uses the machine's own PyTorch 2.11.0+cu130 (python3) for LibTorch. Writes build-gpu/.
+# Uses the machine's own PyTorch 2.11.0+cu130 (python3) for LibTorch. Writes build-gpu/ (BUILD_DIR overrides).
+# SIMU_CMAKE_ARGS adds configure options, e.g. the sanitizer suite on the device's 16 cores:
+#   BUILD_DIR=build-asan SIMU_CMAKE_ARGS=-DSIMU_SANITIZE=ON CUDA_VISIBLE_DEVICES= \
+#   ASAN_OPTIONS=detect_leaks=0:protect_shadow_gap=0 bash scripts/gpu_build_test.sh -LE gpu
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -16,7 +19,7 @@ TORCH_PREFIX="$($PY -c 'import torch.utils; print(torch.utils.cmake_prefix_path)
 BUILD="${BUILD_DIR:-$ROOT/build-gpu}"
 t0=$(date +%s)
 cmake -S "$ROOT" -B "$BUILD" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TORCH_PREFIX;$PREFIX" \
-  -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 >"$ROOT/gpu-configure.log" 2>&1 \
+  -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 ${SIMU_CMAKE_ARGS:-} >"$ROOT/gpu-configure.log" 2>&1 \
   || { tail -40 "$ROOT/gpu-configure.log"; exit 1; }
 grep -E "gloo headers" "$ROOT/gpu-configure.log" || true  # c10d ProcessGroupGloo for CPU ranks (headers from .carry)
 cmake --build "$BUILD" -j"$(nproc)" >"$ROOT/gpu-build.log" 2>&1 || { grep -B2 -A8 -E "error|FAILED" "$ROOT/gpu-build.log" | head -80; exit 1; }
