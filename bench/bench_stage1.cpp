@@ -62,6 +62,7 @@ int main(int argc, char** argv) {
   double cfg = 7.0;
   bool small = false, fp32 = false, profile = false, one_stream = false;
   std::string sdp = "default";
+  std::vector<std::string> captures = {"overlap"};
   app.add_option("--config", config, "generator config (official or project layout)")->capture_default_str();
   app.add_option("--cond-lens", cond_lens, "condition lengths")->capture_default_str();
   app.add_option("--steps", steps, "sampling steps")->capture_default_str();
@@ -78,6 +79,8 @@ int main(int argc, char** argv) {
   app.add_flag("--one-stream", one_stream, "run the pose stream on the same CUDA stream as the shape stream");
   app.add_option("--sdp-backend", sdp, "attention backend tried first: default | flash | cudnn | efficient")
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
+  app.add_option("--captures", captures, "graph capture schemes timed after eager sampling: overlap (default) | sync")
+      ->check(CLI::IsMember({"overlap", "sync"}))->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -198,23 +201,30 @@ int main(int argc, char** argv) {
         if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
         // Eager launches and persistent CUDA graphs (captured in the first call, replayed by every later
         // one: the timed calls; the first call's time is its own row).
-        for (const bool graphs : {false, true}) {
-          if (graphs && !dev.is_cuda()) continue;
+        // Graph captures: "overlap" (the default: the first evaluation eager, the capture recorded while
+        // the device runs it) and/or "sync" (the earlier host-synchronous capture), --captures.
+        std::vector<std::string> modes = {"eager"};
+        if (dev.is_cuda())
+          for (const auto& c : captures) modes.push_back(c);
+        for (const auto& mode : modes) {
+          const bool graphs = mode != "eager";
           o.cuda_graphs = graphs;
+          simu::models::GraphedForward::set_overlapped_capture(mode != "sync");
           reset_peak(dev);
           if (graphs) {
             gen->reverse_fn->clear_graphs();
             const double first = time_ms(dev, 0, 1, run);
-            rows.push_back({L, fmt::format("sample {} steps CFG {}, first call (captures the graphs)", o.steps, cfg), first,
+            rows.push_back({L, fmt::format("sample {} steps CFG {}, first call ({} capture)", o.steps, cfg, mode), first,
                             flops / (first * 1e-3) / 1e12, peak_gib(dev)});
           }
           const double ms = time_ms(dev, graphs ? 0 : 1, sample_iters, run);
-          rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, cfg, graphs ? ", persistent CUDA graphs" : ""), ms,
+          rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, cfg, graphs ? ", persistent CUDA graphs (" + mode + ")" : ", eager"), ms,
                           flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
-          simu::log::info("cond {}: sampling{} {:.1f} ms", L, graphs ? " (CUDA graphs)" : "", ms);
+          simu::log::info("cond {}: sampling ({}) {:.1f} ms", L, mode, ms);
           if (profile && !graphs && dev.is_cuda())
             simu::bench::print_gpu_kernel_profile(fmt::format("sample {} steps, cond {}", o.steps, L), run, 12);
         }
+        simu::models::GraphedForward::set_overlapped_capture(true);
         gen->reverse_fn->clear_graphs();  // the next condition length starts without them
       }
     }

@@ -18,6 +18,7 @@
 #include <ATen/autocast_mode.h>
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
+#include <ATen/cuda/CUDAEvent.h>
 #include <ATen/cuda/CUDAGraph.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
@@ -199,42 +200,109 @@ std::atomic<int64_t> g_graph_captures{0};
 int64_t GraphedForward::replay_count() { return g_graph_replays.load(); }
 int64_t GraphedForward::capture_count() { return g_graph_captures.load(); }
 
+namespace {
+std::atomic<bool> g_overlapped_capture{true};
+}  // namespace
+
+void GraphedForward::set_overlapped_capture(bool on) { g_overlapped_capture = on; }
+bool GraphedForward::overlapped_capture() { return g_overlapped_capture.load(); }
+
+#ifdef SIMU_HAVE_CUDA_KERNELS
+namespace {
+// What a capture needs: the forward's static inputs, the two streams, the graph and where its outputs go.
+struct CaptureArgs {
+  SparseStructureFlowTdfyWrapper& backbone;
+  const Latents& x;
+  const torch::Tensor& t;
+  const c10::optional<torch::Tensor>& d;
+  const torch::Tensor& cond;
+  const ConditionCache* cache;
+  c10::cuda::CUDAStream main, side;
+  at::cuda::CUDAGraph* graph;
+  Latents* y;
+};
+
+// Host-synchronous capture (the earlier scheme): wait for the device, a discarded eager warm-up
+// forward on a side stream, wait again, capture, wait again.
+void capture_synchronous(CaptureArgs& a) {
+  a.main.synchronize();
+  const c10::cuda::CUDAStreamGuard stream_guard(a.side);
+  (void)a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
+  a.side.synchronize();
+  a.graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
+  try {
+    *a.y = a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
+  } catch (...) {
+    try {
+      a.graph->capture_end();
+    } catch (...) {
+    }
+    throw;
+  }
+  a.graph->capture_end();
+  a.side.synchronize();
+}
+
+// Overlapped capture: the warm-up forward is this evaluation's own (its result is returned), and the
+// capture, which only records launches, follows it on the same side stream without waiting for the
+// device: the host records the graph while the device still runs the warm-up. Events order the side
+// stream after the main stream's inputs and the main stream after the warm-up.
+Latents capture_overlapped(CaptureArgs& a) {
+  at::cuda::CUDAEvent inputs_ready;
+  inputs_ready.record(a.main);
+  inputs_ready.block(a.side);
+  Latents y_eager;
+  {
+    const c10::cuda::CUDAStreamGuard stream_guard(a.side);
+    y_eager = a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
+    a.graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
+    try {
+      *a.y = a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
+    } catch (...) {
+      try {
+        a.graph->capture_end();
+      } catch (...) {
+      }
+      throw;
+    }
+    a.graph->capture_end();
+  }
+  at::cuda::CUDAEvent warmup_done;
+  warmup_done.record(a.side);
+  warmup_done.block(a.main);
+  // The warm-up's outputs were allocated on the side stream and are read on the main one from now on.
+  for (auto& [k, v] : y_eager) v.record_stream(a.main);
+  return y_eager;
+}
+}  // namespace
+#endif
+
 Latents GraphedForward::run(const Latents& x, const torch::Tensor& t, const c10::optional<torch::Tensor>& d) {
   auto& s = *s_;
-  c10::optional<torch::Tensor> dd;
 #ifdef SIMU_HAVE_CUDA_KERNELS
   if (s.cond.is_cuda()) {
     if (!s.graph) {
-      // Static input buffers with the first call's shapes.
+      // Static input buffers with the first call's shapes, filled with this call's inputs.
       for (const auto& [k, v] : x) s.x[k] = v.clone();
       s.t = t.clone();
       if (d) s.d = d->clone();
+      c10::optional<torch::Tensor> dd;
       if (s.d.defined()) dd = s.d;
       const c10::cuda::CUDAGuard device_guard(s.cond.device());
-      const auto main = c10::cuda::getCurrentCUDAStream();
-      auto side = c10::cuda::getStreamFromPool(false, s.cond.device().index());
-      main.synchronize();
-      {
-        const c10::cuda::CUDAStreamGuard stream_guard(side);
-        // Warm-up: kernel plans, workspaces and the autocast cache's weight copies exist before capture.
-        (void)s.backbone->forward(s.x, s.t, s.cond, dd, s.cache);
-        side.synchronize();
-        auto graph = std::make_unique<at::cuda::CUDAGraph>();
-        graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
-        try {
-          s.y = s.backbone->forward(s.x, s.t, s.cond, dd, s.cache);
-        } catch (...) {
-          try {
-            graph->capture_end();
-          } catch (...) {
-          }
-          throw;
-        }
-        graph->capture_end();
+      auto graph = std::make_unique<at::cuda::CUDAGraph>();
+      CaptureArgs a{s.backbone, s.x, s.t, dd, s.cond, s.cache, c10::cuda::getCurrentCUDAStream(),
+                    c10::cuda::getStreamFromPool(false, s.cond.device().index()), graph.get(), &s.y};
+      if (overlapped_capture()) {
+        // Kernel plans, workspaces and the autocast cache's weight copies come from the warm-up,
+        // which is this evaluation: its result is the answer, no replay this time.
+        auto y = capture_overlapped(a);
         s.graph = std::move(graph);
         ++g_graph_captures;
-        side.synchronize();
+        return y;
       }
+      capture_synchronous(a);
+      s.graph = std::move(graph);
+      ++g_graph_captures;
     }
     // Copy the inputs in (same shapes as captured), replay.
     for (const auto& [k, v] : x) {

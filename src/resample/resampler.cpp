@@ -151,6 +151,11 @@ models::SampleOptions Resampler::sample_options() const {
   return o;
 }
 
+void Resampler::set_cuda_graphs(bool on) {
+  config_.cuda_graphs = on;
+  if (!on) generator_->reverse_fn->clear_graphs();
+}
+
 torch::Tensor Resampler::decode_logits(const torch::Tensor& shape_latent) {
   torch::NoGradGuard no_grad;
   // Tokens -> grid as the official pipeline, then the decoder in chunks (autocast in the precision).

@@ -70,9 +70,11 @@ struct ResamplerConfig {
   // Inference precision of embedder, generator and decoder (models/precision.h): auto = fp16 on CUDA
   // (the released pipeline.yaml dtype), fp32 on CPU; fp16 | bf16 need CUDA; fp32.
   std::string precision = "auto";
-  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs): pays from the second
-  // call on (a probe loop, a long-lived process); the first call captures (slower).
-  bool cuda_graphs = false;
+  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs; on by default): the
+  // first call captures each batch shape's graph right after its first, eager evaluation (the capture
+  // overlaps the device's work, models::GraphedForward::set_overlapped_capture), later evaluations and
+  // later calls replay. Off: eager launches at every step (the reference path).
+  bool cuda_graphs = true;
   int num_samples = 1;    // shapes drawn per object
   int decode_batch = 8;   // objects per decoder forward
   std::string pose_convention = "ScaleShiftInvariant";  // see models::PoseDecodeOptions
@@ -140,6 +142,9 @@ class Resampler {
   const torch::Device& device() const { return device_; }
   models::Precision precision() const { return precision_; }
   const ResamplerConfig& config() const { return config_; }
+  // Switches sampling through CUDA graphs (ResamplerConfig::cuda_graphs) for later calls; off drops the
+  // graphs kept so far.
+  void set_cuda_graphs(bool on);
   bool has_adapter() const { return has_adapter_; }
   // Non-empty when some module runs on random weights (random_weights): a one-line banner naming them,
   // to print in outputs and reports.
