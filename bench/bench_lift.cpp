@@ -18,6 +18,8 @@
 #include <functional>
 #include <thread>
 
+#include <sys/resource.h>
+
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
@@ -60,6 +62,13 @@ simu::resample::LiftInputs synthetic_photo(int64_t n_objects) {
   return in;
 }
 
+// Minor page faults of this process so far (first touches of fresh memory).
+long minor_faults() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return u.ru_minflt;
+}
+
 // Median of `reps` runs of fn in ms (after one untimed run), each after `idle_ms` of sleep (0: back to back).
 double median_ms(int reps, const std::function<void()>& fn, int idle_ms = 0) {
   fn();
@@ -89,14 +98,62 @@ void diagnose_cpu_stages(simu::resample::Resampler& rs, const simu::resample::Li
   const auto latent = torch::randn({1, shape.tokens(), shape.in_channels}, torch::TensorOptions().device(dev));
   const auto logits = rs.decode_logits(latent).to(torch::kCPU);
   simu::resample::ResampledShape out;
-  auto mesh_fn = [&] { simu::resample::mesh_from_logits(logits[0], out); };
+  auto mesh_fn = [&] { simu::resample::mesh_from_logits(logits, out); };  // [1, 1, R, R, R]
   const double mesh = median_ms(5, mesh_fn), mesh_idle = median_ms(5, mesh_fn, 500);
-  const double mc = median_ms(5, [&] { (void)simu::resample::marching_cubes(logits[0]); });
+  const double mc = median_ms(5, [&] { (void)simu::resample::marching_cubes(logits); });
   fmt::print("diagnose ({} threads, median of 5): preprocess one object {:.1f} ms back to back, {:.1f} ms after 0.5 s idle; "
              "logits -> mesh {:.1f} / {:.1f} ms (marching cubes alone {:.1f} ms; {} occupied voxels, {} vertices, {} "
              "triangles)\n",
              at::get_num_threads(), pre, pre_idle, mesh, mesh_idle, mc, out.coords.size(0), out.mesh.V.rows(),
              out.mesh.F.rows());
+}
+
+struct Row {
+  std::string graphs;
+  int64_t batch;
+  double wall_ms, first_ms;
+  simu::resample::LiftTimings t;
+  int64_t voxels;
+  double peak;
+};
+
+// Times lift_objects on the first B objects of `photo` with graphs "on" or "off": the first call apart,
+// then the median of `iters` calls (per-call stage times and page faults logged).
+Row time_lift(simu::resample::Resampler& rs, const simu::resample::LiftInputs& photo, const std::string& g, int64_t B,
+              int iters, const torch::Device& dev) {
+  auto ms_of = [](const simu::resample::LiftTimings& t) {
+    return fmt::format("preprocess {:.1f}, embed {:.1f}, sample {:.1f}, decode {:.1f}, mesh {:.1f}, pose {:.1f} ms",
+                       t.preprocess * 1e3, t.embed * 1e3, t.sample * 1e3, t.decode * 1e3, t.mesh * 1e3, t.pose * 1e3);
+  };
+  rs.set_cuda_graphs(g == "on");
+  auto in = photo;
+  in.objects.resize(static_cast<size_t>(B));
+  simu::resample::LiftOptions opt;
+  // The first call (a fresh process's only call: kernels, allocator, graph captures) is timed apart.
+  const auto f0 = std::chrono::steady_clock::now();
+  const auto first = simu::resample::lift_objects(rs, in, opt);
+  const double first_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - f0).count();
+  simu::log::info("graphs {} batch {}: first call {:.1f} ms ({})", g, B, first_ms, ms_of(first.seconds));
+  if (dev.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(dev.index() < 0 ? 0 : dev.index());
+  std::vector<Row> runs;
+  for (int i = 0; i < iters; ++i) {
+    opt.seed = static_cast<uint64_t>(i + 1);
+    const long faults0 = minor_faults();
+    const auto t0 = std::chrono::steady_clock::now();
+    const auto res = simu::resample::lift_objects(rs, in, opt);
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    const long faults = minor_faults() - faults0;
+    int64_t voxels = 0;
+    for (const auto& o : res.objects)
+      if (!o.samples.empty() && o.samples[0].coords.defined()) voxels += o.samples[0].coords.size(0);
+    runs.push_back({g, B, ms, first_ms, res.seconds, voxels / B, 0});
+    simu::log::info("graphs {} batch {}: call {}/{} {:.1f} ms ({}); {} minor page faults", g, B, i + 1, iters, ms,
+                    ms_of(res.seconds), faults);
+  }
+  std::sort(runs.begin(), runs.end(), [](const Row& a, const Row& b) { return a.wall_ms < b.wall_ms; });
+  Row r = runs[runs.size() / 2];
+  r.peak = peak_gib(dev);
+  return r;
 }
 
 }  // namespace
@@ -121,6 +178,11 @@ int main(int argc, char** argv) {
                  "sampling through persistent CUDA graphs (the default, captured in the first call) and/or eager "
                  "launches: on | off, each a row")
       ->check(CLI::IsMember({"on", "off"}))->capture_default_str();
+  std::string host_memory = "keep";
+  app.add_option("--host-memory", host_memory,
+                 "keep: resample::keep_host_memory() as the lift program does (default); default: glibc's own "
+                 "malloc settings")
+      ->check(CLI::IsMember({"keep", "default"}))->capture_default_str();
   bool diagnose = false;
   app.add_flag("--diagnose", diagnose,
                "also time the CPU stages alone, back to back (preprocessing of one object, logits -> mesh of one "
@@ -129,6 +191,7 @@ int main(int argc, char** argv) {
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
+    if (host_memory == "keep") simu::resample::keep_host_memory();
     const torch::Device dev(device);
     if (dev.is_cuda() && !torch::cuda::is_available()) {
       fmt::print("bench_lift: skipped: no CUDA device (use --device cpu --small for a smoke run)\n");
@@ -160,52 +223,12 @@ int main(int argc, char** argv) {
                mc.num_blocks, cfg.embedder_config, rs.embedder()->num_tokens(), cfg.decoder_config, cfg.steps,
                cfg.rescale_t, cfg.cfg_strength, cfg.cfg_interval.first, cfg.cfg_interval.second,
                simu::resample::occupancy_resolution(rs));
-    struct Row {
-      std::string graphs;
-      int64_t batch;
-      double wall_ms, first_ms;
-      simu::resample::LiftTimings t;
-      int64_t voxels;
-      double peak;
-    };
-    std::vector<Row> rows;
     torch::manual_seed(0);
     const int64_t max_b = *std::max_element(batches.begin(), batches.end());
     const auto photo = synthetic_photo(max_b);
-    auto ms_of = [](const simu::resample::LiftTimings& t) {
-      return fmt::format("preprocess {:.1f}, embed {:.1f}, sample {:.1f}, decode {:.1f}, mesh {:.1f}, pose {:.1f} ms",
-                         t.preprocess * 1e3, t.embed * 1e3, t.sample * 1e3, t.decode * 1e3, t.mesh * 1e3, t.pose * 1e3);
-    };
-    for (const auto& g : graphs) {
-      rs.set_cuda_graphs(g == "on");
-      for (const int64_t B : batches) {
-        auto in = photo;
-        in.objects.resize(static_cast<size_t>(B));
-        simu::resample::LiftOptions opt;
-        // The first call (a fresh process's only call: kernels, allocator, graph captures) is timed apart.
-        const auto f0 = std::chrono::steady_clock::now();
-        const auto first = simu::resample::lift_objects(rs, in, opt);
-        const double first_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - f0).count();
-        simu::log::info("graphs {} batch {}: first call {:.1f} ms ({})", g, B, first_ms, ms_of(first.seconds));
-        if (dev.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(dev.index() < 0 ? 0 : dev.index());
-        std::vector<Row> runs;
-        for (int i = 0; i < iters; ++i) {
-          opt.seed = static_cast<uint64_t>(i + 1);
-          const auto t0 = std::chrono::steady_clock::now();
-          const auto res = simu::resample::lift_objects(rs, in, opt);
-          const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-          int64_t voxels = 0;
-          for (const auto& o : res.objects)
-            if (!o.samples.empty() && o.samples[0].coords.defined()) voxels += o.samples[0].coords.size(0);
-          runs.push_back({g, B, ms, first_ms, res.seconds, voxels / B, 0});
-          simu::log::info("graphs {} batch {}: call {}/{} {:.1f} ms ({})", g, B, i + 1, iters, ms, ms_of(res.seconds));
-        }
-        std::sort(runs.begin(), runs.end(), [](const Row& a, const Row& b) { return a.wall_ms < b.wall_ms; });
-        Row r = runs[runs.size() / 2];
-        r.peak = peak_gib(dev);
-        rows.push_back(r);
-      }
-    }
+    std::vector<Row> rows;
+    for (const auto& g : graphs)
+      for (const int64_t B : batches) rows.push_back(time_lift(rs, photo, g, B, iters, dev));
     if (diagnose) diagnose_cpu_stages(rs, photo, dev);
     fmt::print("\n| graphs | objects per call | call ms | per object ms | first call ms per object | preprocess | embed | "
                "sampling | decoder | mesh | pose | voxels/obj | peak alloc GiB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");

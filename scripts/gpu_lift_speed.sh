@@ -18,29 +18,25 @@ B="${BUILD_DIR:-$ROOT/../build-gpu-lift}"
 TP="$(python3 -c 'import torch.utils; print(torch.utils.cmake_prefix_path)')"
 t0=$(date +%s)
 cmake -S "$ROOT" -B "$B" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TP;$PREFIX" -DSIMU_WITH_OPENCV=OFF \
-  -DSIMU_PYTHON="$(command -v python3)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 >"$O/configure.log" 2>&1 \
-  || { tail -30 "$O/configure.log"; exit 1; }
-cmake --build "$B" -j"$(nproc)" --target bench_lift bench_stage1 bench_mesh test_models_gpu >"$O/build.log" 2>&1 \
+  -DSIMU_PYTHON="$(command -v python3)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 >"$O/build.log" 2>&1 \
+  || { tail -30 "$O/build.log"; exit 1; }
+cmake --build "$B" -j"$(nproc)" --target bench_lift bench_stage1 bench_mesh test_models_gpu >>"$O/build.log" 2>&1 \
   || { grep -B2 -A12 -E "error|FAILED" "$O/build.log" | head -80; exit 1; }
 echo "[gpu] configure+build: $(( $(date +%s) - t0 )) s on $(nproc) cores"
 nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,temperature.gpu --format=csv,noheader || true
 run() { local name="$1"; shift; echo "== $name: $*"; local s=$(date +%s); "$@" >"$O/$name.txt" 2>&1; echo "   rc $? in $(( $(date +%s) - s )) s"; }
 run tests "$B/test_models_gpu" --gtest_filter='FlowModelGpu.*:FusedOpsGpu.*:PrecisionGpu.*'
-grep -E "^\[  (PASSED|FAILED) |FAILED|tests ran" "$O/tests.txt" | head -20
+grep -E "^\[  (PASSED|FAILED) |FAILED|tests ran|Failure|Expected|Which is|actual" "$O/tests.txt" | head -30
+# lift: the default path (graphs on, host memory kept), then glibc's own malloc settings for comparison.
 run lift "$B/bench_lift" --device cuda --batches 1 8 --iters 3 --precision fp16 --diagnose
+[ "${1:-}" != quick ] && run lift_default_malloc "$B/bench_lift" --device cuda --batches 1 --iters 3 --precision fp16 --host-memory default --diagnose
 if [ "${1:-}" != quick ]; then
-  run lift_eager "$B/bench_lift" --device cuda --batches 1 --iters 3 --precision fp16 --graphs off
-  MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=4294967296 MALLOC_TOP_PAD_=268435456 \
-    run lift_malloc "$B/bench_lift" --device cuda --batches 1 --iters 3 --precision fp16
   run mesh "$B/bench_mesh" --threads 1 0
+  MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 "$B/bench_mesh" --threads 1 0 >>"$O/mesh.txt" 2>&1
 fi
-run stage1 "$B/bench_stage1" --precision fp16 --cond-lens 7528 2800 --captures overlap sync
-if [ "${1:-}" != quick ]; then
-  run attn python3 bench/attention_backends.py --cond-lens 2800 7528
-  run profile "$B/bench_stage1" --precision fp16 --cond-lens 7528 --iters 2 --sample-iters 1 --warmup 1 --profile --captures overlap
-fi
-for f in lift lift_eager lift_malloc; do [ -f "$O/$f.txt" ] && { echo "-- $f"; grep -E "^\||diagnose|first call" "$O/$f.txt" | grep -v "^|---"; }; done
-[ -f "$O/mesh.txt" ] && tail -8 "$O/mesh.txt"
-[ -f "$O/attn.txt" ] && tail -14 "$O/attn.txt"
+run stage1 "$B/bench_stage1" --precision fp16 --cond-lens 7528 2800 --captures ${CAPTURES:-overlap} --sample-iters "${SAMPLE_ITERS:-3}"
+[ "${PROFILE:-0}" = 1 ] && run profile "$B/bench_stage1" --precision fp16 --cond-lens 7528 2800 --iters 2 --sample-iters 1 --warmup 1 --profile --captures overlap
+for f in lift lift_default_malloc; do [ -f "$O/$f.txt" ] && { echo "-- $f"; grep -E "^\||diagnose|first call|call [0-9]" "$O/$f.txt" | grep -v "^|---"; }; done
+[ -f "$O/mesh.txt" ] && grep -E "^random|^sphere|^case" "$O/mesh.txt"
 echo "-- stage1"; grep -E "^\||matmul" "$O/stage1.txt" | grep -v "^|---"
 exit 0

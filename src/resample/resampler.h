@@ -164,6 +164,16 @@ class Resampler {
   std::string random_banner_;
 };
 
+// Per batch row k: outs[k]'s latents (row k of `latents`, on the CPU) and its pose decoded in
+// `convention` with requests[k]'s scene scale and shift (models::decode_pose).
+void decode_poses(const models::Latents& latents, const std::vector<const ResampleRequest*>& requests,
+                  const std::vector<ResampledShape*>& outs, const std::string& convention);
+
+// Per batch row k of logits [rows, 1, R, R, R]: outs[k]'s mesh (mesh_from_logits) and its pose carried
+// over to the canonical frame (scale_canonical, translation_canonical); rows in parallel when there are
+// at least as many as threads.
+void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs);
+
 // Meshes one occupancy logit grid [R, R, R] (or [1, 1, R, R, R]): marching cubes at iso 0, official
 // voxel frame, then the canonical frame. Fills mesh, canonical, coords, ok/message of `out`.
 void mesh_from_logits(const torch::Tensor& logits, ResampledShape& out);
