@@ -57,7 +57,6 @@ int main(int argc, char** argv) {
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
-    simu::resample::keep_host_memory();  // CPU stages reuse freed memory instead of faulting in fresh pages
     if (!common.sets.empty())
       simu::fail_hint("use the --*-config files and flags", "lift reads no config file: --set {} would be ignored",
                       common.sets.front());

@@ -173,16 +173,11 @@ int main(int argc, char** argv) {
   app.add_option("--decoder-bias", decoder_bias, "added to the decoder's output bias (random weights: occupancy)")
       ->capture_default_str();
   app.add_flag("--small", small, "fixture-size models (CPU smoke run of this program)");
-  std::vector<std::string> graphs = {"on"};
+  std::vector<std::string> graphs = {"off"};
   app.add_option("--graphs", graphs,
-                 "sampling through persistent CUDA graphs (the default, captured in the first call) and/or eager "
-                 "launches: on | off, each a row")
+                 "eager launches (off: lift's default) and/or sampling through persistent CUDA graphs (on: captured "
+                 "in the first call, replayed after), each a row")
       ->check(CLI::IsMember({"on", "off"}))->capture_default_str();
-  std::string host_memory = "keep";
-  app.add_option("--host-memory", host_memory,
-                 "keep: resample::keep_host_memory() as the lift program does (default); default: glibc's own "
-                 "malloc settings")
-      ->check(CLI::IsMember({"keep", "default"}))->capture_default_str();
   bool diagnose = false;
   app.add_flag("--diagnose", diagnose,
                "also time the CPU stages alone, back to back (preprocessing of one object, logits -> mesh of one "
@@ -191,7 +186,6 @@ int main(int argc, char** argv) {
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
     simu::cli::apply_common_options(common);
-    if (host_memory == "keep") simu::resample::keep_host_memory();
     const torch::Device dev(device);
     if (dev.is_cuda() && !torch::cuda::is_available()) {
       fmt::print("bench_lift: skipped: no CUDA device (use --device cpu --small for a smoke run)\n");

@@ -27,16 +27,15 @@ nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,temperature.gp
 run() { local name="$1"; shift; echo "== $name: $*"; local s=$(date +%s); "$@" >"$O/$name.txt" 2>&1; echo "   rc $? in $(( $(date +%s) - s )) s"; }
 run tests "$B/test_models_gpu" --gtest_filter='FlowModelGpu.*:FusedOpsGpu.*:PrecisionGpu.*'
 grep -E "^\[  (PASSED|FAILED) |FAILED|tests ran|Failure|Expected|Which is|actual" "$O/tests.txt" | head -30
-# lift: the default path (graphs on, host memory kept), then glibc's own malloc settings for comparison.
+# lift: the default path (eager launches), then persistent CUDA graphs in a fresh process (first call apart).
 run lift "$B/bench_lift" --device cuda --batches 1 8 --iters 3 --precision fp16 --diagnose
-[ "${1:-}" != quick ] && run lift_default_malloc "$B/bench_lift" --device cuda --batches 1 --iters 3 --precision fp16 --host-memory default --diagnose
+[ "${1:-}" != quick ] && run lift_graphs "$B/bench_lift" --device cuda --batches 1 8 --iters 3 --precision fp16 --graphs on
 if [ "${1:-}" != quick ]; then
   run mesh "$B/bench_mesh" --threads 1 0
-  MALLOC_MMAP_THRESHOLD_=33554432 MALLOC_TRIM_THRESHOLD_=1073741824 "$B/bench_mesh" --threads 1 0 >>"$O/mesh.txt" 2>&1
-fi
+  fi
 run stage1 "$B/bench_stage1" --precision fp16 --cond-lens 7528 2800 --captures ${CAPTURES:-overlap} --sample-iters "${SAMPLE_ITERS:-3}"
 [ "${PROFILE:-0}" = 1 ] && run profile "$B/bench_stage1" --precision fp16 --cond-lens 7528 2800 --iters 2 --sample-iters 1 --warmup 1 --profile --captures overlap
-for f in lift lift_default_malloc; do [ -f "$O/$f.txt" ] && { echo "-- $f"; grep -E "^\||diagnose|first call|call [0-9]" "$O/$f.txt" | grep -v "^|---"; }; done
+for f in lift lift_graphs; do [ -f "$O/$f.txt" ] && { echo "-- $f"; grep -E "^\||diagnose|first call|call [0-9]" "$O/$f.txt" | grep -v "^|---"; }; done
 [ -f "$O/mesh.txt" ] && grep -E "^random|^sphere|^case" "$O/mesh.txt"
 echo "-- stage1"; grep -E "^\||matmul" "$O/stage1.txt" | grep -v "^|---"
 exit 0

@@ -4,10 +4,6 @@
 #include <fmt/ranges.h>
 #include <unistd.h>
 
-#if defined(__GLIBC__)
-#include <malloc.h>
-#endif
-
 #include <algorithm>
 #include <cctype>
 #include <chrono>
@@ -327,16 +323,6 @@ std::string check_lift_weights(const ResamplerConfig& c, bool random_weights) {
   return fmt::format("RANDOM WEIGHTS: no {} given, those modules keep their random initialisation; the shapes and "
                      "poses below are meaningless (--random-weights)",
                      fmt::join(random, ", "));
-}
-
-void keep_host_memory() {
-#if defined(__GLIBC__)
-  // The largest mmap threshold glibc accepts on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX).
-  const int mmap_threshold = 32 * 1024 * 1024;
-  const int trim_threshold = 1024 * 1024 * 1024;
-  SIMU_CHECK(mallopt(M_MMAP_THRESHOLD, mmap_threshold) == 1 && mallopt(M_TRIM_THRESHOLD, trim_threshold) == 1,
-             "keep_host_memory: mallopt refused the thresholds");
-#endif
 }
 
 void apply_precision(ResamplerConfig& config, const std::string& precision) {

@@ -133,13 +133,6 @@ LiftInputs load_lift_inputs(const LiftFiles& files);
 // returns the banner naming the modules left at random init ("" when every file is given).
 std::string check_lift_weights(const ResamplerConfig& config, bool random_weights);
 
-// Keeps freed host memory in the process for reuse (glibc malloc: blocks up to 32 MiB from the heap,
-// not from fresh mmaps; no heap trimming below 1 GiB of free top memory), so that a lift call's CPU
-// stages (preprocessing, marching cubes: tens of MB of short-lived buffers per object) do not fault in
-// fresh pages every call. Measured on the GPU machine (docs/lift.md). Process-wide; `lift` and
-// bench_lift call it once at start. No effect without glibc.
-void keep_host_memory();
-
 // Maps --precision onto the resampler: "auto" (fp16 autocast on CUDA as released, fp32 on CPU),
 // "fp16", "bf16" (CUDA only), "fp32".
 void apply_precision(ResamplerConfig& config, const std::string& precision);

@@ -70,11 +70,13 @@ struct ResamplerConfig {
   // Inference precision of embedder, generator and decoder (models/precision.h): auto = fp16 on CUDA
   // (the released pipeline.yaml dtype), fp32 on CPU; fp16 | bf16 need CUDA; fp32.
   std::string precision = "auto";
-  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs; on by default): the
-  // first call captures each batch shape's graph right after its first, eager evaluation (the capture
-  // overlaps the device's work, models::GraphedForward::set_overlapped_capture), later evaluations and
-  // later calls replay. Off: eager launches at every step (the reference path).
-  bool cuda_graphs = true;
+  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs): each batch shape's
+  // graph is recorded right after its first, eager evaluation (the capture overlaps the device's work,
+  // models::GraphedForward::set_overlapped_capture); later evaluations and later calls replay. Off by
+  // default: at 7,528 condition tokens replays measured no faster than eager launches, and the first
+  // call of a fresh process (one `lift` run) measured slower with graphs (docs/lift.md). Pays in a
+  // long-lived process at shorter conditions (2,800 tokens: 663 vs 681-832 ms per sampling).
+  bool cuda_graphs = false;
   int num_samples = 1;    // shapes drawn per object
   int decode_batch = 8;   // objects per decoder forward
   std::string pose_convention = "ScaleShiftInvariant";  // see models::PoseDecodeOptions
