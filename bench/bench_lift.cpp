@@ -11,14 +11,22 @@
 #include <fmt/ranges.h>
 #include <torch/cuda.h>
 
+#include <ATen/Parallel.h>
+
 #include <algorithm>
 #include <chrono>
+#include <functional>
+#include <thread>
+
+#include <sys/resource.h>
 
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
 #include "data/depth_io.h"
 #include "resample/lift.h"
+#include "resample/marching_cubes.h"
+#include "data/preprocess.h"
 
 namespace {
 
@@ -54,6 +62,100 @@ simu::resample::LiftInputs synthetic_photo(int64_t n_objects) {
   return in;
 }
 
+// Minor page faults of this process so far (first touches of fresh memory).
+long minor_faults() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return u.ru_minflt;
+}
+
+// Median of `reps` runs of fn in ms (after one untimed run), each after `idle_ms` of sleep (0: back to back).
+double median_ms(int reps, const std::function<void()>& fn, int idle_ms = 0) {
+  fn();
+  std::vector<double> ms;
+  for (int i = 0; i < reps; ++i) {
+    if (idle_ms > 0) std::this_thread::sleep_for(std::chrono::milliseconds(idle_ms));
+    const auto t0 = std::chrono::steady_clock::now();
+    fn();
+    ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+  }
+  std::sort(ms.begin(), ms.end());
+  return ms[ms.size() / 2];
+}
+
+// The CPU stages alone, back to back (warm threads, caches, allocator): one object's preprocessing and
+// one decoded grid's logits -> mesh, next to what the same work costs inside a lift call.
+void diagnose_cpu_stages(simu::resample::Resampler& rs, const simu::resample::LiftInputs& photo,
+                         const torch::Device& dev) {
+  const auto& obj = photo.objects.at(0);
+  const auto pm = photo.pointmap.permute({2, 0, 1}).contiguous();
+  auto pre_fn = [&] {
+    (void)simu::data::prepare_condition_inputs(photo.rgb, obj.mask, pm, simu::data::PreprocessConfig{});
+  };
+  const double pre = median_ms(5, pre_fn), pre_idle = median_ms(5, pre_fn, 500);
+  // A decoded grid of random latents (random weights: arbitrary occupancy).
+  const auto& shape = rs.generator()->config().backbone.latent("shape");
+  const auto latent = torch::randn({1, shape.tokens(), shape.in_channels}, torch::TensorOptions().device(dev));
+  const auto logits = rs.decode_logits(latent).to(torch::kCPU);
+  simu::resample::ResampledShape out;
+  auto mesh_fn = [&] { simu::resample::mesh_from_logits(logits, out); };  // [1, 1, R, R, R]
+  const double mesh = median_ms(5, mesh_fn), mesh_idle = median_ms(5, mesh_fn, 500);
+  const double mc = median_ms(5, [&] { (void)simu::resample::marching_cubes(logits); });
+  fmt::print("diagnose ({} threads, median of 5): preprocess one object {:.1f} ms back to back, {:.1f} ms after 0.5 s idle; "
+             "logits -> mesh {:.1f} / {:.1f} ms (marching cubes alone {:.1f} ms; {} occupied voxels, {} vertices, {} "
+             "triangles)\n",
+             at::get_num_threads(), pre, pre_idle, mesh, mesh_idle, mc, out.coords.size(0), out.mesh.V.rows(),
+             out.mesh.F.rows());
+}
+
+struct Row {
+  std::string graphs;
+  int64_t batch;
+  double wall_ms, first_ms;
+  simu::resample::LiftTimings t;
+  int64_t voxels;
+  double peak;
+};
+
+// Times lift_objects on the first B objects of `photo` with graphs "on" or "off": the first call apart,
+// then the median of `iters` calls (per-call stage times and page faults logged).
+Row time_lift(simu::resample::Resampler& rs, const simu::resample::LiftInputs& photo, const std::string& g, int64_t B,
+              int iters, const torch::Device& dev) {
+  auto ms_of = [](const simu::resample::LiftTimings& t) {
+    return fmt::format("preprocess {:.1f}, embed {:.1f}, sample {:.1f}, decode {:.1f}, mesh {:.1f}, pose {:.1f} ms",
+                       t.preprocess * 1e3, t.embed * 1e3, t.sample * 1e3, t.decode * 1e3, t.mesh * 1e3, t.pose * 1e3);
+  };
+  rs.set_cuda_graphs(g == "on");
+  auto in = photo;
+  in.objects.resize(static_cast<size_t>(B));
+  simu::resample::LiftOptions opt;
+  // The first call (a fresh process's only call: kernels, allocator, graph captures) is timed apart.
+  const auto f0 = std::chrono::steady_clock::now();
+  const auto first = simu::resample::lift_objects(rs, in, opt);
+  const double first_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - f0).count();
+  simu::log::info("graphs {} batch {}: first call {:.1f} ms ({})", g, B, first_ms, ms_of(first.seconds));
+  if (dev.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(dev.index() < 0 ? 0 : dev.index());
+  std::vector<Row> runs;
+  for (int i = 0; i < iters; ++i) {
+    opt.seed = static_cast<uint64_t>(i + 1);
+    const long faults0 = minor_faults();
+    const auto t0 = std::chrono::steady_clock::now();
+    const auto res = simu::resample::lift_objects(rs, in, opt);
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    const long faults = minor_faults() - faults0;
+    int64_t voxels = 0;
+    for (const auto& o : res.objects)
+      if (!o.samples.empty() && o.samples[0].coords.defined()) voxels += o.samples[0].coords.size(0);
+    runs.push_back({g, B, ms, first_ms, res.seconds, voxels / B, 0});
+    simu::log::info("graphs {} batch {}: call {}/{} {:.1f} ms ({}); {} minor page faults", g, B, i + 1, iters, ms,
+                    ms_of(res.seconds), faults);
+  }
+  std::sort(runs.begin(), runs.end(), [](const Row& a, const Row& b) { return a.wall_ms < b.wall_ms; });
+  Row r = runs[runs.size() / 2];
+  r.peak = peak_gib(dev);
+  return r;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -71,8 +173,15 @@ int main(int argc, char** argv) {
   app.add_option("--decoder-bias", decoder_bias, "added to the decoder's output bias (random weights: occupancy)")
       ->capture_default_str();
   app.add_flag("--small", small, "fixture-size models (CPU smoke run of this program)");
-  bool cuda_graphs = false;
-  app.add_flag("--cuda-graphs", cuda_graphs, "sample through persistent CUDA graphs (captured in the warm-up call)");
+  std::vector<std::string> graphs = {"off"};
+  app.add_option("--graphs", graphs,
+                 "eager launches (off: lift's default) and/or sampling through persistent CUDA graphs (on: captured "
+                 "in the first call, replayed after), each a row")
+      ->check(CLI::IsMember({"on", "off"}))->capture_default_str();
+  bool diagnose = false;
+  app.add_flag("--diagnose", diagnose,
+               "also time the CPU stages alone, back to back (preprocessing of one object, logits -> mesh of one "
+               "decoded grid): what they cost when caches and threads are warm");
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -93,7 +202,6 @@ int main(int argc, char** argv) {
       cfg.generator_overrides = {"flow_model.cond_channels=48"};
     }
     simu::resample::apply_precision(cfg, precision);
-    cfg.cuda_graphs = cuda_graphs;
     cfg.random_weights = true;  // a benchmark: random init, banner logged
     torch::NoGradGuard no_grad;
     simu::resample::Resampler rs(cfg);
@@ -109,47 +217,20 @@ int main(int argc, char** argv) {
                mc.num_blocks, cfg.embedder_config, rs.embedder()->num_tokens(), cfg.decoder_config, cfg.steps,
                cfg.rescale_t, cfg.cfg_strength, cfg.cfg_interval.first, cfg.cfg_interval.second,
                simu::resample::occupancy_resolution(rs));
-    struct Row {
-      int64_t batch;
-      double wall_ms;
-      simu::resample::LiftTimings t;
-      int64_t voxels;
-      double peak;
-    };
-    std::vector<Row> rows;
     torch::manual_seed(0);
     const int64_t max_b = *std::max_element(batches.begin(), batches.end());
     const auto photo = synthetic_photo(max_b);
-    for (const int64_t B : batches) {
-      auto in = photo;
-      in.objects.resize(static_cast<size_t>(B));
-      simu::resample::LiftOptions opt;
-      (void)simu::resample::lift_objects(rs, in, opt);  // warm-up (kernels, allocator)
-      if (dev.is_cuda()) c10::cuda::CUDACachingAllocator::resetPeakStats(dev.index() < 0 ? 0 : dev.index());
-      std::vector<Row> runs;
-      for (int i = 0; i < iters; ++i) {
-        opt.seed = static_cast<uint64_t>(i + 1);
-        const auto t0 = std::chrono::steady_clock::now();
-        const auto res = simu::resample::lift_objects(rs, in, opt);
-        const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-        int64_t voxels = 0;
-        for (const auto& o : res.objects)
-          if (!o.samples.empty() && o.samples[0].coords.defined()) voxels += o.samples[0].coords.size(0);
-        runs.push_back({B, ms, res.seconds, voxels / B, 0});
-        simu::log::info("batch {}: call {}/{} {:.1f} ms", B, i + 1, iters, ms);
-      }
-      std::sort(runs.begin(), runs.end(), [](const Row& a, const Row& b) { return a.wall_ms < b.wall_ms; });
-      Row r = runs[runs.size() / 2];
-      r.peak = peak_gib(dev);
-      rows.push_back(r);
-    }
-    fmt::print("\n| objects per call | call ms | per object ms | preprocess | embed | sampling | decoder | mesh | pose | "
-               "voxels/obj | peak alloc GiB |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+    std::vector<Row> rows;
+    for (const auto& g : graphs)
+      for (const int64_t B : batches) rows.push_back(time_lift(rs, photo, g, B, iters, dev));
+    if (diagnose) diagnose_cpu_stages(rs, photo, dev);
+    fmt::print("\n| graphs | objects per call | call ms | per object ms | first call ms per object | preprocess | embed | "
+               "sampling | decoder | mesh | pose | voxels/obj | peak alloc GiB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for (const auto& r : rows) {
       const double b = static_cast<double>(r.batch);
-      fmt::print("| {} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.2f} | {} | {:.2f} |\n", r.batch,
-                 r.wall_ms, r.wall_ms / b, r.t.preprocess * 1e3 / b, r.t.embed * 1e3 / b, r.t.sample * 1e3 / b,
-                 r.t.decode * 1e3 / b, r.t.mesh * 1e3 / b, r.t.pose * 1e3 / b, r.voxels, r.peak);
+      fmt::print("| {} | {} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.1f} | {:.2f} | {} | {:.2f} |\n",
+                 r.graphs, r.batch, r.wall_ms, r.wall_ms / b, r.first_ms / b, r.t.preprocess * 1e3 / b, r.t.embed * 1e3 / b,
+                 r.t.sample * 1e3 / b, r.t.decode * 1e3 / b, r.t.mesh * 1e3 / b, r.t.pose * 1e3 / b, r.voxels, r.peak);
     }
     fmt::print("(per-object columns in ms; mesh = the resampler's per-row pose decode + marching cubes + canonical "
                "frame; pose = conversion to the scene convention)\n");

@@ -51,6 +51,138 @@ double peak_gib(const torch::Device& d) {
   return static_cast<double>(s.allocated_bytes[0].peak) / (1024.0 * 1024.0 * 1024.0);
 }
 
+struct Row {
+  int64_t cond_len;
+  std::string what;
+  double ms, tflops, peak;
+};
+
+// What every measurement shares.
+struct Bench {
+  simu::models::Generator gen;
+  torch::Device dev;
+  simu::models::Precision prec;
+  int warmup, iters, sample_iters, steps;
+  double cfg;
+  bool profile;
+  std::vector<std::string> captures;
+  std::vector<Row> rows;
+};
+
+// Plain bf16 matmul rate of this device (TFLOP/s).
+double matmul_ceiling(const torch::Device& dev) {
+  const int64_t n = 8192;
+  auto a = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
+  auto b = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
+  // Ceiling: the best of 5 batches of 10 back-to-back products (after 20 to warm the clocks), so
+  // that host synchronisation does not lower it and the ratios below are not flattered.
+  const int reps = 10;
+  for (int i = 0; i < 20; ++i) (void)torch::mm(a, b);
+  double best_ms = 1e30;
+  for (int k = 0; k < 5; ++k)
+    best_ms = std::min(best_ms, time_ms(dev, 0, 1, [&] {
+                         for (int i = 0; i < reps; ++i) (void)torch::mm(a, b);
+                       }) / reps);
+  const double mm_tflops = 2.0 * n * n * n / (best_ms * 1e-3) / 1e12;
+  fmt::print("bf16 matmul {}^3: {:.3f} ms = {:.1f} TFLOP/s (best of 5 x 10 back-to-back)\n", n, best_ms, mm_tflops);
+  return mm_tflops;
+}
+
+// One forward at batch 2 (the CFG pair), eager and replayed from a CUDA graph.
+void time_forward(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generator& rng) {
+  auto& gen = bn.gen;
+  const auto& dev = bn.dev;
+  const auto& mc = gen->config().backbone;
+  // One forward at batch 2 (the CFG pair: conditional + unconditional).
+  {
+    auto x = gen->noise(2, rng, dev);
+    auto cond = torch::cat({cond1, cond1 * 0}, 0);
+    // One t for the pair (as the sampler passes it: [1], broadcast over the batch).
+    auto t = torch::full({1}, 500.0, torch::TensorOptions().device(dev));
+    c10::optional<torch::Tensor> d;
+    if (mc.is_shortcut_model) d = torch::zeros({1}, torch::TensorOptions().device(dev));
+    auto fwd = [&] { auto y = gen->backbone()->forward(x, t, cond, d); };
+    reset_peak(dev);
+    // One autocast region around all runs: the bf16 copies of the weights are made once and cached,
+    // as in sampling (Generator::sample keeps one region over all steps).
+    simu::models::Autocast ac(bn.prec, dev.is_cuda());
+    const double ms = time_ms(dev, bn.warmup, bn.iters, fwd);
+    const double flops = simu::models::flow_forward_flops(mc, 2, L);
+    bn.rows.push_back({L, "forward B=2", ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
+    simu::log::info("cond {}: forward {:.2f} ms", L, ms);
+    if (bn.profile && dev.is_cuda()) {
+      simu::bench::print_gpu_kernel_profile(fmt::format("forward B=2, cond {}", L), fwd);
+      simu::bench::print_gpu_op_profile(fmt::format("forward B=2, cond {}", L), fwd);
+    }
+    // The same forward replayed from a CUDA graph (as the sampler runs it): no launch gaps.
+    if (dev.is_cuda()) {
+      simu::models::GraphedForward graphed(gen->backbone(), cond, nullptr);
+      auto fwd_graph = [&] { auto y = graphed.run(x, t, d); };
+      reset_peak(dev);
+      const double gms = time_ms(dev, bn.warmup, bn.iters, fwd_graph);
+      bn.rows.push_back({L, "forward B=2, CUDA graph", gms, flops / (gms * 1e-3) / 1e12, peak_gib(dev)});
+      simu::log::info("cond {}: forward (CUDA graph) {:.2f} ms", L, gms);
+    }
+  }
+}
+
+// Full 25-step CFG sampling: eager, then each graph capture scheme (first call and persistent replays).
+void time_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generator& rng) {
+  auto& gen = bn.gen;
+  const auto& dev = bn.dev;
+  const auto& mc = gen->config().backbone;
+  // Full sampling with CFG (batch 1 -> batch-2 forwards while guided).
+  {
+    auto o = simu::models::SampleOptions::from(gen->config());
+    o.steps = bn.steps;
+    o.cfg_strength = bn.cfg;
+    o.precision = bn.prec;
+    auto x0 = gen->noise(1, rng, dev);
+    auto run = [&] { auto y = gen->sample(cond1, x0, o); };
+    // FLOPs: one forward per step, batch 2 where CFG is active.
+    const auto grid = gen->time_grid(o.steps, o.rescale_t, o.reversed_timestamp);
+    // The condition keys/values are computed once per batch size (ConditionCache), not per step.
+    double flops = 0;
+    bool any_guided = false, any_plain = false;
+    for (int i = 0; i < o.steps; ++i) {
+      const double ts = static_cast<float>(grid[i] * gen->config().time_scale);
+      const bool guided = o.cfg_strength > 0 && o.cfg_interval.first <= ts && ts <= o.cfg_interval.second;
+      const int64_t b = guided ? 2 : 1;
+      flops += simu::models::flow_forward_flops(mc, b, L) - simu::models::flow_condition_kv_flops(mc, b, L);
+      (guided ? any_guided : any_plain) = true;
+    }
+    if (any_guided) flops += simu::models::flow_condition_kv_flops(mc, 2, L);
+    if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
+    // Eager launches and persistent CUDA graphs (captured in the first call, replayed by every later
+    // one: the timed calls; the first call's time is its own row).
+    // Graph captures: "overlap" (the default: the first evaluation eager, the capture recorded while
+    // the device runs it) and/or "sync" (the earlier host-synchronous capture), --captures.
+    std::vector<std::string> modes = {"eager"};
+    if (dev.is_cuda())
+      for (const auto& c : bn.captures) modes.push_back(c);
+    for (const auto& mode : modes) {
+      const bool graphs = mode != "eager";
+      o.cuda_graphs = graphs;
+      simu::models::GraphedForward::set_overlapped_capture(mode != "sync");
+      reset_peak(dev);
+      if (graphs) {
+        gen->reverse_fn->clear_graphs();
+        const double first = time_ms(dev, 0, 1, run);
+        bn.rows.push_back({L, fmt::format("sample {} steps CFG {}, first call ({} capture)", o.steps, bn.cfg, mode), first,
+                        flops / (first * 1e-3) / 1e12, peak_gib(dev)});
+      }
+      const double ms = time_ms(dev, graphs ? 0 : 1, bn.sample_iters, run);
+      bn.rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, bn.cfg, graphs ? ", persistent CUDA graphs (" + mode + ")" : ", eager"), ms,
+                      flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
+      simu::log::info("cond {}: sampling ({}) {:.1f} ms", L, mode, ms);
+      if (bn.profile && !graphs && dev.is_cuda())
+        simu::bench::print_gpu_kernel_profile(fmt::format("sample {} steps, cond {}", o.steps, L), run, 12);
+    }
+    simu::models::GraphedForward::set_overlapped_capture(true);
+    gen->reverse_fn->clear_graphs();  // the next condition length starts without them
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -62,6 +194,7 @@ int main(int argc, char** argv) {
   double cfg = 7.0;
   bool small = false, fp32 = false, profile = false, one_stream = false;
   std::string sdp = "default";
+  std::vector<std::string> captures = {"overlap"};
   app.add_option("--config", config, "generator config (official or project layout)")->capture_default_str();
   app.add_option("--cond-lens", cond_lens, "condition lengths")->capture_default_str();
   app.add_option("--steps", steps, "sampling steps")->capture_default_str();
@@ -78,6 +211,8 @@ int main(int argc, char** argv) {
   app.add_flag("--one-stream", one_stream, "run the pose stream on the same CUDA stream as the shape stream");
   app.add_option("--sdp-backend", sdp, "attention backend tried first: default | flash | cudnn | efficient")
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
+  app.add_option("--captures", captures, "graph capture schemes timed after eager sampling: overlap (default) | sync")
+      ->check(CLI::IsMember({"overlap", "sync"}))->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -115,109 +250,15 @@ int main(int argc, char** argv) {
                "  self qkv 6TC^2 + out 2TC^2 + attention 4*T*Tk*C (Tk = T for shape, all tokens for pose)\n"
                "  + cross q 2TC^2 + kv 4*Lc*Cc*C + out 2TC^2 + attention 4*T*Lc*C + MLP 4*T*C*(ratio*C); + adaLN, latent io\n");
 
-    // Reference: plain bf16 matmul rate of this device.
-    double mm_tflops = 0;
-    if (dev.is_cuda()) {
-      const int64_t n = 8192;
-      auto a = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
-      auto b = torch::randn({n, n}, torch::TensorOptions().device(dev).dtype(torch::kBFloat16));
-      // Ceiling: the best of 5 batches of 10 back-to-back products (after 20 to warm the clocks), so
-      // that host synchronisation does not lower it and the ratios below are not flattered.
-      const int reps = 10;
-      for (int i = 0; i < 20; ++i) (void)torch::mm(a, b);
-      double best_ms = 1e30;
-      for (int k = 0; k < 5; ++k)
-        best_ms = std::min(best_ms, time_ms(dev, 0, 1, [&] {
-                             for (int i = 0; i < reps; ++i) (void)torch::mm(a, b);
-                           }) / reps);
-      mm_tflops = 2.0 * n * n * n / (best_ms * 1e-3) / 1e12;
-      fmt::print("bf16 matmul {}^3: {:.3f} ms = {:.1f} TFLOP/s (best of 5 x 10 back-to-back)\n", n, best_ms, mm_tflops);
-    }
-
-    struct Row {
-      int64_t cond_len;
-      std::string what;
-      double ms, tflops, peak;
-    };
-    std::vector<Row> rows;
+    const double mm_tflops = dev.is_cuda() ? matmul_ceiling(dev) : 0;
+    Bench bn{gen, dev, prec, warmup, iters, sample_iters, steps, cfg, profile, captures, {}};
     auto rng = at::make_generator<at::CPUGeneratorImpl>(0);
     for (const int64_t L : cond_lens) {
       auto cond1 = torch::randn({1, L, mc.cond_channels}, rng).to(dev);
-      // One forward at batch 2 (the CFG pair: conditional + unconditional).
-      {
-        auto x = gen->noise(2, rng, dev);
-        auto cond = torch::cat({cond1, cond1 * 0}, 0);
-        // One t for the pair (as the sampler passes it: [1], broadcast over the batch).
-        auto t = torch::full({1}, 500.0, torch::TensorOptions().device(dev));
-        c10::optional<torch::Tensor> d;
-        if (mc.is_shortcut_model) d = torch::zeros({1}, torch::TensorOptions().device(dev));
-        auto fwd = [&] { auto y = gen->backbone()->forward(x, t, cond, d); };
-        reset_peak(dev);
-        // One autocast region around all runs: the bf16 copies of the weights are made once and cached,
-        // as in sampling (Generator::sample keeps one region over all steps).
-        simu::models::Autocast ac(prec, dev.is_cuda());
-        const double ms = time_ms(dev, warmup, iters, fwd);
-        const double flops = simu::models::flow_forward_flops(mc, 2, L);
-        rows.push_back({L, "forward B=2", ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
-        simu::log::info("cond {}: forward {:.2f} ms", L, ms);
-        if (profile && dev.is_cuda()) {
-          simu::bench::print_gpu_kernel_profile(fmt::format("forward B=2, cond {}", L), fwd);
-          simu::bench::print_gpu_op_profile(fmt::format("forward B=2, cond {}", L), fwd);
-        }
-        // The same forward replayed from a CUDA graph (as the sampler runs it): no launch gaps.
-        if (dev.is_cuda()) {
-          simu::models::GraphedForward graphed(gen->backbone(), cond, nullptr);
-          auto fwd_graph = [&] { auto y = graphed.run(x, t, d); };
-          reset_peak(dev);
-          const double gms = time_ms(dev, warmup, iters, fwd_graph);
-          rows.push_back({L, "forward B=2, CUDA graph", gms, flops / (gms * 1e-3) / 1e12, peak_gib(dev)});
-          simu::log::info("cond {}: forward (CUDA graph) {:.2f} ms", L, gms);
-        }
-      }
-      // Full sampling with CFG (batch 1 -> batch-2 forwards while guided).
-      {
-        auto o = simu::models::SampleOptions::from(gen->config());
-        o.steps = steps;
-        o.cfg_strength = cfg;
-        o.precision = prec;
-        auto x0 = gen->noise(1, rng, dev);
-        auto run = [&] { auto y = gen->sample(cond1, x0, o); };
-        // FLOPs: one forward per step, batch 2 where CFG is active.
-        const auto grid = gen->time_grid(o.steps, o.rescale_t, o.reversed_timestamp);
-        // The condition keys/values are computed once per batch size (ConditionCache), not per step.
-        double flops = 0;
-        bool any_guided = false, any_plain = false;
-        for (int i = 0; i < o.steps; ++i) {
-          const double ts = static_cast<float>(grid[i] * gen->config().time_scale);
-          const bool guided = o.cfg_strength > 0 && o.cfg_interval.first <= ts && ts <= o.cfg_interval.second;
-          const int64_t b = guided ? 2 : 1;
-          flops += simu::models::flow_forward_flops(mc, b, L) - simu::models::flow_condition_kv_flops(mc, b, L);
-          (guided ? any_guided : any_plain) = true;
-        }
-        if (any_guided) flops += simu::models::flow_condition_kv_flops(mc, 2, L);
-        if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
-        // Eager launches and persistent CUDA graphs (captured in the first call, replayed by every later
-        // one: the timed calls; the first call's time is its own row).
-        for (const bool graphs : {false, true}) {
-          if (graphs && !dev.is_cuda()) continue;
-          o.cuda_graphs = graphs;
-          reset_peak(dev);
-          if (graphs) {
-            gen->reverse_fn->clear_graphs();
-            const double first = time_ms(dev, 0, 1, run);
-            rows.push_back({L, fmt::format("sample {} steps CFG {}, first call (captures the graphs)", o.steps, cfg), first,
-                            flops / (first * 1e-3) / 1e12, peak_gib(dev)});
-          }
-          const double ms = time_ms(dev, graphs ? 0 : 1, sample_iters, run);
-          rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, cfg, graphs ? ", persistent CUDA graphs" : ""), ms,
-                          flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
-          simu::log::info("cond {}: sampling{} {:.1f} ms", L, graphs ? " (CUDA graphs)" : "", ms);
-          if (profile && !graphs && dev.is_cuda())
-            simu::bench::print_gpu_kernel_profile(fmt::format("sample {} steps, cond {}", o.steps, L), run, 12);
-        }
-        gen->reverse_fn->clear_graphs();  // the next condition length starts without them
-      }
+      time_forward(bn, L, cond1, rng);
+      time_sampling(bn, L, cond1, rng);
     }
+    const auto& rows = bn.rows;
     fmt::print("\n| cond tokens | run | ms (median) | TFLOP/s | % of matmul rate | peak alloc GiB |\n|---|---|---|---|---|---|\n");
     for (const auto& r : rows)
       fmt::print("| {} | {} | {:.2f} | {:.1f} | {} | {:.2f} |\n", r.cond_len, r.what, r.ms, r.tflops,

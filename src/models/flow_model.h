@@ -312,6 +312,11 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   std::map<std::string, LatentMapping> latent_mapping;
 
  private:
+  // Input projection per latent (+ position embedding), merged into the transformer streams, float32:
+  // [B, L_i, C] per stream name; `dtype` gets the projections' own dtype (the output's).
+  std::vector<torch::Tensor> input_streams(const Latents& x, at::ScalarType& dtype);
+  // The streams split back into their latents and projected out: the velocity per latent.
+  Latents output_latents(const std::vector<torch::Tensor>& h);
   FlowModelConfig config_;
   std::vector<std::string> streams_;
   std::vector<MOTBlock> block_list_;

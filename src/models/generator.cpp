@@ -1,9 +1,10 @@
+// Stage-1 generator (generator.h): configs, the official inference sampler values, classifier-free
+// guidance and the sampling loop. The CUDA graphs it samples through: sampling_graphs.cpp.
 #include "models/generator.h"
 
 #include <fmt/ranges.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <limits>
 
@@ -16,12 +17,6 @@
 #include "models/weights.h"
 
 #include <ATen/autocast_mode.h>
-
-#ifdef SIMU_HAVE_CUDA_KERNELS
-#include <ATen/cuda/CUDAGraph.h>
-#include <c10/cuda/CUDAGuard.h>
-#include <c10/cuda/CUDAStream.h>
-#endif
 
 namespace simu::models {
 
@@ -168,97 +163,6 @@ std::string describe_sampler(const SampleOptions& o, const GeneratorConfig& c, c
 }
 
 // ---------------------------------------------------------------------------------------------
-// CUDA graphs
-
-struct GraphedForward::State {
-  SparseStructureFlowTdfyWrapper backbone{nullptr};
-  torch::Tensor cond;
-  const ConditionCache* cache = nullptr;
-  // Static inputs (the graph reads these addresses) and the outputs it writes.
-  Latents x, y;
-  torch::Tensor t, d;
-#ifdef SIMU_HAVE_CUDA_KERNELS
-  std::unique_ptr<at::cuda::CUDAGraph> graph;
-#endif
-};
-
-GraphedForward::GraphedForward(SparseStructureFlowTdfyWrapper backbone, torch::Tensor cond, const ConditionCache* cache)
-    : s_(std::make_unique<State>()) {
-  s_->backbone = std::move(backbone);
-  s_->cond = std::move(cond);
-  s_->cache = cache;
-}
-
-GraphedForward::~GraphedForward() = default;
-
-namespace {
-std::atomic<int64_t> g_graph_replays{0};
-std::atomic<int64_t> g_graph_captures{0};
-}  // namespace
-
-int64_t GraphedForward::replay_count() { return g_graph_replays.load(); }
-int64_t GraphedForward::capture_count() { return g_graph_captures.load(); }
-
-Latents GraphedForward::run(const Latents& x, const torch::Tensor& t, const c10::optional<torch::Tensor>& d) {
-  auto& s = *s_;
-  c10::optional<torch::Tensor> dd;
-#ifdef SIMU_HAVE_CUDA_KERNELS
-  if (s.cond.is_cuda()) {
-    if (!s.graph) {
-      // Static input buffers with the first call's shapes.
-      for (const auto& [k, v] : x) s.x[k] = v.clone();
-      s.t = t.clone();
-      if (d) s.d = d->clone();
-      if (s.d.defined()) dd = s.d;
-      const c10::cuda::CUDAGuard device_guard(s.cond.device());
-      const auto main = c10::cuda::getCurrentCUDAStream();
-      auto side = c10::cuda::getStreamFromPool(false, s.cond.device().index());
-      main.synchronize();
-      {
-        const c10::cuda::CUDAStreamGuard stream_guard(side);
-        // Warm-up: kernel plans, workspaces and the autocast cache's weight copies exist before capture.
-        (void)s.backbone->forward(s.x, s.t, s.cond, dd, s.cache);
-        side.synchronize();
-        auto graph = std::make_unique<at::cuda::CUDAGraph>();
-        graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
-        try {
-          s.y = s.backbone->forward(s.x, s.t, s.cond, dd, s.cache);
-        } catch (...) {
-          try {
-            graph->capture_end();
-          } catch (...) {
-          }
-          throw;
-        }
-        graph->capture_end();
-        s.graph = std::move(graph);
-        ++g_graph_captures;
-        side.synchronize();
-      }
-    }
-    // Copy the inputs in (same shapes as captured), replay.
-    for (const auto& [k, v] : x) {
-      const auto it = s.x.find(k);
-      SIMU_CHECK(it != s.x.end() && it->second.sizes() == v.sizes(),
-                 "graphed forward: latent '{}' [{}] does not match the captured shape", k, fmt::join(v.sizes(), ", "));
-      it->second.copy_(v);
-    }
-    SIMU_CHECK(t.sizes() == s.t.sizes() && d.has_value() == s.d.defined() && (!d || d->sizes() == s.d.sizes()),
-               "graphed forward: t/d shapes differ from the captured ones");
-    s.t.copy_(t);
-    if (d) s.d.copy_(*d);
-    s.graph->replay();
-    ++g_graph_replays;
-    // Copies out (latents are small): a later replay overwrites the graph's outputs.
-    Latents out;
-    for (const auto& [k, v] : s.y) out[k] = v.clone();
-    return out;
-  }
-#endif
-  return s.backbone->forward(x, t, s.cond, d, s.cache);
-}
-
-// ---------------------------------------------------------------------------------------------
 // CFG
 
 ClassifierFreeGuidanceImpl::ClassifierFreeGuidanceImpl(const GeneratorConfig& c)
@@ -352,78 +256,6 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
     out[k] = (1 + strength) * yc - strength * yu;  // y = (1+s) y_cond - s y_uncond
   }
   return out;
-}
-
-namespace {
-// What a captured forward depends on besides its inputs: every parameter's storage and dtype (an
-// in-place update keeps it, a reload or .to() does not), which Linear adapters are on, the kernel
-// switches and the train/eval mode.
-uint64_t graph_fingerprint(SparseStructureFlowTdfyWrapper& bb) {
-  uint64_t h = 1469598103934665603ull;
-  auto mix = [&](uint64_t v) {
-    h ^= v;
-    h *= 1099511628211ull;
-  };
-  for (const auto& p : bb->parameters()) {
-    mix(reinterpret_cast<uintptr_t>(p.data_ptr()));
-    mix(static_cast<uint64_t>(p.scalar_type()));
-    mix(p.requires_grad());
-  }
-  for (const auto& m : bb->modules())
-    if (const auto* l = dynamic_cast<const LinearImpl*>(m.get())) {
-      mix(reinterpret_cast<uintptr_t>(l->adapter().get()));
-      mix(l->adapter_enabled());
-    }
-  mix(bb->fused_kernels());
-  mix(bb->training_kernels());
-  mix(bb->is_training());
-  return h;
-}
-}  // namespace
-
-std::shared_ptr<SamplingGraph> ClassifierFreeGuidanceImpl::attach_graph(const torch::Tensor& c, const Latents& xs,
-                                                                       const torch::Tensor& t,
-                                                                       const c10::optional<torch::Tensor>& d,
-                                                                       int64_t zero_from) {
-  // The shapes, dtypes and autocast state the capture is valid for.
-  std::string key = fmt::format("{} {} [{}] {} t[{}] d[{}] ac {} {}", c.device().str(), c10::toString(c.scalar_type()),
-                                fmt::join(c.sizes(), ","), xs.size(), fmt::join(t.sizes(), ","),
-                                d ? fmt::format("{}", fmt::join(d->sizes(), ",")) : std::string("-"),
-                                at::autocast::is_autocast_enabled(at::kCUDA),
-                                c10::toString(at::autocast::get_autocast_dtype(at::kCUDA)));
-  key += fmt::format(" zero_from {}", zero_from);
-  for (const auto& [k, v] : xs) key += fmt::format(" {}[{}]{}", k, fmt::join(v.sizes(), ","), c10::toString(v.scalar_type()));
-  const uint64_t fp = graph_fingerprint(backbone);
-  auto& gs = graph_cache.graphs;
-  std::shared_ptr<SamplingGraph> g;
-  for (auto it = gs.begin(); it != gs.end(); ++it)
-    if ((*it)->key == key) {
-      if ((*it)->fingerprint == fp) g = *it;
-      else gs.erase(it);  // the model changed under it: capture again
-      break;
-    }
-  if (g) {
-    // A later call: this call's condition and its keys/values into the graph's buffers, and the
-    // weights' current values into the copies the graph reads.
-    g->cond.copy_(c);
-    backbone->condition_cache_into(g->cond, g->kv);
-    for (auto& [p, w] : g->weights) w.copy_(p);
-  } else {
-    g = std::make_shared<SamplingGraph>();
-    g->key = key;
-    g->fingerprint = fp;
-    g->cond = c.clone();
-    g->kv = backbone->condition_cache(g->cond, zero_from);
-    g->graph = std::make_unique<GraphedForward>(backbone, g->cond, &g->kv);
-    g->last_use = ++graph_cache.tick;
-    gs.push_back(g);
-    while (gs.size() > std::max<size_t>(graph_cache.max_graphs, 1)) {
-      auto oldest = std::min_element(gs.begin(), gs.end(), [](const auto& a, const auto& b) { return a->last_use < b->last_use; });
-      gs.erase(oldest);
-    }
-  }
-  g->last_use = ++graph_cache.tick;
-  return g;
 }
 
 // ---------------------------------------------------------------------------------------------

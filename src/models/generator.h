@@ -126,9 +126,9 @@ std::string describe_sampler(const SampleOptions& o, const GeneratorConfig& c, c
 // and (when `cache`) the cross-attention keys/values of both computed on first use and reused.
 // A CUDA-graph capture of one backbone forward for a fixed condition (and its cache), fixed input
 // shapes and the autocast state at capture. run() copies x, t, d into the graph's own input buffers
-// and replays it, returning copies of the graph's outputs. Captured on first run(): one eager warm-up forward (plans,
-// workspaces, autocast weight copies), then the capture. Without CUDA support compiled in, run() is
-// the eager forward.
+// and replays it, returning copies of the graph's outputs. Captured on first run(): one eager forward
+// (plans, workspaces, autocast weight copies; its result is that run's answer), then the capture (see
+// set_overlapped_capture). Without CUDA support compiled in, run() is the eager forward.
 class GraphedForward {
  public:
   GraphedForward(SparseStructureFlowTdfyWrapper backbone, torch::Tensor cond, const ConditionCache* cache);
@@ -139,6 +139,13 @@ class GraphedForward {
   // and that graphs are reused).
   static int64_t replay_count();
   static int64_t capture_count();
+  // Capture scheme (process-wide). Overlapped (the default): the first run() evaluates eagerly on a
+  // side stream and returns that result, and records the graph right after it without waiting for the
+  // device (the host records while the device computes), so a capture costs about one eager
+  // evaluation. Off: the earlier host-synchronous scheme (device synchronised, a discarded warm-up
+  // forward, the capture, then a first replay). Both give the same numbers (tests/models/flow_gpu.cpp).
+  static void set_overlapped_capture(bool on);
+  static bool overlapped_capture();
 
  private:
   struct State;

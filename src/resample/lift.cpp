@@ -68,6 +68,52 @@ int LiftResult::failed() const {
   return n;
 }
 
+namespace {
+
+// One object's checks (naming it) and its released preprocessing -> the resampler request; fills
+// out's crop box and point-map scale/shift. Throws with the object's id on any problem.
+ResampleRequest prepare_object(const LiftInputs& inputs, const LiftObjectInput& in, const torch::Tensor& valid,
+                               const torch::Tensor& pointmap_p3d, const LiftOptions& options, LiftedObject& out) {
+  const int64_t H = inputs.rgb.size(1), W = inputs.rgb.size(2);
+  SIMU_CHECK(in.error.empty(), "{}", in.error);
+  SIMU_CHECK(in.mask.defined(), "object '{}': no mask", in.id);
+  auto mask = in.mask.to(torch::kCPU, torch::kFloat32);
+  if (mask.dim() == 3 && mask.size(0) == 1) mask = mask[0];
+  SIMU_CHECK(mask.dim() == 2 && mask.size(0) == H && mask.size(1) == W,
+             "object '{}': mask is {} but the image is {}x{} (W x H)", in.id,
+             mask.dim() == 2 ? fmt::format("{}x{} (W x H)", mask.size(1), mask.size(0)) : fmt::format("{}", mask.sizes()),
+             W, H);
+  const auto object = mask > 0.5;
+  const int64_t pixels = object.sum().item<int64_t>();
+  SIMU_CHECK(pixels > 0, "object '{}': the mask is empty (no pixel above 0.5)", in.id);
+  const int64_t valid_pixels = (object & valid).sum().item<int64_t>();
+  SIMU_CHECK(valid_pixels > 0,
+             "object '{}': no valid point under its mask ({} mask pixels, every point NaN/inf or without depth)",
+             in.id, pixels);
+  torch::Tensor crop = in.crop_mask.defined() ? in.crop_mask.to(torch::kCPU, torch::kFloat32) : torch::Tensor();
+  auto prepared = [&] {
+    try {
+      return data::prepare_condition_inputs(inputs.rgb.to(torch::kCPU, torch::kFloat32), mask, pointmap_p3d,
+                                            options.preprocess, crop);
+    } catch (const std::exception& e) {
+      fail("object '{}': preprocessing failed: {}", in.id, e.what());
+    }
+  }();
+  out.crop_box = prepared.crop_box;
+  out.has_crop_box = true;
+  ResampleRequest r;
+  r.inputs = std::move(prepared.tensors);
+  if (prepared.pointmap_scale.defined()) {
+    r.scene_scale = prepared.pointmap_scale.reshape({-1})[0].item<double>();
+    for (int k = 0; k < 3; ++k) r.scene_shift[k] = prepared.pointmap_shift.reshape({-1})[k].item<double>();
+  }
+  out.scene_scale = r.scene_scale;
+  out.scene_shift = r.scene_shift;
+  return r;
+}
+
+}  // namespace
+
 LiftResult lift_objects(Resampler& resampler, const LiftInputs& inputs, const LiftOptions& options) {
   torch::NoGradGuard no_grad;
   SIMU_CHECK(resampler.embedder(), "lift: the resampler has no condition embedder (set embedder_config)");
@@ -95,45 +141,10 @@ LiftResult lift_objects(Resampler& resampler, const LiftInputs& inputs, const Li
   std::vector<ResampleRequest> batch;
   std::vector<size_t> batch_index;
   for (size_t i = 0; i < inputs.objects.size(); ++i) {
-    const auto& in = inputs.objects[i];
     auto& out = result.objects[i];
-    out.id = in.id;
+    out.id = inputs.objects[i].id;
     try {
-      SIMU_CHECK(in.error.empty(), "{}", in.error);
-      SIMU_CHECK(in.mask.defined(), "object '{}': no mask", in.id);
-      auto mask = in.mask.to(torch::kCPU, torch::kFloat32);
-      if (mask.dim() == 3 && mask.size(0) == 1) mask = mask[0];
-      SIMU_CHECK(mask.dim() == 2 && mask.size(0) == H && mask.size(1) == W,
-                 "object '{}': mask is {} but the image is {}x{} (W x H)", in.id,
-                 mask.dim() == 2 ? fmt::format("{}x{} (W x H)", mask.size(1), mask.size(0)) : fmt::format("{}", mask.sizes()),
-                 W, H);
-      const auto object = mask > 0.5;
-      const int64_t pixels = object.sum().item<int64_t>();
-      SIMU_CHECK(pixels > 0, "object '{}': the mask is empty (no pixel above 0.5)", in.id);
-      const int64_t valid_pixels = (object & valid).sum().item<int64_t>();
-      SIMU_CHECK(valid_pixels > 0,
-                 "object '{}': no valid point under its mask ({} mask pixels, every point NaN/inf or without depth)",
-                 in.id, pixels);
-      torch::Tensor crop = in.crop_mask.defined() ? in.crop_mask.to(torch::kCPU, torch::kFloat32) : torch::Tensor();
-      auto prepared = [&] {
-        try {
-          return data::prepare_condition_inputs(inputs.rgb.to(torch::kCPU, torch::kFloat32), mask, pointmap_p3d,
-                                                options.preprocess, crop);
-        } catch (const std::exception& e) {
-          fail("object '{}': preprocessing failed: {}", in.id, e.what());
-        }
-      }();
-      out.crop_box = prepared.crop_box;
-      out.has_crop_box = true;
-      ResampleRequest r;
-      r.inputs = std::move(prepared.tensors);
-      if (prepared.pointmap_scale.defined()) {
-        r.scene_scale = prepared.pointmap_scale.reshape({-1})[0].item<double>();
-        for (int k = 0; k < 3; ++k) r.scene_shift[k] = prepared.pointmap_shift.reshape({-1})[k].item<double>();
-      }
-      out.scene_scale = r.scene_scale;
-      out.scene_shift = r.scene_shift;
-      batch.push_back(std::move(r));
+      batch.push_back(prepare_object(inputs, inputs.objects[i], valid, pointmap_p3d, options, out));
       batch_index.push_back(i);
     } catch (const std::exception& e) {
       out.ok = false;
@@ -186,40 +197,13 @@ torch::Tensor read_scene_pointmap(const std::string& path, const Camera& camera)
   return data::unproject_depth(data::read_depth(path), {camera.fx, camera.fy, camera.cx, camera.cy});
 }
 
-LiftInputs load_lift_inputs(const LiftFiles& files) {
+namespace {
+
+// The objects of a lift: --masks expanded (a directory -> its .png files, sorted), then one label
+// image (ids label_<k>) or one mask per file (ids = file stems); each checked against the image's H x W.
+std::vector<LiftObjectInput> load_lift_masks(const LiftFiles& files, int64_t H, int64_t W) {
   namespace sfs = std::filesystem;
   LiftInputs in;
-  SIMU_CHECK(!files.image.empty(), "lift: no image (--image)");
-  SIMU_CHECK(sfs::exists(files.image), "{}: image file not found (--image)", files.image);
-  in.rgb = data::read_image_rgb(files.image);  // [3, H, W]
-  const int64_t H = in.rgb.size(1), W = in.rgb.size(2);
-  // Geometry: a point map as it is, or depth unprojected through K.
-  SIMU_CHECK(files.pointmap.empty() != files.depth.empty(), "lift: pass exactly one of --pointmap and --depth");
-  data::Intrinsics K;
-  if (!files.pointmap.empty()) {
-    in.pointmap = data::read_pointmap(files.pointmap);
-    K = files.intrinsics.empty() ? data::estimate_intrinsics(in.pointmap, files.pointmap)
-                                 : data::read_intrinsics_json(files.intrinsics);
-    if (files.intrinsics.empty())
-      log::info("{}: no --intrinsics, fitted to the point map: fx {:.2f} fy {:.2f} cx {:.2f} cy {:.2f}", files.pointmap,
-                K.fx, K.fy, K.cx, K.cy);
-  } else {
-    SIMU_CHECK(!files.intrinsics.empty(), "{}: a depth map needs the camera intrinsics (--intrinsics K.json)",
-               files.depth);
-    K = data::read_intrinsics_json(files.intrinsics);
-    const auto depth = data::read_depth(files.depth);
-    in.pointmap = data::unproject_depth(depth, K);
-  }
-  const std::string geom = files.pointmap.empty() ? files.depth : files.pointmap;
-  SIMU_CHECK(in.pointmap.size(0) == H && in.pointmap.size(1) == W, "{}: {}x{} (W x H), but the image {} is {}x{}", geom,
-             in.pointmap.size(1), in.pointmap.size(0), files.image, W, H);
-  in.camera.fx = K.fx;
-  in.camera.fy = K.fy;
-  in.camera.cx = K.cx;
-  in.camera.cy = K.cy;
-  in.camera.width = static_cast<int>(W);
-  in.camera.height = static_cast<int>(H);
-  // Masks: expand a directory, then one label image or one mask per file.
   SIMU_CHECK(!files.masks.empty(), "lift: no masks (--masks)");
   std::vector<std::string> paths;
   bool from_dir = false;
@@ -271,6 +255,47 @@ LiftInputs load_lift_inputs(const LiftFiles& files) {
       in.objects.push_back(std::move(o));
     }
   }
+  return std::move(in.objects);
+}
+
+}  // namespace
+
+LiftInputs load_lift_inputs(const LiftFiles& files) {
+  namespace sfs = std::filesystem;
+  LiftInputs in;
+  SIMU_CHECK(!files.image.empty(), "lift: no image (--image)");
+  SIMU_CHECK(sfs::exists(files.image), "{}: image file not found (--image)", files.image);
+  in.rgb = data::read_image_rgb(files.image);  // [3, H, W]
+  const int64_t H = in.rgb.size(1), W = in.rgb.size(2);
+  // Geometry: a point map as it is, or depth unprojected through K.
+  SIMU_CHECK(files.pointmap.empty() != files.depth.empty(), "lift: pass exactly one of --pointmap and --depth");
+  data::Intrinsics K;
+  if (!files.pointmap.empty()) {
+    in.pointmap = data::read_pointmap(files.pointmap);
+    K = files.intrinsics.empty() ? data::estimate_intrinsics(in.pointmap, files.pointmap)
+                                 : data::read_intrinsics_json(files.intrinsics);
+    if (files.intrinsics.empty())
+      log::info("{}: no --intrinsics, fitted to the point map: fx {:.2f} fy {:.2f} cx {:.2f} cy {:.2f}", files.pointmap,
+                K.fx, K.fy, K.cx, K.cy);
+  } else {
+    SIMU_CHECK(!files.intrinsics.empty(), "{}: a depth map needs the camera intrinsics (--intrinsics K.json)",
+               files.depth);
+    K = data::read_intrinsics_json(files.intrinsics);
+    const auto depth = data::read_depth(files.depth);
+    in.pointmap = data::unproject_depth(depth, K);
+  }
+  const std::string geom = files.pointmap.empty() ? files.depth : files.pointmap;
+  SIMU_CHECK(in.pointmap.size(0) == H && in.pointmap.size(1) == W, "{}: {}x{} (W x H), but the image {} is {}x{}", geom,
+             in.pointmap.size(1), in.pointmap.size(0), files.image, W, H);
+  in.camera.fx = K.fx;
+  in.camera.fy = K.fy;
+  in.camera.cx = K.cx;
+  in.camera.cy = K.cy;
+  in.camera.width = static_cast<int>(W);
+  in.camera.height = static_cast<int>(H);
+  // Masks: expand a directory, then one label image or one mask per file.
+  in.objects = load_lift_masks(files, H, W);
+
   return in;
 }
 
@@ -387,6 +412,87 @@ void write_mask_png(const torch::Tensor& mask, const std::string& path) {
 #endif
 }
 
+// pose.json of one sample: SAM 3D's pose, the voxel frame, the canonical frame and the scene pose.
+json sample_pose_json(const ResampledShape& sh, const ScenePose& sp, const LiftedObject& o, int64_t resolution) {
+  return {
+      {"sam3d",
+       {{"frame", "PyTorch3D camera (x left, y up, z forward); row vectors: p = (scale * v) @ R + translation, "
+                  "R = the quaternion's matrix, v in the voxel frame"},
+        {"rotation_wxyz", json::array({sh.quaternion(0), sh.quaternion(1), sh.quaternion(2), sh.quaternion(3)})},
+        {"translation", vec_json(sh.translation)},
+        {"scale", vec_json(sh.scale)},
+        {"pointmap_scale", o.scene_scale},
+        {"pointmap_shift", o.scene_shift}}},
+      {"voxel_frame",
+       {{"definition", "v = index / R - 0.5 for voxel index (x, y, z) of occupancy.npy (R = its side)"},
+        {"resolution", resolution}}},
+      {"canonical",
+       {{"definition", "mesh vertex c = (v - centre) * factor (AABB-centred, longest side 1)"},
+        {"centre", vec_json(sh.canonical.centre)},
+        {"factor", sh.canonical.factor}}},
+      {"scene",
+       {{"frame", "scene world (docs/scene_format.md): x = R * (scale .* c) + t for mesh vertices c; with the "
+                  "default camera pose the OpenCV camera frame (x right, y down, z forward)"},
+        {"R", mat_json(sp.R)},
+        {"t", vec_json(sp.t)},
+        {"scale", vec_json(sp.scale)}}}};
+}
+
+// One object's directory under tmp/objects/dir_name: mask, per sample occupancy, meshes and pose.json;
+// its first usable sample is added to the scene. Returns the object's report.json entry.
+json write_lift_object(const LiftedObject& o, const torch::Tensor& mask, const std::filesystem::path& tmp,
+                       const std::string& dir_name, int64_t resolution, Scene& scene) {
+  namespace sfs = std::filesystem;
+  const sfs::path odir = tmp / "objects" / dir_name;
+  sfs::create_directories(odir);
+  json rep = {{"id", o.id}, {"ok", o.ok}, {"dir", "objects/" + dir_name}};
+  if (!o.error.empty()) rep["error"] = o.error;
+  if (mask.defined()) write_mask_png(mask, (odir / "mask.png").string());
+  if (o.has_crop_box)
+    rep["crop_box"] = {{"x1", o.crop_box.x1}, {"y1", o.crop_box.y1}, {"x2", o.crop_box.x2}, {"y2", o.crop_box.y2}};
+  rep["pointmap_scale"] = o.scene_scale;
+  rep["pointmap_shift"] = o.scene_shift;
+  json samples = json::array();
+  int first_ok = -1;
+  for (size_t s = 0; s < o.samples.size(); ++s) {
+    const auto& sh = o.samples[s];
+    const auto& sp = o.scene_poses[s];
+    const std::string sname = fmt::format("sample_{}", s);
+    const sfs::path sdir = odir / sname;
+    sfs::create_directories(sdir);
+    json js = {{"sample", s}, {"ok", sh.ok}, {"dir", "objects/" + dir_name + "/" + sname}};
+    if (!sh.ok) js["error"] = sh.message;
+    data::write_npy((sdir / "occupancy.npy").string(), occupancy_grid(sh.coords, resolution));
+    js["occupied_voxels"] = sh.coords.defined() ? sh.coords.size(0) : 0;
+    if (sh.ok) {
+      const Mesh& mesh = sh.mesh;
+      write_mesh(mesh, (sdir / "mesh.glb").string());
+      write_mesh(mesh, (sdir / "mesh.obj").string());
+      if (first_ok < 0) first_ok = static_cast<int>(s);
+    }
+    // Both conventions and the link between the occupancy grid, the voxel frame and the mesh.
+    const json pose = sample_pose_json(sh, sp, o, resolution);
+    fs::atomic_write((sdir / "pose.json").string(), pose.dump(2) + "\n");
+    samples.push_back(js);
+  }
+  rep["samples"] = samples;
+  if (first_ok >= 0) {
+    SceneObject so;
+    so.id = o.id;
+    so.label = o.id;
+    so.mesh_path = (odir / fmt::format("sample_{}", first_ok) / "mesh.glb").string();
+    if (sfs::exists(odir / "mask.png")) so.mask_path = (odir / "mask.png").string();
+    const auto& sp = o.scene_poses[static_cast<size_t>(first_ok)];
+    so.R = sp.R;
+    so.t = sp.t;
+    so.scale = sp.scale;
+    so.extra = {{"lift_sample", first_ok}};
+    scene.objects.push_back(so);
+    rep["scene_sample"] = first_ok;
+  }
+  return rep;
+}
+
 }  // namespace
 
 void write_lift_outputs(const LiftResult& result, const LiftInputs& inputs, const LiftWriteOptions& options,
@@ -425,76 +531,8 @@ void write_lift_outputs(const LiftResult& result, const LiftInputs& inputs, cons
       const auto& o = result.objects[i];
       std::string dir_name = safe_name(o.id);
       if (used[dir_name]++) dir_name += "_" + std::to_string(i);
-      const sfs::path odir = tmp / "objects" / dir_name;
-      sfs::create_directories(odir);
-      json rep = {{"id", o.id}, {"ok", o.ok}, {"dir", "objects/" + dir_name}};
-      if (!o.error.empty()) rep["error"] = o.error;
-      if (i < inputs.objects.size() && inputs.objects[i].mask.defined()) {
-        write_mask_png(inputs.objects[i].mask, (odir / "mask.png").string());
-      }
-      if (o.has_crop_box)
-        rep["crop_box"] = {{"x1", o.crop_box.x1}, {"y1", o.crop_box.y1}, {"x2", o.crop_box.x2}, {"y2", o.crop_box.y2}};
-      rep["pointmap_scale"] = o.scene_scale;
-      rep["pointmap_shift"] = o.scene_shift;
-      json samples = json::array();
-      int first_ok = -1;
-      for (size_t s = 0; s < o.samples.size(); ++s) {
-        const auto& sh = o.samples[s];
-        const auto& sp = o.scene_poses[s];
-        const std::string sname = fmt::format("sample_{}", s);
-        const sfs::path sdir = odir / sname;
-        sfs::create_directories(sdir);
-        json js = {{"sample", s}, {"ok", sh.ok}, {"dir", "objects/" + dir_name + "/" + sname}};
-        if (!sh.ok) js["error"] = sh.message;
-        data::write_npy((sdir / "occupancy.npy").string(), occupancy_grid(sh.coords, resolution));
-        js["occupied_voxels"] = sh.coords.defined() ? sh.coords.size(0) : 0;
-        if (sh.ok) {
-          const Mesh& mesh = sh.mesh;
-          write_mesh(mesh, (sdir / "mesh.glb").string());
-          write_mesh(mesh, (sdir / "mesh.obj").string());
-          if (first_ok < 0) first_ok = static_cast<int>(s);
-        }
-        // Both conventions and the link between the occupancy grid, the voxel frame and the mesh.
-        const json pose = {
-            {"sam3d",
-             {{"frame", "PyTorch3D camera (x left, y up, z forward); row vectors: p = (scale * v) @ R + translation, "
-                        "R = the quaternion's matrix, v in the voxel frame"},
-              {"rotation_wxyz", json::array({sh.quaternion(0), sh.quaternion(1), sh.quaternion(2), sh.quaternion(3)})},
-              {"translation", vec_json(sh.translation)},
-              {"scale", vec_json(sh.scale)},
-              {"pointmap_scale", o.scene_scale},
-              {"pointmap_shift", o.scene_shift}}},
-            {"voxel_frame",
-             {{"definition", "v = index / R - 0.5 for voxel index (x, y, z) of occupancy.npy (R = its side)"},
-              {"resolution", resolution}}},
-            {"canonical",
-             {{"definition", "mesh vertex c = (v - centre) * factor (AABB-centred, longest side 1)"},
-              {"centre", vec_json(sh.canonical.centre)},
-              {"factor", sh.canonical.factor}}},
-            {"scene",
-             {{"frame", "scene world (docs/scene_format.md): x = R * (scale .* c) + t for mesh vertices c; with the "
-                        "default camera pose the OpenCV camera frame (x right, y down, z forward)"},
-              {"R", mat_json(sp.R)},
-              {"t", vec_json(sp.t)},
-              {"scale", vec_json(sp.scale)}}}};
-        fs::atomic_write((sdir / "pose.json").string(), pose.dump(2) + "\n");
-        samples.push_back(js);
-      }
-      rep["samples"] = samples;
-      if (first_ok >= 0) {
-        SceneObject so;
-        so.id = o.id;
-        so.label = o.id;
-        so.mesh_path = (odir / fmt::format("sample_{}", first_ok) / "mesh.glb").string();
-        if (sfs::exists(odir / "mask.png")) so.mask_path = (odir / "mask.png").string();
-        const auto& sp = o.scene_poses[static_cast<size_t>(first_ok)];
-        so.R = sp.R;
-        so.t = sp.t;
-        so.scale = sp.scale;
-        so.extra = {{"lift_sample", first_ok}};
-        scene.objects.push_back(so);
-        rep["scene_sample"] = first_ok;
-      }
+      const torch::Tensor mask = i < inputs.objects.size() ? inputs.objects[i].mask : torch::Tensor();
+      auto rep = write_lift_object(o, mask, tmp, dir_name, resolution, scene);
       report["objects"].push_back(rep);
     }
     report["failed"] = result.failed();

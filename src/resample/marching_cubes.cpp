@@ -237,154 +237,157 @@ struct Slab {
   std::vector<int> faces;     // [m, 3] flattened
 };
 
-}  // namespace
+// The fast path's view of the grid: values padded by one cell below iso (the surface closes at the
+// boundary), inside flags, and per cube corner / edge the index offsets it reads.
+struct PaddedGrid {
+  int64_t X = 0, Y = 0, Z = 0, YZ = 0;
+  double iso = 0;
+  std::vector<float> values;   // [X, Y, Z]
+  std::vector<uint8_t> inside;  // values > iso
+  int64_t corner_off[8] = {};
+  // Per cube edge: axis, start point offset, start corner, and whether it lies on the cube's x = 0
+  // face across y or z (shared with the cube before it along x).
+  int64_t edge_start[12] = {};
+  int edge_ax[12] = {}, edge_corner[12] = {};
+  bool edge_on_low_x[12] = {};
+  int64_t axis_stride[3] = {};
 
-Mesh marching_cubes(const torch::Tensor& grid_in, const MarchingCubesOptions& options) {
-  const auto grid = grid_3d(grid_in);
-  const double iso = options.iso;
-  // Pad with a one-cell border below iso so the surface closes at the grid boundary.
-  const int64_t X = grid.size(0) + 2, Y = grid.size(1) + 2, Z = grid.size(2) + 2;
-  const int64_t YZ = Y * Z;
-  std::vector<float> values(static_cast<size_t>(X * YZ), static_cast<float>(iso - 1.0));
-  {
-    const auto src = grid.detach().to(torch::kCPU, torch::kFloat32).contiguous();
-    const float* s = src.data_ptr<float>();
-    const int64_t gy = grid.size(1), gz = grid.size(2);
-    at::parallel_for(0, X - 2, 8, [&](int64_t b, int64_t e) {
-      for (int64_t x = b; x < e; ++x)
-        for (int64_t y = 0; y < gy; ++y)
-          std::copy_n(s + (x * gy + y) * gz, gz, values.data() + (x + 1) * YZ + (y + 1) * Z + 1);
-    });
-  }
-  const float* v = values.data();
-  // Inside flags per grid point.
-  std::vector<uint8_t> inside(values.size());
-  at::parallel_for(0, static_cast<int64_t>(values.size()), 32768, [&](int64_t b, int64_t e) {
-    for (int64_t i = b; i < e; ++i) inside[static_cast<size_t>(i)] = static_cast<double>(v[i]) > iso;
-  });
-  // Per cube corner: index offset; per cube edge: axis, start point offset, and whether it lies on the
-  // cube's x = 0 face across y or z (shared with the cube before it along x).
-  int64_t corner_off[8];
-  for (int c = 0; c < 8; ++c) corner_off[c] = corner_bit(c, 0) * YZ + corner_bit(c, 1) * Z + corner_bit(c, 2);
-  int64_t edge_start[12];
-  int edge_ax[12];
-  bool edge_on_low_x[12];
-  int edge_corner[12];
-  for (int e = 0; e < 12; ++e) {
-    edge_corner[e] = edge_start_corner(e);
-    edge_ax[e] = edge_axis(e);
-    edge_start[e] = corner_off[edge_start_corner(e)];
-    edge_on_low_x[e] = edge_ax[e] != 0 && corner_bit(edge_start_corner(e), 0) == 0;
-  }
-  const int64_t axis_stride[3] = {YZ, Z, 1};
-  const auto& table = flat_case_table();
-  // Crossing point of the grid edge (point p0, axis): same arithmetic as the reference.
-  auto edge_point = [&](int64_t p0, int64_t px, int64_t py, int64_t pz, int axis, double* out) {
-    const double v0 = v[p0];
-    const double v1 = v[p0 + axis_stride[axis]];
+  // Crossing point of the grid edge (point p0 = (px, py, pz), axis): same arithmetic as the reference.
+  void edge_point(int64_t p0, int64_t px, int64_t py, int64_t pz, int axis, double* out) const {
+    const double v0 = values[static_cast<size_t>(p0)];
+    const double v1 = values[static_cast<size_t>(p0 + axis_stride[axis])];
     const double t = (iso - v0) / (v1 - v0);
     out[0] = static_cast<double>(px - 1);
     out[1] = static_cast<double>(py - 1);
     out[2] = static_cast<double>(pz - 1);
     out[axis] += t;
-  };
-
-  // Slabs along x: more than threads for balance; the result does not depend on the split.
-  const int64_t cubes_x = X - 1;
-  const int64_t n_slabs =
-      std::min<int64_t>(cubes_x, std::max<int64_t>(1, options.slabs > 0 ? options.slabs : 4 * at::get_num_threads()));
-  std::vector<Slab> slabs(static_cast<size_t>(n_slabs));
-  for (int64_t s = 0; s < n_slabs; ++s) {
-    slabs[s].x_begin = cubes_x * s / n_slabs;
-    slabs[s].x_end = cubes_x * (s + 1) / n_slabs;
   }
-  // One vertex per crossed grid edge, shared by the cubes around it: index (point * 3 + axis) -> the
-  // vertex's index within the slab that created it.
-  std::vector<int> edge_vertex(static_cast<size_t>(X * YZ * 3), -1);
+};
 
-  // Pass 1, per slab: cubes in (x, y, z) order, vertices numbered in order of first use.
-  at::parallel_for(0, n_slabs, 1, [&](int64_t sb, int64_t se) {
-    for (int64_t s = sb; s < se; ++s) {
-      Slab& slab = slabs[static_cast<size_t>(s)];
-      auto& verts = slab.verts;
-      auto& faces = slab.faces;
-      const int64_t n_cubes = (slab.x_end - slab.x_begin) * (Y - 1) * (Z - 1);
-      // Room for 2 vertices and 4 triangles per cube (random occupancy gives ~1.7 and ~3.3): no regrowth.
-      verts.reserve(static_cast<size_t>(n_cubes) * 6);
-      faces.reserve(static_cast<size_t>(n_cubes) * 12);
-      int ids[12];
-      for (int64_t x = slab.x_begin; x < slab.x_end; ++x) {
-        const bool shared_low_x = x == slab.x_begin && x > 0;
-        for (int64_t y = 0; y + 1 < Y; ++y) {
-          const int64_t row = x * YZ + y * Z;
-          // Configuration: bit c set when corner c is inside; corners 0-3 (z) are the previous
-          // cube's corners 4-7 (z + 1), so each step reads only the 4 new corners.
-          const uint8_t* in_row = inside.data() + row;
-          int low = 0;
-          for (int c = 0; c < 4; ++c) low |= in_row[corner_off[c]] << c;
-          for (int64_t z = 0; z + 1 < Z; ++z) {
-            const int64_t base = row + z;
-            const uint8_t* in = in_row + z + 1;
-            int high = 0;
-            for (int c = 0; c < 4; ++c) high |= in[corner_off[c]] << c;
-            const int mask = low | (high << 4);
-            low = high;
-            if (mask == 0 || mask == 255) continue;
-            const FlatCase& entry = table[mask];
-            const uint8_t* edges = entry.edges;
-            for (int l = 0; l < entry.n_loops; ++l) {
-              const int n = entry.loop_len[l];
-              // The loop's vertices: existing, created here, or the previous slab's.
-              for (int k = 0; k < n; ++k) {
-                const int e = edges[k];
-                const int64_t p0 = base + edge_start[e];
-                const int64_t key = p0 * 3 + edge_ax[e];
-                if (shared_low_x && edge_on_low_x[e]) {
-                  ids[k] = -static_cast<int>(key) - 1;
-                  continue;
-                }
-                int& id = edge_vertex[static_cast<size_t>(key)];
-                if (id < 0) {
-                  id = static_cast<int>(verts.size() / 3);
-                  verts.resize(verts.size() + 3);
-                  const int sc = edge_corner[e];
-                  edge_point(p0, x + corner_bit(sc, 0), y + corner_bit(sc, 1), z + corner_bit(sc, 2), edge_ax[e],
-                             verts.data() + verts.size() - 3);
-                }
-                ids[k] = id;
-              }
-              if (n == 3) {
-                faces.insert(faces.end(), {ids[0], ids[1], ids[2]});
-              } else if (!entry.two_segment_face) {
-                // Fan from the first loop vertex.
-                for (int k = 1; k + 1 < n; ++k) faces.insert(faces.end(), {ids[0], ids[k], ids[k + 1]});
-              } else {
-                // Fan from a new vertex at the loop's centroid (keeps every edge on two triangles).
-                double c[3] = {0, 0, 0};
-                for (int k = 0; k < n; ++k) {
-                  double p[3];
-                  if (ids[k] >= 0) {
-                    std::copy_n(verts.data() + 3 * ids[k], 3, p);
-                  } else {
-                    const int64_t key = -static_cast<int64_t>(ids[k]) - 1;
-                    const int64_t p0 = key / 3;
-                    edge_point(p0, p0 / YZ, (p0 / Z) % Y, p0 % Z, static_cast<int>(key % 3), p);
-                  }
-                  for (int a = 0; a < 3; ++a) c[a] += p[a] / static_cast<double>(n);
-                }
-                const int centre = static_cast<int>(verts.size() / 3);
-                verts.insert(verts.end(), {c[0], c[1], c[2]});
-                for (int k = 0; k < n; ++k) faces.insert(faces.end(), {ids[k], ids[(k + 1) % n], centre});
-              }
-              edges += n;
-            }
-          }
+PaddedGrid pad_grid(const torch::Tensor& grid, double iso) {
+  PaddedGrid g;
+  g.iso = iso;
+  g.X = grid.size(0) + 2;
+  g.Y = grid.size(1) + 2;
+  g.Z = grid.size(2) + 2;
+  g.YZ = g.Y * g.Z;
+  g.values.assign(static_cast<size_t>(g.X * g.YZ), static_cast<float>(iso - 1.0));
+  {
+    const auto src = grid.detach().to(torch::kCPU, torch::kFloat32).contiguous();
+    const float* s = src.data_ptr<float>();
+    const int64_t gy = grid.size(1), gz = grid.size(2);
+    at::parallel_for(0, g.X - 2, 8, [&](int64_t b, int64_t e) {
+      for (int64_t x = b; x < e; ++x)
+        for (int64_t y = 0; y < gy; ++y)
+          std::copy_n(s + (x * gy + y) * gz, gz, g.values.data() + (x + 1) * g.YZ + (y + 1) * g.Z + 1);
+    });
+  }
+  const float* v = g.values.data();
+  g.inside.resize(g.values.size());
+  at::parallel_for(0, static_cast<int64_t>(g.values.size()), 32768, [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) g.inside[static_cast<size_t>(i)] = static_cast<double>(v[i]) > iso;
+  });
+  for (int c = 0; c < 8; ++c) g.corner_off[c] = corner_bit(c, 0) * g.YZ + corner_bit(c, 1) * g.Z + corner_bit(c, 2);
+  for (int e = 0; e < 12; ++e) {
+    g.edge_corner[e] = edge_start_corner(e);
+    g.edge_ax[e] = edge_axis(e);
+    g.edge_start[e] = g.corner_off[edge_start_corner(e)];
+    g.edge_on_low_x[e] = g.edge_ax[e] != 0 && corner_bit(edge_start_corner(e), 0) == 0;
+  }
+  g.axis_stride[0] = g.YZ;
+  g.axis_stride[1] = g.Z;
+  g.axis_stride[2] = 1;
+  return g;
+}
+
+// The faces of cube (x, y, z) (grid index `base`) with configuration `mask` into `slab`: its loops'
+// vertices (existing in edge_vertex, created here in order of first use, or the previous slab's when
+// shared_low_x), each loop fanned into triangles.
+void emit_cube(const PaddedGrid& g, const FlatCase& entry, int64_t x, int64_t y, int64_t z, int64_t base,
+               bool shared_low_x, Slab& slab, std::vector<int>& edge_vertex) {
+  auto& verts = slab.verts;
+  auto& faces = slab.faces;
+  int ids[12];
+  const uint8_t* edges = entry.edges;
+  for (int l = 0; l < entry.n_loops; ++l) {
+    const int n = entry.loop_len[l];
+    for (int k = 0; k < n; ++k) {
+      const int e = edges[k];
+      const int64_t p0 = base + g.edge_start[e];
+      const int64_t key = p0 * 3 + g.edge_ax[e];
+      if (shared_low_x && g.edge_on_low_x[e]) {
+        ids[k] = -static_cast<int>(key) - 1;
+        continue;
+      }
+      int& id = edge_vertex[static_cast<size_t>(key)];
+      if (id < 0) {
+        id = static_cast<int>(verts.size() / 3);
+        verts.resize(verts.size() + 3);
+        const int sc = g.edge_corner[e];
+        g.edge_point(p0, x + corner_bit(sc, 0), y + corner_bit(sc, 1), z + corner_bit(sc, 2), g.edge_ax[e],
+                     verts.data() + verts.size() - 3);
+      }
+      ids[k] = id;
+    }
+    if (n == 3) {
+      faces.insert(faces.end(), {ids[0], ids[1], ids[2]});
+    } else if (!entry.two_segment_face) {
+      // Fan from the first loop vertex.
+      for (int k = 1; k + 1 < n; ++k) faces.insert(faces.end(), {ids[0], ids[k], ids[k + 1]});
+    } else {
+      // Fan from a new vertex at the loop's centroid (keeps every edge on two triangles).
+      double c[3] = {0, 0, 0};
+      for (int k = 0; k < n; ++k) {
+        double p[3];
+        if (ids[k] >= 0) {
+          std::copy_n(verts.data() + 3 * ids[k], 3, p);
+        } else {
+          const int64_t key = -static_cast<int64_t>(ids[k]) - 1;
+          const int64_t p0 = key / 3;
+          g.edge_point(p0, p0 / g.YZ, (p0 / g.Z) % g.Y, p0 % g.Z, static_cast<int>(key % 3), p);
         }
+        for (int a = 0; a < 3; ++a) c[a] += p[a] / static_cast<double>(n);
+      }
+      const int centre = static_cast<int>(verts.size() / 3);
+      verts.insert(verts.end(), {c[0], c[1], c[2]});
+      for (int k = 0; k < n; ++k) faces.insert(faces.end(), {ids[k], ids[(k + 1) % n], centre});
+    }
+    edges += n;
+  }
+}
+
+// Pass 1 for one slab: cubes in (x, y, z) order, vertices numbered in order of first use.
+void march_slab(const PaddedGrid& g, Slab& slab, std::vector<int>& edge_vertex) {
+  const auto& table = flat_case_table();
+  const int64_t n_cubes = (slab.x_end - slab.x_begin) * (g.Y - 1) * (g.Z - 1);
+  // Room for 2 vertices and 4 triangles per cube (random occupancy gives ~1.7 and ~3.3): no regrowth.
+  slab.verts.reserve(static_cast<size_t>(n_cubes) * 6);
+  slab.faces.reserve(static_cast<size_t>(n_cubes) * 12);
+  for (int64_t x = slab.x_begin; x < slab.x_end; ++x) {
+    const bool shared_low_x = x == slab.x_begin && x > 0;
+    for (int64_t y = 0; y + 1 < g.Y; ++y) {
+      const int64_t row = x * g.YZ + y * g.Z;
+      // Configuration: bit c set when corner c is inside; corners 0-3 (z) are the previous cube's
+      // corners 4-7 (z + 1), so each step reads only the 4 new corners.
+      const uint8_t* in_row = g.inside.data() + row;
+      int low = 0;
+      for (int c = 0; c < 4; ++c) low |= in_row[g.corner_off[c]] << c;
+      for (int64_t z = 0; z + 1 < g.Z; ++z) {
+        const uint8_t* in = in_row + z + 1;
+        int high = 0;
+        for (int c = 0; c < 4; ++c) high |= in[g.corner_off[c]] << c;
+        const int mask = low | (high << 4);
+        low = high;
+        if (mask == 0 || mask == 255) continue;
+        emit_cube(g, table[mask], x, y, z, row + z, shared_low_x, slab, edge_vertex);
       }
     }
-  });
+  }
+}
 
-  // Pass 2: slabs' vertices and faces back to back (global first-use order), shared vertices resolved.
+// Pass 2: the slabs' vertices and faces back to back (global first-use order), shared vertices resolved.
+Mesh join_slabs(const std::vector<Slab>& slabs, const std::vector<int>& edge_vertex) {
+  const int64_t n_slabs = static_cast<int64_t>(slabs.size());
   std::vector<int64_t> vert_offset(static_cast<size_t>(n_slabs) + 1, 0), face_offset(static_cast<size_t>(n_slabs) + 1, 0);
   for (int64_t s = 0; s < n_slabs; ++s) {
     vert_offset[s + 1] = vert_offset[s] + static_cast<int64_t>(slabs[s].verts.size() / 3);
@@ -415,6 +418,28 @@ Mesh marching_cubes(const torch::Tensor& grid_in, const MarchingCubesOptions& op
     }
   });
   return mesh;
+}
+
+}  // namespace
+
+Mesh marching_cubes(const torch::Tensor& grid_in, const MarchingCubesOptions& options) {
+  const PaddedGrid g = pad_grid(grid_3d(grid_in), options.iso);
+  // Slabs along x: more than threads for balance; the result does not depend on the split.
+  const int64_t cubes_x = g.X - 1;
+  const int64_t n_slabs =
+      std::min<int64_t>(cubes_x, std::max<int64_t>(1, options.slabs > 0 ? options.slabs : 4 * at::get_num_threads()));
+  std::vector<Slab> slabs(static_cast<size_t>(n_slabs));
+  for (int64_t s = 0; s < n_slabs; ++s) {
+    slabs[s].x_begin = cubes_x * s / n_slabs;
+    slabs[s].x_end = cubes_x * (s + 1) / n_slabs;
+  }
+  // One vertex per crossed grid edge, shared by the cubes around it: index (point * 3 + axis) -> the
+  // vertex's index within the slab that created it.
+  std::vector<int> edge_vertex(static_cast<size_t>(g.X * g.YZ * 3), -1);
+  at::parallel_for(0, n_slabs, 1, [&](int64_t sb, int64_t se) {
+    for (int64_t s = sb; s < se; ++s) march_slab(g, slabs[static_cast<size_t>(s)], edge_vertex);
+  });
+  return join_slabs(slabs, edge_vertex);
 }
 
 void grid_to_voxel_frame(Mesh& mesh, int64_t resolution) {

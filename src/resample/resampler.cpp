@@ -151,6 +151,11 @@ models::SampleOptions Resampler::sample_options() const {
   return o;
 }
 
+void Resampler::set_cuda_graphs(bool on) {
+  config_.cuda_graphs = on;
+  if (!on) generator_->reverse_fn->clear_graphs();
+}
+
 torch::Tensor Resampler::decode_logits(const torch::Tensor& shape_latent) {
   torch::NoGradGuard no_grad;
   // Tokens -> grid as the official pipeline, then the decoder in chunks (autocast in the precision).
@@ -211,6 +216,53 @@ void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out) {
   out.canonical = canonicalize_mesh(out.mesh);
   out.ok = !out.mesh.empty();
   if (!out.ok) out.message = "marching cubes produced no triangles";
+}
+
+void decode_poses(const models::Latents& latents, const std::vector<const ResampleRequest*>& requests,
+                  const std::vector<ResampledShape*>& outs, const std::string& convention) {
+  models::Latents cpu_latents;
+  for (const auto& [name, v] : latents) cpu_latents[name] = v.to(torch::kCPU, torch::kFloat32);
+  for (size_t k = 0; k < outs.size(); ++k) {
+    ResampledShape& out = *outs[k];
+    const int64_t row = static_cast<int64_t>(k);
+    for (const auto& [name, v] : cpu_latents) out.latents[name] = v.slice(0, row, row + 1).clone();
+    // Pose (official convention, this object's scene scale and shift).
+    models::PoseDecodeOptions po;
+    po.convention = convention;
+    po.scene_scale = requests[k]->scene_scale;
+    po.scene_shift = requests[k]->scene_shift;
+    const auto pose = models::decode_pose(out.latents, po);
+    const auto R = pose.rotation[0].to(torch::kFloat64).contiguous();
+    const auto T = pose.translation[0].to(torch::kFloat64).contiguous();
+    const auto Sc = pose.scale[0].to(torch::kFloat64).contiguous();
+    const auto Q = pose.quaternion[0].to(torch::kFloat64).contiguous();
+    const double* rp = R.data_ptr<double>();
+    for (int a = 0; a < 3; ++a) {
+      for (int b = 0; b < 3; ++b) out.rotation(a, b) = rp[3 * a + b];
+      out.translation(a) = T.data_ptr<double>()[a];
+      out.scale(a) = Sc.data_ptr<double>()[a];
+    }
+    for (int a = 0; a < 4; ++a) out.quaternion(a) = Q.data_ptr<double>()[a];
+  }
+}
+
+void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs) {
+  // With at least as many rows as threads the rows run in parallel (each single-threaded); otherwise
+  // one row at a time, each marching cubes parallel inside. The meshes are the same either way.
+  const int64_t n_rows = static_cast<int64_t>(outs.size());
+  auto mesh_row = [&](int64_t k) {
+    ResampledShape& out = *outs[static_cast<size_t>(k)];
+    mesh_from_logits(logits.slice(0, k, k + 1), out);
+    out.scale_canonical = out.scale / out.canonical.factor;
+    out.translation_canonical = out.translation + out.rotation * out.scale.cwiseProduct(out.canonical.centre);
+  };
+  if (n_rows >= at::get_num_threads()) {
+    at::parallel_for(0, n_rows, 1, [&](int64_t b, int64_t e) {
+      for (int64_t k = b; k < e; ++k) mesh_row(k);
+    });
+  } else {
+    for (int64_t k = 0; k < n_rows; ++k) mesh_row(k);
+  }
 }
 
 std::vector<torch::Tensor> Resampler::conditions(const std::vector<ResampleRequest>& requests) {
@@ -294,50 +346,17 @@ ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests,
     const auto logits = decode_logits(latents.at("shape")).to(torch::kCPU);  // [rows, 1, R, R, R]
     result.seconds_decode += seconds_since(t0);
 
-    // Per row: pose, mesh, latents.
+    // Per row: latents and pose, then mesh.
     t0 = std::chrono::steady_clock::now();
-    models::Latents cpu_latents;
-    for (const auto& [name, v] : latents) cpu_latents[name] = v.to(torch::kCPU, torch::kFloat32);
+    std::vector<ResampledShape*> outs;
+    std::vector<const ResampleRequest*> reqs;
     for (size_t k = 0; k < rows.size(); ++k) {
       const int64_t r = members[k / static_cast<size_t>(S)], s = static_cast<int64_t>(k) % S;
-      ResampledShape& out = result.objects[r][s];
-      for (const auto& [name, v] : cpu_latents) out.latents[name] = v.slice(0, k, k + 1).clone();
-      // Pose (official convention, this object's scene scale and shift).
-      models::PoseDecodeOptions po;
-      po.convention = config_.pose_convention;
-      po.scene_scale = requests[r].scene_scale;
-      po.scene_shift = requests[r].scene_shift;
-      const auto pose = models::decode_pose(out.latents, po);
-      const auto R = pose.rotation[0].to(torch::kFloat64).contiguous();
-      const auto T = pose.translation[0].to(torch::kFloat64).contiguous();
-      const auto Sc = pose.scale[0].to(torch::kFloat64).contiguous();
-      const auto Q = pose.quaternion[0].to(torch::kFloat64).contiguous();
-      const double* rp = R.data_ptr<double>();
-      for (int a = 0; a < 3; ++a) {
-        for (int b = 0; b < 3; ++b) out.rotation(a, b) = rp[3 * a + b];
-        out.translation(a) = T.data_ptr<double>()[a];
-        out.scale(a) = Sc.data_ptr<double>()[a];
-      }
-      for (int a = 0; a < 4; ++a) out.quaternion(a) = Q.data_ptr<double>()[a];
+      outs.push_back(&result.objects[r][s]);
+      reqs.push_back(&requests[r]);
     }
-    // Occupancy -> canonical mesh, and the pose carried over to the canonical frame. With at least as
-    // many rows as threads the rows run in parallel (each single-threaded); otherwise one row at a time,
-    // each marching cubes parallel inside. The meshes are the same either way.
-    const int64_t n_rows = static_cast<int64_t>(rows.size());
-    auto mesh_row = [&](int64_t k) {
-      const int64_t r = members[static_cast<size_t>(k) / static_cast<size_t>(S)], s = k % S;
-      ResampledShape& out = result.objects[r][s];
-      mesh_from_logits(logits.slice(0, k, k + 1), out);
-      out.scale_canonical = out.scale / out.canonical.factor;
-      out.translation_canonical = out.translation + out.rotation * out.scale.cwiseProduct(out.canonical.centre);
-    };
-    if (n_rows >= at::get_num_threads()) {
-      at::parallel_for(0, n_rows, 1, [&](int64_t b, int64_t e) {
-        for (int64_t k = b; k < e; ++k) mesh_row(k);
-      });
-    } else {
-      for (int64_t k = 0; k < n_rows; ++k) mesh_row(k);
-    }
+    decode_poses(latents, reqs, outs, config_.pose_convention);
+    mesh_rows(logits, outs);
     for (size_t k = 0; k < rows.size(); ++k) {
       const int64_t r = members[k / static_cast<size_t>(S)], s = static_cast<int64_t>(k) % S;
       if (!result.objects[r][s].ok) simu::log::warn("resampler: request {} sample {}: {}", r, s, result.objects[r][s].message);

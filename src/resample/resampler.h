@@ -70,8 +70,12 @@ struct ResamplerConfig {
   // Inference precision of embedder, generator and decoder (models/precision.h): auto = fp16 on CUDA
   // (the released pipeline.yaml dtype), fp32 on CPU; fp16 | bf16 need CUDA; fp32.
   std::string precision = "auto";
-  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs): pays from the second
-  // call on (a probe loop, a long-lived process); the first call captures (slower).
+  // Sampling through persistent CUDA graphs (models::SampleOptions::cuda_graphs): each batch shape's
+  // graph is recorded right after its first, eager evaluation (the capture overlaps the device's work,
+  // models::GraphedForward::set_overlapped_capture); later evaluations and later calls replay. Off by
+  // default: at 7,528 condition tokens replays measured no faster than eager launches, and the first
+  // call of a fresh process (one `lift` run) measured slower with graphs (docs/lift.md). Pays in a
+  // long-lived process at shorter conditions (2,800 tokens: 663 vs 681-832 ms per sampling).
   bool cuda_graphs = false;
   int num_samples = 1;    // shapes drawn per object
   int decode_batch = 8;   // objects per decoder forward
@@ -140,6 +144,9 @@ class Resampler {
   const torch::Device& device() const { return device_; }
   models::Precision precision() const { return precision_; }
   const ResamplerConfig& config() const { return config_; }
+  // Switches sampling through CUDA graphs (ResamplerConfig::cuda_graphs) for later calls; off drops the
+  // graphs kept so far.
+  void set_cuda_graphs(bool on);
   bool has_adapter() const { return has_adapter_; }
   // Non-empty when some module runs on random weights (random_weights): a one-line banner naming them,
   // to print in outputs and reports.
@@ -158,6 +165,16 @@ class Resampler {
   bool has_adapter_ = false;
   std::string random_banner_;
 };
+
+// Per batch row k: outs[k]'s latents (row k of `latents`, on the CPU) and its pose decoded in
+// `convention` with requests[k]'s scene scale and shift (models::decode_pose).
+void decode_poses(const models::Latents& latents, const std::vector<const ResampleRequest*>& requests,
+                  const std::vector<ResampledShape*>& outs, const std::string& convention);
+
+// Per batch row k of logits [rows, 1, R, R, R]: outs[k]'s mesh (mesh_from_logits) and its pose carried
+// over to the canonical frame (scale_canonical, translation_canonical); rows in parallel when there are
+// at least as many as threads.
+void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs);
 
 // Meshes one occupancy logit grid [R, R, R] (or [1, 1, R, R, R]): marching cubes at iso 0, official
 // voxel frame, then the canonical frame. Fills mesh, canonical, coords, ok/message of `out`.

@@ -1,0 +1,32 @@
+// Helpers shared by the flow model's source files (flow_model.cpp, flow_layers.cpp); not a public API.
+#pragma once
+
+#include <torch/torch.h>
+
+#include <string>
+#include <vector>
+
+namespace simu::models::detail {
+
+// Registers `modules` under one ModuleDict named `name` (keys = stream names) so state-dict keys read
+// `<name>.<stream>.<param>` like the official torch.nn.ModuleDict.
+template <typename Holder>
+void register_dict(torch::nn::Module& owner, const std::string& name, const std::vector<std::string>& keys,
+                   const std::vector<Holder>& modules) {
+  std::vector<std::pair<std::string, std::shared_ptr<torch::nn::Module>>> items;
+  for (size_t i = 0; i < keys.size(); ++i) items.emplace_back(keys[i], modules[i].ptr());
+  owner.register_module(name, torch::nn::ModuleDict(items));
+}
+
+// The kernels without a backward (GELU epilogue, q/k/v into the key/value buffer, second stream): only
+// where allowed (not in training mode) and when no graph is recorded.
+inline bool inference_only_ok(bool inference_kernels) { return inference_kernels && !at::GradMode::is_enabled(); }
+
+// SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend).
+inline torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
+  auto out = at::scaled_dot_product_attention(q.permute({0, 2, 1, 3}), k.permute({0, 2, 1, 3}),
+                                              v.permute({0, 2, 1, 3}));  // [B, H, L, D]
+  return out.permute({0, 2, 1, 3});                                       // [B, L, H, D]
+}
+
+}  // namespace simu::models::detail
