@@ -14,6 +14,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "resample/lift.h"
+#include "resample/model_options.h"
 #include "physics/probe_batch.h"
 #include "reconstruct/run.h"
 
@@ -21,12 +22,10 @@ int main(int argc, char** argv) {
   CLI::App app{"reconstruct: photo (image, masks + sidecar, depth + K or point map) -> aligned objects, floor and walls, "
                "tabletop refinement -> the physics probe (settle, resampling, MJCF, report, pictures)"};
   simu::reconstruct::ReconstructFiles files;
-  std::string out_dir, precision = "auto", probe_config;
-  bool random_weights = false, overwrite = false, no_align = false, no_tabletop = false, no_probe = false, no_model = false,
+  std::string out_dir, probe_config;
+  bool overwrite = false, no_align = false, no_tabletop = false, no_probe = false, no_model = false,
        no_coacd = false;
-  uint64_t seed = 0;
-  simu::resample::ResamplerConfig rcfg;
-  rcfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
+  simu::resample::ModelOptions model;
   app.add_option("--image", files.lift.image, "RGB(A) image")->required();
   app.add_option("--masks", files.lift.masks, "one label PNG, or one PNG per object (repeatable), or a directory of PNGs")
       ->required();
@@ -46,19 +45,7 @@ int main(int argc, char** argv) {
   app.add_flag("--no-model", no_model, "load no model: every object must bring its own mesh; the probe writes the resampling hand-off");
   app.add_option("--probe-config", probe_config, "probe config YAML (configs/probe.yaml; default built-in)");
   app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh in the probe");
-  app.add_option("--samples", rcfg.num_samples, "shapes drawn per object")->capture_default_str()->check(CLI::PositiveNumber);
-  app.add_option("--seed", seed, "sampling seed")->capture_default_str();
-  app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
-  app.add_option("--precision", precision, "auto | fp16 | bf16 | fp32")->capture_default_str();
-  app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps (released inference: 25)")->capture_default_str();
-  app.add_option("--generator-config", rcfg.generator_config, "Stage-1 generator config")->capture_default_str();
-  app.add_option("--generator-weights", rcfg.generator_weights, "generator safetensors");
-  app.add_option("--decoder-config", rcfg.decoder_config, "sparse-structure decoder config")->capture_default_str();
-  app.add_option("--decoder-weights", rcfg.decoder_weights, "decoder safetensors");
-  app.add_option("--embedder-config", rcfg.embedder_config, "condition embedder config")->capture_default_str();
-  app.add_option("--embedder-weights", rcfg.embedder_weights, "condition embedder safetensors");
-  app.add_option("--adapter", rcfg.adapter_dir, "PEFT LoRA adapter directory (optional)");
-  app.add_flag("--random-weights", random_weights, "allow missing weight files: random init (smoke runs, benchmarks)");
+  simu::resample::add_model_options(app, model);
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   app.footer(simu::physics::probe_config_help());
@@ -76,16 +63,14 @@ int main(int argc, char** argv) {
     opt.do_tabletop = !no_tabletop;
     opt.run_probe = !no_probe;
     opt.overwrite = overwrite;
-    opt.lift.seed = seed;
+    opt.lift.seed = model.seed;
     simu::resample::check_output_dir(out_dir, overwrite);
     std::unique_ptr<simu::resample::Resampler> resampler;
     std::string banner;
     if (!no_model) {
-      banner = simu::resample::check_lift_weights(rcfg, random_weights);
+      banner = simu::resample::finish_model_options(model);
       if (!banner.empty()) fmt::print(stderr, "\n*** {} ***\n\n", banner);
-      simu::resample::apply_precision(rcfg, precision);
-      rcfg.random_weights = random_weights;
-      resampler = std::make_unique<simu::resample::Resampler>(rcfg);
+      resampler = std::make_unique<simu::resample::Resampler>(model.config);
     }
     const auto res = simu::reconstruct::reconstruct(files, opt, resampler.get(), out_dir);
     int skipped = 0;

@@ -35,7 +35,9 @@ Branch expected_branch(InjectedError e);
 struct SyntheticConfig {
   std::string layout = "tabletop";  // "tabletop" | "shelf" | "mixed" (alternates by seed)
   int min_objects = 4, max_objects = 8;  // free objects
-  int max_hanging = 2;                   // wall-anchored objects (0..max)
+  int min_hanging = 0, max_hanging = 2;  // wall-anchored objects (min..max)
+  int placement_attempts = 60;           // rejection-sampling tries per free object (one that does not fit is left out)
+  bool floor_supports = false;           // tabletop: objects may also stand on floor strips left and right of the table
   int width = 320, height = 240;
   double fx = 280;                       // fy = fx, principal point at the image centre
   double camera_pitch_deg = 15;

@@ -34,11 +34,11 @@ struct AlignConfig {
   std::vector<double> rho = {0.5, 0.75, 1.0, 1.25};  // multi-start factors of s_init
   double lambda = 1e-3;          // log-scale prior weight (loss in metres)
   int iterations = 250;          // Adam steps per start
-  double lr_log_scale = 0.02;    // Adam step size of log s (decays linearly to 10%)
+  double lr_log_scale = 0.01;    // Adam step size of log s (decays linearly to 10%)
   double lr_translation = 0.01;  // of t, as a fraction of the observed cloud's bounding-box diagonal
   double beta1 = 0.9, beta2 = 0.999, eps = 1e-8;
   int64_t max_points = 3000;     // observed points used in the loss (evenly strided subsample)
-  double max_edge = 1.0 / 40;    // canonical edges longer than this are split before visibility
+  double max_edge = 1.0 / 80;    // canonical edges longer than this are split before visibility
                                  // (marching-cubes meshes at 64^3 are this dense already)
   double visibility_tol = 0.01;  // z-buffer tolerance, fraction of the placed mesh's diagonal
   double occlusion_margin = 0.02;  // m: a vertex behind the observed depth by more is hidden (L_bi)

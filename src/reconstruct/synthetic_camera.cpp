@@ -174,13 +174,51 @@ ScenePoseOut scene_pose_from_sam3d_mesh(const Sam3dPose& pose, const Vec3& centr
   return out;
 }
 
+std::string canonical_up_axis(const CameraObject& o) { return o.label == "clock" ? "+z" : "-y"; }
+
+void write_camera_scene_lift(const CameraScene& s, const std::string& dir) {
+  namespace sfs = std::filesystem;
+  sfs::create_directories(sfs::path(dir) / "lift");
+  const int W = s.K.width, H = s.K.height;
+  nlohmann::json K = {{"fx", s.K.fx}, {"fy", s.K.fy}, {"cx", s.K.cx}, {"cy", s.K.cy}, {"width", W}, {"height", H}};
+  fs::atomic_write((sfs::path(dir) / "K.json").string(), K.dump(2) + "\n");
+  nlohmann::json objs = nlohmann::json::array(), truth = nlohmann::json::array();
+  objs.push_back({{"label_value", 1}, {"id", "floor"}, {"label", "floor"}, {"role", "floor"}});
+  objs.push_back({{"label_value", 2}, {"id", "back_wall"}, {"label", "wall"}, {"role", "wall"}});
+  objs.push_back({{"label_value", 3}, {"id", "left_wall"}, {"label", "wall"}, {"role", "wall"}});
+  for (const auto& o : s.objects) {
+    physics::Mesh m{o.canonical, o.faces};
+    physics::write_obj((sfs::path(dir) / "lift" / (o.id + ".obj")).string(), m);
+    const Sam3dPose p = sam3d_pose_from_scene(o.lift_R, o.lift_scale, o.lift_t);
+    const nlohmann::json pose = {{"rotation_wxyz", {p.rotation_wxyz[0], p.rotation_wxyz[1], p.rotation_wxyz[2], p.rotation_wxyz[3]}},
+                                 {"translation", vj(p.translation)},
+                                 {"scale", vj(p.scale)}};
+    fs::atomic_write((sfs::path(dir) / "lift" / (o.id + ".json")).string(), pose.dump(2) + "\n");
+    nlohmann::json e = {{"label_value", o.label_value}, {"id", o.id},     {"label", o.label},
+                        {"dof", physics::to_string(o.dof)}, {"pins", physics::pin_count(o.dof)},
+                        {"base", o.is_base},        {"mesh", "lift/" + o.id + ".obj"}, {"pose", "lift/" + o.id + ".json"},
+                        {"up_axis", canonical_up_axis(o)}};
+    objs.push_back(e);
+    truth.push_back({{"id", o.id}, {"R", mj(o.gt_R)}, {"t", vj(o.gt_t)}, {"scale", vj(o.gt_scale)},
+                     {"scale_error", o.scale_error}, {"ray_error", o.ray_error}, {"rotation_error_deg", o.rotation_error}});
+  }
+  fs::atomic_write((sfs::path(dir) / "objects.json").string(), nlohmann::json({{"objects", objs}}).dump(2) + "\n");
+  const nlohmann::json tj = {{"frame", "OpenCV camera"},
+                             {"up", vj(s.up)},
+                             {"floor", {{"point", vj(s.floor.plane.point)}, {"normal", vj(s.floor.plane.normal)}}},
+                             {"back_wall", {{"point", vj(s.back_wall.plane.point)}, {"normal", vj(s.back_wall.plane.normal)}}},
+                             {"left_wall", {{"point", vj(s.left_wall.plane.point)}, {"normal", vj(s.left_wall.plane.normal)}}},
+                             {"objects", truth}};
+  fs::atomic_write((sfs::path(dir) / "truth.json").string(), tj.dump(2) + "\n");
+}
+
 void write_camera_scene(const CameraScene& s, const std::string& dir) {
 #ifndef SIMU_HAVE_OPENCV
   (void)s;
-  fail("write_camera_scene {}: needs OpenCV (PNG writing)", dir);
+  fail("write_camera_scene {}: needs OpenCV (PNG writing); write_camera_scene_lift writes the rest", dir);
 #else
   namespace sfs = std::filesystem;
-  sfs::create_directories(sfs::path(dir) / "lift");
+  write_camera_scene_lift(s, dir);
   const int W = s.K.width, H = s.K.height;
   cv::Mat rgb(H, W, CV_8UC3), lab(H, W, CV_16UC1), dep(H, W, CV_16UC1);
   for (int r = 0; r < H; ++r)
@@ -198,35 +236,6 @@ void write_camera_scene(const CameraScene& s, const std::string& dir) {
   write("image.png", rgb);
   write("labels.png", lab);
   write("depth.png", dep);
-  nlohmann::json K = {{"fx", s.K.fx}, {"fy", s.K.fy}, {"cx", s.K.cx}, {"cy", s.K.cy}, {"width", W}, {"height", H}};
-  fs::atomic_write((sfs::path(dir) / "K.json").string(), K.dump(2) + "\n");
-  nlohmann::json objs = nlohmann::json::array(), truth = nlohmann::json::array();
-  objs.push_back({{"label_value", 1}, {"id", "floor"}, {"label", "floor"}, {"role", "floor"}});
-  objs.push_back({{"label_value", 2}, {"id", "back_wall"}, {"label", "wall"}, {"role", "wall"}});
-  objs.push_back({{"label_value", 3}, {"id", "left_wall"}, {"label", "wall"}, {"role", "wall"}});
-  for (const auto& o : s.objects) {
-    physics::Mesh m{o.canonical, o.faces};
-    physics::write_obj((sfs::path(dir) / "lift" / (o.id + ".obj")).string(), m);
-    const Sam3dPose p = sam3d_pose_from_scene(o.lift_R, o.lift_scale, o.lift_t);
-    const nlohmann::json pose = {{"rotation_wxyz", {p.rotation_wxyz[0], p.rotation_wxyz[1], p.rotation_wxyz[2], p.rotation_wxyz[3]}},
-                                 {"translation", vj(p.translation)},
-                                 {"scale", vj(p.scale)}};
-    fs::atomic_write((sfs::path(dir) / "lift" / (o.id + ".json")).string(), pose.dump(2) + "\n");
-    nlohmann::json e = {{"label_value", o.label_value}, {"id", o.id},     {"label", o.label},
-                        {"dof", physics::to_string(o.dof)}, {"pins", physics::pin_count(o.dof)},
-                        {"base", o.is_base},        {"mesh", "lift/" + o.id + ".obj"}, {"pose", "lift/" + o.id + ".json"}};
-    objs.push_back(e);
-    truth.push_back({{"id", o.id}, {"R", mj(o.gt_R)}, {"t", vj(o.gt_t)}, {"scale", vj(o.gt_scale)},
-                     {"scale_error", o.scale_error}, {"ray_error", o.ray_error}, {"rotation_error_deg", o.rotation_error}});
-  }
-  fs::atomic_write((sfs::path(dir) / "objects.json").string(), nlohmann::json({{"objects", objs}}).dump(2) + "\n");
-  const nlohmann::json tj = {{"frame", "OpenCV camera"},
-                             {"up", vj(s.up)},
-                             {"floor", {{"point", vj(s.floor.plane.point)}, {"normal", vj(s.floor.plane.normal)}}},
-                             {"back_wall", {{"point", vj(s.back_wall.plane.point)}, {"normal", vj(s.back_wall.plane.normal)}}},
-                             {"left_wall", {{"point", vj(s.left_wall.plane.point)}, {"normal", vj(s.left_wall.plane.normal)}}},
-                             {"objects", truth}};
-  fs::atomic_write((sfs::path(dir) / "truth.json").string(), tj.dump(2) + "\n");
 #endif
 }
 

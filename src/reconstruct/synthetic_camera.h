@@ -73,10 +73,15 @@ struct CameraScene {
 CameraScene generate_camera_scene(const CameraSceneConfig& config, uint64_t seed, const std::string& name);
 
 // Writes the inputs of the `reconstruct` program into dir: image.png, labels.png (16-bit), objects.json
-// (the sidecar: per label value the object id, label, dof, pins, base flag, its "lift" mesh + pose),
+// (the sidecar: per label value the object id, label, dof, pins, base flag, its "lift" mesh + pose, its
+// canonical up axis),
 // depth.png (16-bit millimetres), K.json, lift/<id>.obj (canonical ground-truth mesh) and
 // lift/<id>.json (its erroneous pose in SAM 3D's convention, see sam3d_pose_from_scene), truth.json.
 void write_camera_scene(const CameraScene& s, const std::string& dir);
+// The part of write_camera_scene that needs no image I/O: K.json, objects.json, lift/, truth.json.
+void write_camera_scene_lift(const CameraScene& s, const std::string& dir);
+// The canonical up axis of a generated object's mesh ("-y", clocks "+z": their lathe axis is horizontal).
+std::string canonical_up_axis(const CameraObject& o);
 
 // SAM 3D's pose convention (PyTorch3D camera, row vectors p = (scale * v) @ R + translation with
 // R = the quaternion's matrix, v the mesh vertex) <-> the scene convention in the OpenCV camera.

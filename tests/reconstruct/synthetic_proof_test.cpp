@@ -3,8 +3,10 @@
 // object "lifted" as its ground-truth mesh with SAM 3D-like errors (scale +-10..25%, 1..5% of its
 // distance along the ray, up to 2 degrees of rotation). Asserts:
 //  - the translation-scale alignment brings every object seen enough (visible mask >= 40% of its
-//    silhouette alone and >= 150 pixels) to within 3% of its true scale and 1 cm of its true centre,
-//    except boxes (8% and 1.2 cm: the known limit of the one-sided loss, docs/reconstruct.md);
+//    silhouette alone and >= 150 pixels), boxes included, to within 3% of its true scale and 1 cm of
+//    its true centre on two scenes whose lifted poses carry the scale and ray errors (the alignment
+//    keeps the rotation fixed, so these scenes inject none); with up to 2 degrees of rotation error as
+//    well, within 6% and 1 cm (a rotation error biases the one-sided loss's minimum, docs/reconstruct.md);
 //  - floor and walls from their masks within 1 degree of the truth, up within 1 degree;
 //  - the table's top lands on the true top plane (1 degree, 1 cm) after hard_snap + table_refine;
 //  - the SAM 3D pose conversion round-trips (independent: both conventions place the same vertices).
@@ -22,24 +24,23 @@
 using namespace simu::reconstruct;
 
 namespace {
+CameraScene make_scene(uint64_t seed, double rotation_deg) {
+  CameraSceneConfig cfg;
+  cfg.generator.min_objects = 6;
+  cfg.generator.max_objects = 6;
+  cfg.generator.max_hanging = 2;
+  cfg.rotation_err_max_deg = rotation_deg;
+  return generate_camera_scene(cfg, seed, "proof");
+}
 const CameraScene& scene() {
-  static const CameraScene s = [] {
-    CameraSceneConfig cfg;
-    cfg.generator.min_objects = 6;
-    cfg.generator.max_objects = 6;
-    cfg.generator.max_hanging = 2;
-    if (const char* r = std::getenv("SIMU_PROOF_ROT")) cfg.rotation_err_max_deg = std::atof(r);
-    return generate_camera_scene(cfg, 5, "proof");
-  }();
+  static const CameraScene s = make_scene(5, 2);
   return s;
 }
 bool seen_enough(const CameraObject& o) {
   return !o.is_base && o.mask.count() >= 150 && double(o.mask.count()) >= 0.4 * double(o.amodal_pixels);
 }
-}  // namespace
-
-TEST(ReconstructProof, AlignmentRecoversScaleAndTranslation) {
-  const CameraScene& s = scene();
+// Aligns every object seen enough; returns how many, expecting |scale error| < max_scale, t error < max_t.
+int check_alignment(const CameraScene& s, double max_scale, double max_t) {
   int tested = 0;
   for (const auto& o : s.objects) {
     if (!seen_enough(o)) continue;
@@ -56,25 +57,31 @@ TEST(ReconstructProof, AlignmentRecoversScaleAndTranslation) {
     in.observed = masked_points(s.points, o.mask, o.id);
     in.depth = &s.points;
     const AlignResult r = align_translation_scale(in);
-    ASSERT_TRUE(r.ok) << r.message;
+    EXPECT_TRUE(r.ok) << r.message;
+    if (!r.ok) continue;
     const double scale_err = r.s / o.gt_scale.maxCoeff() - 1;
     const double t_err = (r.t - o.gt_t).norm();
     std::cout << fmt::format("  {:<16} injected scale x{:.3f} ray {:+.3f} m rot {:.1f} deg -> scale err {:+.2f}% t err {:.1f} mm "
-                             "(start rho {}; selected before the polish: scale err {:+.2f}%)\n",
+                             "(start rho {})\n",
                              o.id, o.scale_error, o.ray_error, o.rotation_error, 100 * scale_err, 1000 * t_err,
-                             r.candidates[size_t(r.best)].rho, 100 * (r.s_selected / o.gt_scale.maxCoeff() - 1));
-    for (const auto& c : r.candidates)
-      std::cout << fmt::format("      rho {:.2f}: s/s_gt {:.4f} chamfer {:.2f} mm recall {:.3f} L_bi {:.2f} mm score {:.4f}\n", c.rho,
-                               c.s / o.gt_scale.maxCoeff(), 1000 * c.chamfer, c.recall, 1000 * c.bichamfer, c.score);
-    // Boxes: the one-sided loss is flat along over-growth (docs/reconstruct.md, "Known limit"); the
-    // measured worst case is 7% / 11 mm, asserted with a margin. Every other shape: the bound.
-    const bool box = o.label == "box";
-    EXPECT_LT(std::abs(scale_err), box ? 0.08 : 0.03) << o.id;
-    EXPECT_LT(t_err, box ? 0.012 : 0.01) << o.id;
+                             r.candidates[size_t(r.best)].rho);
+    EXPECT_LT(std::abs(scale_err), max_scale) << o.id;
+    EXPECT_LT(t_err, max_t) << o.id;
     ++tested;
   }
-  EXPECT_GE(tested, 4);
+  return tested;
 }
+}  // namespace
+
+// Scale and ray errors only (the rotation is what the alignment keeps): the 3% / 1 cm, boxes too.
+TEST(ReconstructProof, AlignmentRecoversScaleAndTranslation) {
+  int tested = 0;
+  for (uint64_t seed : {5, 6}) tested += check_alignment(make_scene(seed, 0), 0.03, 0.01);
+  EXPECT_GE(tested, 10);
+}
+
+// With up to 2 degrees of rotation error too: measured worst 5.2% / 4.7 mm over 8 scenes, asserted at 6% / 1 cm.
+TEST(ReconstructProof, AlignmentUnderRotationError) { EXPECT_GE(check_alignment(scene(), 0.06, 0.01), 4); }
 
 TEST(ReconstructProof, PlanesWithinOneDegree) {
   const CameraScene& s = scene();
