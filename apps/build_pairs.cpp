@@ -15,6 +15,8 @@
 
 namespace {
 std::atomic<bool> g_stop{false};
+// Seed of torch's global generator for the random initialisation of --random-weights.
+constexpr uint64_t kRandomWeightsSeed = 0;
 void on_signal(int) { g_stop = true; }
 }  // namespace
 
@@ -35,7 +37,7 @@ int main(int argc, char** argv) {
   app.add_option("--embedder-config", rc.embedder_config, "condition embedder config")->required();
   app.add_option("--embedder-weights", rc.embedder_weights, "condition embedder safetensors");
   app.add_flag("--random-weights", rc.random_weights,
-               "allow missing --*-weights: random init with a RANDOM WEIGHTS banner (tests, benchmarks)");
+               "allow missing --*-weights: random init (torch seed 0) with a RANDOM WEIGHTS banner (tests, benchmarks)");
   app.add_option("--precision", rc.precision, "fp16 | bf16 | fp32 | auto (fp16 on CUDA as released, fp32 on CPU)")
       ->capture_default_str();
   app.add_option("--adapter", rc.adapter_dir, "PEFT LoRA adapter on the generator (default: the base model)");
@@ -69,6 +71,9 @@ int main(int argc, char** argv) {
       simu::fail("--dtype must be f16 or f32, got '{}'", dtype);
     cfg.resume = !overwrite;
     cfg.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
+    // Modules without weights keep their random initialisation, drawn from torch's global generator,
+    // which LibTorch seeds from the OS: a fixed seed makes two runs build the same models.
+    if (rc.random_weights) torch::manual_seed(kRandomWeightsSeed);
     // Ctrl-C / SIGTERM: finish the current batch, commit, exit.
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);

@@ -3,6 +3,7 @@
 // scene. The physics and metric settings come from a typed config (configs/probe.yaml, --set).
 #include <fmt/format.h>
 
+#include <cstdint>
 #include <cstdlib>
 #include <memory>
 #include <mutex>
@@ -13,6 +14,11 @@
 #include "physics/probe.h"
 #include "physics/probe_batch.h"
 #include "resample/probe_resampler.h"
+
+namespace {
+// Seed of torch's global generator for the random initialisation of --random-weights.
+constexpr uint64_t kRandomWeightsSeed = 0;
+}  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{"Physics probe: penetration resolution, gravity diagnostics, stretch-or-resample decision, final "
@@ -48,7 +54,7 @@ int main(int argc, char** argv) {
   app.add_option("--precision", rcfg.precision, "fp16 | bf16 | fp32 | auto (fp16 on CUDA as released, fp32 on CPU)")
       ->capture_default_str();
   app.add_flag("--random-weights", rcfg.random_weights,
-               "allow missing --*-weights: random init with a RANDOM WEIGHTS banner (demos, benchmarks)");
+               "allow missing --*-weights: random init (torch seed 0) with a RANDOM WEIGHTS banner (demos, benchmarks)");
   app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--seed", seed, "sampling seed")->capture_default_str();
   app.add_option("--preprocess", preprocess_preset,
@@ -75,6 +81,9 @@ int main(int argc, char** argv) {
     if (resample) {
       if (rcfg.embedder_config.empty())
         simu::fail_hint("pass --embedder-config (and --embedder-weights)", "--resample needs the condition embedder");
+      // Modules without weights keep their random initialisation, drawn from torch's global generator,
+      // which LibTorch seeds from the OS: a fixed seed makes two runs build the same models.
+      if (rcfg.random_weights) torch::manual_seed(kRandomWeightsSeed);
       resampler = std::make_unique<simu::resample::Resampler>(rcfg);
       simu::log::info("resampler loaded on {} ({}){}", resampler->device().str(),
                       simu::models::precision_name(resampler->precision()),

@@ -41,6 +41,8 @@ bool ply_integer_type(const std::string& t) { return ply_type_size(t) && t.rfind
 // integer), "end_header" within the first 64 KiB, a "vertex" element with x, y, z, and element counts
 // that fit in the bytes after the header (every element needs at least 1 byte per fixed-size value or
 // list count in binary, 2 per property in ASCII). Throws simu::Error naming the file, line and problem.
+// One function on purpose (~120 lines): a single pass over the header lines, each kind of line checked
+// where it is met, as the PLY grammar reads.
 void check_ply_header(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   SIMU_CHECK(in.good(), "mesh file {}: cannot open it", path);

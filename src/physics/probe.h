@@ -81,11 +81,10 @@ struct Diagnostics {
   std::vector<Vec3> pins_world;   // object-side pins (anchored)
   std::vector<Vec3> wall_points;  // their wall mates (feet of the perpendiculars)
   std::string wall_id;
-  // Decision.
-  Obb obb_pre;            // OBB of the pre-simulation object
-  Vec3 u_grv = Vec3::Zero();      // OBB axis most aligned with gravity, oriented so u.g >= 0
-  double ell = 0;                 // OBB side length along u_grv
-  double rho = 0, eta = 0;
+  // Decision (geometry.h): the OBB of the pre-simulation object (diagnosis.obb_pre), its axis most
+  // aligned with gravity (diagnosis.axis: u oriented so u.g >= 0, l_pre its side length), rho, eta
+  // and the stretch/resample branch; untouched (axis.length 0) for an object never diagnosed.
+  Diagnosis diagnosis;
   Obb obb_target;         // desired stretched OBB (stretch and resample)
   // Final composition.
   Vec3 dt_final_pen = Vec3::Zero();

@@ -75,7 +75,7 @@ std::string probe_summary(const ProbeResult& r) {
     auto moved = [](const SettleRecord& rec, bool ran) {
       return !ran || rec.physics_disabled ? std::string("-") : fmt::format("{:.1f} mm", 1000 * rec.displacement);
     };
-    const std::string rho = d.branch == ProbeBranch::Disabled ? "-" : fmt::format("{:.3f}", d.rho);
+    const std::string rho = d.branch == ProbeBranch::Disabled ? "-" : fmt::format("{:.3f}", d.diagnosis.rho);
     std::string branch = to_string(d.branch);
     s += fmt::format("  {:<16} {:<9} {:>6} {:>12} {:>12}  {}\n", r.scene.objects[i].id, branch, rho,
                      moved(i < r.input_evaluation.objects.size() ? r.input_evaluation.objects[i] : SettleRecord{}, before),
@@ -92,7 +92,7 @@ std::string probe_summary(const ProbeResult& r) {
       }
     }
     if (d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample) {
-      const auto& a = d.obb_pre.extents;
+      const auto& a = d.diagnosis.obb_pre.extents;
       const auto& b = d.obb_final.extents;
       s += fmt::format("    OBB extents {:.3f} {:.3f} {:.3f} -> {:.3f} {:.3f} {:.3f} m\n", a.x(), a.y(), a.z(), b.x(), b.y(),
                        b.z());

@@ -154,7 +154,7 @@ std::vector<CorrectedObject> probe_output_objects(const SyntheticScene& s, const
       c.scale = o.pred_scale, c.R = o.pred_R, c.t = o.pred_t;
     }
     c.valid = has_mesh && !d.physics_disabled;
-    c.rho = d.rho, c.eta = d.eta;
+    c.rho = d.diagnosis.rho, c.eta = d.diagnosis.eta;
     c.decided = d.branch == ProbeBranch::Stretch || d.branch == ProbeBranch::Resample;
     c.branch = d.branch == ProbeBranch::Resample ? Branch::Resample : Branch::Stretch;
     c.flags = d.flags;

@@ -117,38 +117,65 @@ uint64_t pair_noise_seed(uint64_t seed, const std::string& id) {
   return splitmix64(seed ^ h);
 }
 
-PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderConfig& cfg, Resampler& resampler,
-                            const PairBuildProgress& progress, const std::atomic<bool>* stop) {
-  const auto t_start = std::chrono::steady_clock::now();
-  SIMU_CHECK(!cfg.out.empty(), "build_pairs: no output path");
-  SIMU_CHECK(cfg.batch > 0, "build_pairs: batch must be positive, got {}", cfg.batch);
-  SIMU_CHECK(cfg.dtype == torch::kFloat16 || cfg.dtype == torch::kFloat32, "build_pairs: dtype must be float16 or float32");
-  SIMU_CHECK(resampler.embedder(), "build_pairs: the resampler has no condition embedder (set embedder_config)");
-  PairBuildReport report;
+namespace {
 
-  // Manifest: parse every line; malformed ones and duplicate ids become issues.
-  auto manifest = parse_manifest(simu::fs::read_file(manifest_path),
-                                 std::filesystem::path(manifest_path).parent_path().string());
-  report.records = manifest.records;
-  auto add_issue = [&](int64_t line, const std::string& id, const std::string& message) {
-    simu::log::warn("{}:{}: {}skipped: {}", manifest_path, line, id.empty() ? "" : "pair '" + id + "' ", message);
-    report.issues.push_back({line, id, message});
-  };
-  for (const auto& issue : manifest.issues) add_issue(issue.line, issue.id, issue.message);
-  auto& records = manifest.pairs;
+// The cache being built. The writer is opened on the first pair to add (a run with nothing to add
+// leaves `out` untouched) and committed now and then, so a crash loses little.
+class CacheSink {
+ public:
+  CacheSink(const PairBuilderConfig& cfg, std::vector<int64_t> latent_shape, std::vector<int64_t> cond_shape,
+            PairBuildReport& report)
+      : cfg_(cfg), latent_shape_(std::move(latent_shape)), cond_shape_(std::move(cond_shape)), report_(report) {}
 
-  // Shapes of what the models produce: latent [T, C] and condition [L, Cc].
-  auto& gen = resampler.generator();
-  auto shape_gen = at::make_generator<at::CPUGeneratorImpl>(0);
-  const auto probe_noise = gen->noise(1, shape_gen, torch::kCPU);
-  SIMU_CHECK(probe_noise.count("shape"), "build_pairs: the generator has no 'shape' latent");
-  const std::vector<int64_t> latent_shape{probe_noise.at("shape").size(1), probe_noise.at("shape").size(2)};
-  const std::vector<int64_t> cond_shape{resampler.embedder()->num_tokens(), resampler.embedder()->embed_dims()};
+  void append(const data::PairRecord& rec) {
+    if (!writer_) open();
+    writer_->append(rec);
+    appended_any_ = true;
+    ++report_.written;
+    ++since_commit_;
+  }
+  // Commits when cfg.commit_every pairs were added since the last commit.
+  void commit_now_and_then() {
+    if (cfg_.commit_every > 0 && since_commit_ >= cfg_.commit_every) commit();
+  }
+  // The last commit; with nothing to add and no cache yet, an empty one so that the output exists.
+  void finish() {
+    commit();
+    if (!std::filesystem::exists(cfg_.out) || (!cfg_.resume && !appended_any_)) {
+      open();
+      commit();
+    }
+  }
 
-  // Already written pairs (resume): read the ids of an existing cache.
+ private:
+  void open() {
+    const bool extend = std::filesystem::exists(cfg_.out) && (cfg_.resume || appended_any_);
+    writer_ = std::make_unique<data::PairCacheWriter>(cfg_.out, latent_shape_, cond_shape_, cfg_.dtype, extend);
+    writer_->set_created_by(cfg_.created_by);
+  }
+  void commit() {
+    if (!writer_) return;
+    writer_->finish();
+    report_.cache_size = writer_->size();
+    writer_.reset();
+    since_commit_ = 0;
+  }
+
+  const PairBuilderConfig& cfg_;
+  std::vector<int64_t> latent_shape_, cond_shape_;
+  PairBuildReport& report_;
+  std::unique_ptr<data::PairCacheWriter> writer_;
+  int64_t since_commit_ = 0;
+  bool appended_any_ = false;
+};
+
+// The records still to build: those of the manifest not yet in an existing cache (resume; its
+// latent and condition shapes must be the models'); the others are counted as skipped.
+std::vector<PairManifestRecord> pending_records(std::vector<PairManifestRecord>& records, const PairBuilderConfig& cfg,
+                                                const std::vector<int64_t>& latent_shape,
+                                                const std::vector<int64_t>& cond_shape, PairBuildReport& report) {
   std::set<std::string> existing_ids;
-  const bool have_out = std::filesystem::exists(cfg.out);
-  if (cfg.resume && have_out) {
+  if (cfg.resume && std::filesystem::exists(cfg.out)) {
     const auto reader = data::PairCacheReader::open(cfg.out);
     for (auto& id : reader.ids()) existing_ids.insert(std::move(id));
     SIMU_CHECK(reader.info().latent_shape == latent_shape && reader.info().cond_shape == cond_shape,
@@ -164,32 +191,135 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
     else
       todo.push_back(std::move(r));
   }
+  return todo;
+}
+
+// Condition tokens of every side of a batch (and of every resampling condition), from ONE embedder
+// call: tokens[pos[k]], tokens[neg[k]] and tokens[cond[k]] belong to pair k ([L, Cc], CPU float32).
+struct BatchTokens {
+  std::vector<torch::Tensor> tokens;
+  std::vector<size_t> pos, neg, cond;
+};
+BatchTokens embed_batch(Resampler& resampler, const std::vector<PreparedPair>& batch) {
+  BatchTokens bt;
+  std::vector<ResampleRequest> requests;
+  bt.pos.resize(batch.size()), bt.neg.resize(batch.size()), bt.cond.resize(batch.size());
+  for (size_t k = 0; k < batch.size(); ++k) {
+    bt.pos[k] = requests.size();
+    requests.push_back({torch::Tensor(), batch[k].pos});
+    bt.neg[k] = requests.size();
+    requests.push_back({torch::Tensor(), batch[k].neg});
+    bt.cond[k] = bt.pos[k];
+    if (!batch[k].cond.empty()) {
+      bt.cond[k] = requests.size();
+      requests.push_back({torch::Tensor(), batch[k].cond});
+    }
+  }
+  bt.tokens = resampler.conditions(requests);
+  return bt;
+}
+
+// Stage 1 on both sides of every pair of a batch: rows (pos_k, neg_k) share pair k's noise (seeded by
+// (seed, id)); one sampling call per condition length. Shape latents [T, C] float32 CPU per pair.
+void sample_both_sides(Resampler& resampler, const PairBuilderConfig& cfg, const std::vector<PreparedPair>& batch,
+                       const BatchTokens& bt, std::vector<torch::Tensor>* shape_pos,
+                       std::vector<torch::Tensor>* shape_neg) {
+  auto& gen = resampler.generator();
+  const auto options = resampler.sample_options();
+  const auto device = resampler.device();
+  shape_pos->assign(batch.size(), torch::Tensor());
+  shape_neg->assign(batch.size(), torch::Tensor());
+  std::map<int64_t, std::vector<std::pair<size_t, bool>>> groups;  // L -> (pair, is_pos)
+  for (size_t k = 0; k < batch.size(); ++k) {
+    groups[bt.tokens[bt.pos[k]].size(0)].push_back({k, true});
+    groups[bt.tokens[bt.neg[k]].size(0)].push_back({k, false});
+  }
+  std::vector<models::Latents> noise(batch.size());
+  for (size_t k = 0; k < batch.size(); ++k) {
+    auto rng = at::make_generator<at::CPUGeneratorImpl>(pair_noise_seed(cfg.seed, batch[k].record.id));
+    noise[k] = gen->noise(1, rng, torch::kCPU);
+  }
+  torch::NoGradGuard no_grad;
+  for (const auto& [L, rows] : groups) {
+    std::vector<torch::Tensor> conds;
+    std::map<std::string, std::vector<torch::Tensor>> x0_parts;
+    for (const auto& [k, is_pos] : rows) {
+      conds.push_back(bt.tokens[is_pos ? bt.pos[k] : bt.neg[k]].to(torch::kFloat32).unsqueeze(0));
+      for (const auto& [name, v] : noise[k]) x0_parts[name].push_back(v);
+    }
+    models::Latents x0;
+    for (auto& [name, parts] : x0_parts) x0[name] = torch::cat(parts, 0).to(device);
+    const auto latents = gen->sample(torch::cat(conds, 0).to(device), x0, options);
+    const auto shape = latents.at("shape").to(torch::kCPU, torch::kFloat32);  // [rows, T, C]
+    for (size_t j = 0; j < rows.size(); ++j)
+      (rows[j].second ? *shape_pos : *shape_neg)[rows[j].first] = shape[static_cast<int64_t>(j)].clone();
+  }
+}
+
+// A bad manifest record: logged with its line and kept in the report (the record is skipped).
+void add_pair_issue(PairBuildReport& report, const std::string& manifest_path, int64_t line, const std::string& id,
+                    const std::string& message) {
+  simu::log::warn("{}:{}: {}skipped: {}", manifest_path, line, id.empty() ? "" : "pair '" + id + "' ", message);
+  report.issues.push_back({line, id, message});
+}
+
+// Appends the pairs of a sampled batch to the cache (a non-finite output is a bad record, not a
+// broken cache).
+void append_batch(const std::vector<PreparedPair>& batch, const BatchTokens& bt, const std::vector<torch::Tensor>& shape_pos,
+                  const std::vector<torch::Tensor>& shape_neg, const std::string& manifest_path, CacheSink& sink,
+                  PairBuildReport& report) {
+  for (size_t k = 0; k < batch.size(); ++k) {
+    const auto& r = batch[k].record;
+    data::PairRecord rec;
+    rec.id = r.id;
+    rec.kind = r.kind;
+    rec.weight = r.weight;
+    rec.latent_pos = shape_pos[k];
+    rec.latent_neg = shape_neg[k];
+    rec.cond = bt.tokens[bt.cond[k]];
+    if (!(torch::isfinite(rec.latent_pos).all().item<bool>() && torch::isfinite(rec.latent_neg).all().item<bool>() &&
+          torch::isfinite(rec.cond).all().item<bool>())) {
+      add_pair_issue(report, manifest_path, r.line, r.id, "the models produced non-finite latents or condition tokens");
+      continue;
+    }
+    sink.append(rec);
+  }
+}
+
+}  // namespace
+
+PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderConfig& cfg, Resampler& resampler,
+                            const PairBuildProgress& progress, const std::atomic<bool>* stop) {
+  const auto t_start = std::chrono::steady_clock::now();
+  SIMU_CHECK(!cfg.out.empty(), "build_pairs: no output path");
+  SIMU_CHECK(cfg.batch > 0, "build_pairs: batch must be positive, got {}", cfg.batch);
+  SIMU_CHECK(cfg.dtype == torch::kFloat16 || cfg.dtype == torch::kFloat32, "build_pairs: dtype must be float16 or float32");
+  SIMU_CHECK(resampler.embedder(), "build_pairs: the resampler has no condition embedder (set embedder_config)");
+  PairBuildReport report;
+
+  // Manifest: parse every line; malformed ones and duplicate ids become issues.
+  auto manifest = parse_manifest(simu::fs::read_file(manifest_path),
+                                 std::filesystem::path(manifest_path).parent_path().string());
+  report.records = manifest.records;
+  auto add_issue = [&](int64_t line, const std::string& id, const std::string& message) {
+    add_pair_issue(report, manifest_path, line, id, message);
+  };
+  for (const auto& issue : manifest.issues) add_issue(issue.line, issue.id, issue.message);
+
+  // Shapes of what the models produce: latent [T, C] and condition [L, Cc].
+  auto shape_gen = at::make_generator<at::CPUGeneratorImpl>(0);
+  const auto probe_noise = resampler.generator()->noise(1, shape_gen, torch::kCPU);
+  SIMU_CHECK(probe_noise.count("shape"), "build_pairs: the generator has no 'shape' latent");
+  const std::vector<int64_t> latent_shape{probe_noise.at("shape").size(1), probe_noise.at("shape").size(2)};
+  const std::vector<int64_t> cond_shape{resampler.embedder()->num_tokens(), resampler.embedder()->embed_dims()};
+
+  const std::vector<PairManifestRecord> todo = pending_records(manifest.pairs, cfg, latent_shape, cond_shape, report);
   simu::log::info("build_pairs: {} records in {}, {} already in {}, {} to build, {} bad so far", report.records,
                   manifest_path, report.skipped_existing, cfg.out, todo.size(), report.issues.size());
-
-  // The writer is opened on the first pair to add (a run with nothing to add leaves `out` untouched).
-  std::unique_ptr<data::PairCacheWriter> writer;
-  int64_t since_commit = 0;
-  bool appended_any = false;
-  auto open_writer = [&] {
-    const bool extend = std::filesystem::exists(cfg.out) && (cfg.resume || appended_any);
-    writer = std::make_unique<data::PairCacheWriter>(cfg.out, latent_shape, cond_shape, cfg.dtype, extend);
-    writer->set_created_by(cfg.created_by);
-  };
-  auto commit = [&] {
-    if (!writer) return;
-    writer->finish();
-    report.cache_size = writer->size();
-    writer.reset();
-    since_commit = 0;
-  };
-
+  CacheSink sink(cfg, latent_shape, cond_shape, report);
   int64_t done = static_cast<int64_t>(report.issues.size()) + report.skipped_existing;
   const int64_t total = report.records;
   if (progress) progress(done, total);
-  const auto options = resampler.sample_options();
-  const auto device = resampler.device();
-
   for (size_t b0 = 0; b0 < todo.size(); b0 += static_cast<size_t>(cfg.batch)) {
     if (stop && stop->load()) {
       report.interrupted = true;
@@ -210,84 +340,15 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
       if (progress) progress(done, total);
       continue;
     }
-    // Condition tokens of every side (and of every resampling condition) in one embedder call.
-    std::vector<ResampleRequest> requests;
-    std::vector<size_t> pos_req(batch.size()), neg_req(batch.size()), cond_req(batch.size());
-    for (size_t k = 0; k < batch.size(); ++k) {
-      pos_req[k] = requests.size();
-      requests.push_back({torch::Tensor(), batch[k].pos});
-      neg_req[k] = requests.size();
-      requests.push_back({torch::Tensor(), batch[k].neg});
-      cond_req[k] = pos_req[k];
-      if (!batch[k].cond.empty()) {
-        cond_req[k] = requests.size();
-        requests.push_back({torch::Tensor(), batch[k].cond});
-      }
-    }
-    const auto tokens = resampler.conditions(requests);  // [L, Cc] each, CPU float32
-
-    // Stage 1 on both sides: rows (pos_k, neg_k) share pair k's noise; one call per condition length.
-    std::vector<torch::Tensor> shape_pos(batch.size()), shape_neg(batch.size());
-    std::map<int64_t, std::vector<std::pair<size_t, bool>>> groups;  // L -> (pair, is_pos)
-    for (size_t k = 0; k < batch.size(); ++k) {
-      groups[tokens[pos_req[k]].size(0)].push_back({k, true});
-      groups[tokens[neg_req[k]].size(0)].push_back({k, false});
-    }
-    std::vector<models::Latents> noise(batch.size());
-    for (size_t k = 0; k < batch.size(); ++k) {
-      auto rng = at::make_generator<at::CPUGeneratorImpl>(pair_noise_seed(cfg.seed, batch[k].record.id));
-      noise[k] = gen->noise(1, rng, torch::kCPU);
-    }
-    {
-      torch::NoGradGuard no_grad;
-      for (const auto& [L, rows] : groups) {
-        std::vector<torch::Tensor> conds;
-        std::map<std::string, std::vector<torch::Tensor>> x0_parts;
-        for (const auto& [k, is_pos] : rows) {
-          conds.push_back(tokens[is_pos ? pos_req[k] : neg_req[k]].to(torch::kFloat32).unsqueeze(0));
-          for (const auto& [name, v] : noise[k]) x0_parts[name].push_back(v);
-        }
-        models::Latents x0;
-        for (auto& [name, parts] : x0_parts) x0[name] = torch::cat(parts, 0).to(device);
-        const auto latents = gen->sample(torch::cat(conds, 0).to(device), x0, options);
-        const auto shape = latents.at("shape").to(torch::kCPU, torch::kFloat32);  // [rows, T, C]
-        for (size_t j = 0; j < rows.size(); ++j)
-          (rows[j].second ? shape_pos : shape_neg)[rows[j].first] = shape[static_cast<int64_t>(j)].clone();
-      }
-    }
-
-    // Append (a non-finite output is a bad record, not a broken cache).
-    for (size_t k = 0; k < batch.size(); ++k) {
-      const auto& r = batch[k].record;
-      data::PairRecord rec;
-      rec.id = r.id;
-      rec.kind = r.kind;
-      rec.weight = r.weight;
-      rec.latent_pos = shape_pos[k];
-      rec.latent_neg = shape_neg[k];
-      rec.cond = tokens[cond_req[k]];
-      ++done;
-      if (!(torch::isfinite(rec.latent_pos).all().item<bool>() && torch::isfinite(rec.latent_neg).all().item<bool>() &&
-            torch::isfinite(rec.cond).all().item<bool>())) {
-        add_issue(r.line, r.id, "the models produced non-finite latents or condition tokens");
-        continue;
-      }
-      if (!writer) open_writer();
-      writer->append(rec);
-      appended_any = true;
-      ++report.written;
-      ++since_commit;
-    }
+    const BatchTokens bt = embed_batch(resampler, batch);
+    std::vector<torch::Tensor> shape_pos, shape_neg;
+    sample_both_sides(resampler, cfg, batch, bt, &shape_pos, &shape_neg);
+    append_batch(batch, bt, shape_pos, shape_neg, manifest_path, sink, report);
+    done += static_cast<int64_t>(batch.size());
     if (progress) progress(done, total);
-    // Commit now and then so a crash loses little.
-    if (cfg.commit_every > 0 && since_commit >= cfg.commit_every) commit();
+    sink.commit_now_and_then();
   }
-  commit();
-  // Nothing to add and no cache yet: write an empty one so the output exists.
-  if (!std::filesystem::exists(cfg.out) || (!cfg.resume && !appended_any)) {
-    open_writer();
-    commit();
-  }
+  sink.finish();
   if (report.cache_size == 0 && std::filesystem::exists(cfg.out))
     report.cache_size = data::PairCacheReader::open(cfg.out).size();
   std::sort(report.issues.begin(), report.issues.end(),

@@ -1,6 +1,9 @@
 #include "training/train_config.h"
 
+#include <cmath>
 #include <filesystem>
+#include <initializer_list>
+#include <limits>
 
 #include <fmt/ranges.h>
 
@@ -13,6 +16,44 @@ namespace simu::training {
 
 namespace stdfs = std::filesystem;
 
+namespace {
+
+// Reads an integer key (when present) and checks that it lies in [lo, hi]: an error naming the file
+// and the key otherwise.
+template <class T>
+void int_field(simu::config::Reader& r, const char* key, T& value, int64_t lo,
+               int64_t hi = std::numeric_limits<int64_t>::max()) {
+  r.field(key, value);
+  const int64_t v = static_cast<int64_t>(value);
+  if (v >= lo && v <= hi) return;
+  const std::string range = hi == std::numeric_limits<int64_t>::max() ? fmt::format(">= {}", lo) : fmt::format("in {}..{}", lo, hi);
+  fail("{}: key '{}': expected an integer {}, got {}", r.file(), r.full(key), range, v);
+}
+
+// Reads a string key (when present) that must be one of `allowed`.
+void choice_field(simu::config::Reader& r, const char* key, std::string& value, std::initializer_list<const char*> allowed) {
+  r.field(key, value);
+  for (const char* a : allowed)
+    if (value == a) return;
+  fail("{}: key '{}': expected '{}', got '{}'", r.file(), r.full(key), fmt::join(allowed, "' or '"), value);
+}
+
+// Reads a number of seconds (when present) in (0, one week].
+void seconds_field(simu::config::Reader& r, const char* key, double& value) {
+  r.field(key, value);
+  SIMU_CHECK(std::isfinite(value) && value > 0 && value <= 7 * 24 * 3600.0,
+             "{}: key '{}': expected a number of seconds in (0, 604800], got {}", r.file(), r.full(key), value);
+}
+
+// The section `name` of r, read with T::from.
+template <class T>
+T section(simu::config::Reader& r, const char* name) {
+  auto s = r.child(name);
+  return T::from(s);
+}
+
+}  // namespace
+
 ModelConfig ModelConfig::from(simu::config::Reader& r) {
   ModelConfig c;
   c.config = r.require<std::string>("config");
@@ -23,60 +64,44 @@ ModelConfig ModelConfig::from(simu::config::Reader& r) {
 DataConfig DataConfig::from(simu::config::Reader& r) {
   DataConfig c;
   r.field("cache", c.cache);
-  r.field("global_batch", c.global_batch);
-  r.field("micro_batch", c.micro_batch);
-  r.field("prefetch", c.prefetch);
+  int_field(r, "global_batch", c.global_batch, 1);
+  int_field(r, "micro_batch", c.micro_batch, 1);
+  int_field(r, "prefetch", c.prefetch, 0, 1024);
   r.field("seed", c.seed);
-  SIMU_CHECK(c.global_batch >= 1, "{}: data.global_batch must be >= 1, got {}", r.file(), c.global_batch);
-  SIMU_CHECK(c.micro_batch >= 1, "{}: data.micro_batch must be >= 1, got {}", r.file(), c.micro_batch);
-  SIMU_CHECK(c.prefetch >= 0 && c.prefetch <= 1024, "{}: key 'data.prefetch': expected an integer in 0..1024, got {}",
-             r.file(), c.prefetch);
   return c;
 }
 
 LoopConfig LoopConfig::from(simu::config::Reader& r) {
   LoopConfig c;
-  r.field("steps", c.steps);
-  r.field("precision", c.precision);
+  int_field(r, "steps", c.steps, 1);
+  choice_field(r, "precision", c.precision, {"bf16", "fp32"});
   r.field("activation_checkpointing", c.activation_checkpointing);
   r.field("seed", c.seed);
-  r.field("device", c.device);
-  SIMU_CHECK(c.steps >= 1, "{}: train.steps must be >= 1, got {}", r.file(), c.steps);
-  SIMU_CHECK(c.precision == "bf16" || c.precision == "fp32", "{}: train.precision: expected 'bf16' or 'fp32', got '{}'",
-             r.file(), c.precision);
-  SIMU_CHECK(c.device == "cuda" || c.device == "cpu", "{}: train.device: expected 'cuda' or 'cpu', got '{}'", r.file(),
-             c.device);
+  choice_field(r, "device", c.device, {"cuda", "cpu"});
   return c;
 }
 
 RunConfig RunConfig::from(simu::config::Reader& r) {
   RunConfig c;
   r.field("out_dir", c.out_dir);
-  r.field("checkpoint_every", c.checkpoint_every);
-  r.field("keep_last", c.keep_last);
-  r.field("log_every", c.log_every);
+  int_field(r, "checkpoint_every", c.checkpoint_every, 0);
+  int_field(r, "keep_last", c.keep_last, 0);  // 0 keeps all
+  int_field(r, "log_every", c.log_every, 1);
   r.field("progress", c.progress);
-  SIMU_CHECK(c.checkpoint_every >= 0, "{}: run.checkpoint_every must be >= 0", r.file());
-  SIMU_CHECK(c.keep_last >= 0, "{}: key 'run.keep_last': expected an integer >= 0 (0 keeps all), got {}", r.file(), c.keep_last);
-  SIMU_CHECK(c.log_every >= 1, "{}: key 'run.log_every': expected an integer >= 1, got {}", r.file(), c.log_every);
-  SIMU_CHECK(!c.out_dir.empty(), "{}: run.out_dir must not be empty", r.file());
+  SIMU_CHECK(!c.out_dir.empty(), "{}: key '{}' must not be empty", r.file(), r.full("out_dir"));
   return c;
 }
 
 DistConfig DistConfig::from(simu::config::Reader& r) {
   DistConfig c;
-  r.field("timeout_s", c.timeout_s);
-  r.field("hang_timeout_s", c.hang_timeout_s);
-  for (const auto& [key, v] : {std::pair<const char*, double>{"timeout_s", c.timeout_s}, {"hang_timeout_s", c.hang_timeout_s}})
-    SIMU_CHECK(std::isfinite(v) && v > 0 && v <= 7 * 24 * 3600.0,
-               "{}: key 'dist.{}': expected a number of seconds in (0, 604800], got {}", r.file(), key, v);
+  seconds_field(r, "timeout_s", c.timeout_s);
+  seconds_field(r, "hang_timeout_s", c.hang_timeout_s);
   return c;
 }
 
 TrainConfig TrainConfig::from(simu::config::Reader& r) {
   TrainConfig c;
-  auto m = r.child("model");
-  c.model = ModelConfig::from(m);
+  c.model = section<ModelConfig>(r, "model");
   // The lora: section is checked here, naming this file (make_generator_policy reads it again).
   // An absent section stays a null node (the defaults); unknown keys under it are errors (finish()).
   if (r.has("lora")) {
@@ -84,18 +109,12 @@ TrainConfig TrainConfig::from(simu::config::Reader& r) {
     (void)simu::lora::LoraConfig::from(l);
     c.lora = YAML::Clone(l.node());
   }
-  auto o = r.child("objective");
-  c.objective = ObjectiveConfig::from(o);
-  auto op = r.child("optim");
-  c.optim = OptimConfig::from(op);
-  auto d = r.child("data");
-  c.data = DataConfig::from(d);
-  auto t = r.child("train");
-  c.train = LoopConfig::from(t);
-  auto rr = r.child("run");
-  c.run = RunConfig::from(rr);
-  auto ds = r.child("dist");
-  c.dist = DistConfig::from(ds);
+  c.objective = section<ObjectiveConfig>(r, "objective");
+  c.optim = section<OptimConfig>(r, "optim");
+  c.data = section<DataConfig>(r, "data");
+  c.train = section<LoopConfig>(r, "train");
+  c.run = section<RunConfig>(r, "run");
+  c.dist = section<DistConfig>(r, "dist");
   r.finish();
   c.file = r.file();
   c.resolved = YAML::Clone(r.node());

@@ -22,34 +22,19 @@ using simu::testing::write_box;
 
 namespace {
 
-// Floor z = 0, gravity -z, one wall at y = 1; a camera at (0, -2, 0.3) looking along +y.
+// The test room with a 160 x 120 camera at (0, -2, 0.3) looking along +y.
 Scene room() {
-  Scene s;
-  s.gravity = Vec3(0, 0, -1);
-  s.floor = Plane{"floor", Vec3::Zero(), Vec3::UnitZ()};
-  s.walls.push_back(Plane{"back", Vec3(0, 1, 0), Vec3(0, -1, 0)});
-  s.camera.fx = s.camera.fy = 200;
-  s.camera.cx = 80, s.camera.cy = 60, s.camera.width = 160, s.camera.height = 120;
+  Scene s = simu::testing::test_room(200, 160, 120);
   s.camera.R_world_cam << 1, 0, 0, 0, 0, 1, 0, -1, 0;
   s.camera.t_world_cam = Vec3(0, -2, 0.3);
   return s;
 }
 
 SceneObject box(const std::string& id, const std::string& mesh, double size, const Vec3& t) {
-  SceneObject o;
-  o.id = id;
-  o.mesh_path = mesh;
-  o.scale = Vec3::Constant(size);
-  o.t = t;
-  return o;
+  return simu::testing::placed_object(id, mesh, Vec3::Constant(size), t);
 }
 
-ProbeConfig quick() {
-  ProbeConfig c;
-  c.final_settle_time = 1.0;
-  c.collision.use_coacd = false;  // boxes are convex
-  return c;
-}
+ProbeConfig quick() { return simu::testing::quick_probe_config(); }
 
 }  // namespace
 

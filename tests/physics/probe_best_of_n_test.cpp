@@ -18,12 +18,7 @@ using simu::testing::write_box;
 namespace {
 
 SceneObject box_object(const std::string& id, const std::string& mesh, const Vec3& size, const Vec3& t) {
-  SceneObject o;
-  o.id = id;
-  o.mesh_path = mesh;
-  o.scale = size;
-  o.t = t;
-  return o;
+  return simu::testing::placed_object(id, mesh, size, t);
 }
 
 ProbeShapeCandidate candidate(const std::string& label, const Vec3& size, const Mat3& R = Mat3::Identity()) {
@@ -73,7 +68,7 @@ TEST(ProbeBestOfN, KeepsTheCandidateThatMovesLeast) {
   EXPECT_EQ(calls, 1);
   const auto& d = r.diagnostics[1];
   ASSERT_EQ(d.branch, ProbeBranch::Resample) << d.message;
-  EXPECT_NEAR(d.rho, 0.3, 0.01);
+  EXPECT_NEAR(d.diagnosis.rho, 0.3, 0.01);
   EXPECT_NEAR(d.obb_target.center.z(), 0.23, 2e-3);
   ASSERT_EQ(d.candidates.size(), 4u) << d.message;
   for (const auto& c : d.candidates)

@@ -19,32 +19,14 @@ using simu::testing::write_box;
 
 namespace {
 
-// A room: floor z = 0, gravity -z, one wall at y = 1 facing -y.
-Scene room() {
-  Scene s;
-  s.gravity = Vec3(0, 0, -1);
-  s.floor = Plane{"floor", Vec3::Zero(), Vec3::UnitZ()};
-  s.walls.push_back(Plane{"back", Vec3(0, 1, 0), Vec3(0, -1, 0)});
-  s.camera.fx = s.camera.fy = 500;
-  s.camera.cx = 320, s.camera.cy = 240, s.camera.width = 640, s.camera.height = 480;
-  return s;
-}
+// The test room with a 640 x 480 camera (identity pose).
+Scene room() { return simu::testing::test_room(500, 640, 480); }
 
 SceneObject cube(const std::string& id, const std::string& mesh, double size, const Vec3& t) {
-  SceneObject o;
-  o.id = id;
-  o.mesh_path = mesh;
-  o.scale = Vec3::Constant(size);
-  o.t = t;
-  return o;
+  return simu::testing::placed_object(id, mesh, Vec3::Constant(size), t);
 }
 
-ProbeConfig quick() {
-  ProbeConfig c;
-  c.final_settle_time = 1.0;
-  c.collision.use_coacd = false;  // boxes are convex: one hull each, no decomposition time
-  return c;
-}
+ProbeConfig quick() { return simu::testing::quick_probe_config(); }
 
 bool has_flag(const Diagnostics& d, const std::string& f) {
   return std::find(d.flags.begin(), d.flags.end(), f) != d.flags.end();
@@ -66,7 +48,7 @@ TEST(Probe, HoveringBoxFallsThreeCentimetresAndIsStretched) {
   EXPECT_NEAR(d.dt_grv.z(), -0.03, 1e-3);
   EXPECT_NEAR(d.dt_grv.head<2>().norm(), 0.0, 1e-6);
   EXPECT_NEAR(d.dt_pen.norm(), 0.0, 1e-9);
-  EXPECT_NEAR(d.rho, 0.1, 4e-3);
+  EXPECT_NEAR(d.diagnosis.rho, 0.1, 4e-3);
   EXPECT_EQ(d.branch, ProbeBranch::Stretch);
   // Top face fixed at 0.33, bottom on the floor (after the final settle too).
   const auto& o = r.scene.objects[0];
@@ -98,7 +80,7 @@ TEST(Probe, BoxSunkIntoTableIsPushedUp) {
   EXPECT_NEAR(d.dt_pen.head<2>().norm(), 0.0, 1e-3);
   EXPECT_NEAR(d.pen_max_depth, 0.02, 2e-3);
   EXPECT_NEAR((d.dt_pen + d.dt_grv).z(), 0.02, 2e-3);
-  EXPECT_NEAR(d.eta, -0.1, 0.01);
+  EXPECT_NEAR(d.diagnosis.eta, -0.1, 0.01);
   EXPECT_EQ(d.branch, ProbeBranch::Stretch);
   // Final: resting on the table.
   const auto& o = r.scene.objects[0];
@@ -250,7 +232,7 @@ TEST(Probe, LargeDropSelectsResampleAndHandsOff) {
   const auto r = run_probe(s, quick(), dir + "/out");
   const auto& d = r.diagnostics[0];
   EXPECT_EQ(d.branch, ProbeBranch::Resample);
-  EXPECT_NEAR(d.rho, 0.3, 0.01);
+  EXPECT_NEAR(d.diagnosis.rho, 0.3, 0.01);
   EXPECT_TRUE(has_flag(d, "needs_resample"));
   ASSERT_EQ(r.resample_requests.size(), 1u);
   const auto& q = r.resample_requests[0];

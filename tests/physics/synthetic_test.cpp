@@ -220,7 +220,7 @@ TEST(Synthetic, AfterMetricsUseTheProbesSettledScene) {
   const Diagnostics& d = pr.diagnostics[0];
   ASSERT_FALSE(d.physics_disabled) << d.message;
   EXPECT_EQ(d.branch, ProbeBranch::Stretch);
-  EXPECT_LT(d.rho, 0.02);
+  EXPECT_LT(d.diagnosis.rho, 0.02);
   EXPECT_FALSE(d.reverted) << d.message;
   // The output pose is the geometric prediction: flat (tilt undone) on the ground truth.
   const SceneObject& settled = pr.scene.objects[0];

@@ -157,7 +157,7 @@ TEST(ProbeResampleLoop, CutObjectIsResampledPlacedAndSettled) {
 
   // Diagnostics: falls 8 cm, rho = 0.08 / 0.12 -> resample; stretched OBB = the true cube.
   ASSERT_EQ(d.branch, ProbeBranch::Resample) << d.message;
-  EXPECT_NEAR(d.rho, 0.08 / 0.12, 0.02);
+  EXPECT_NEAR(d.diagnosis.rho, 0.08 / 0.12, 0.02);
   EXPECT_NEAR((d.obb_target.center - Vec3(0, 0, 0.1)).norm(), 0.0, 3e-3);
   EXPECT_NEAR(d.obb_target.extents.maxCoeff(), 0.2, 3e-3);
   EXPECT_NEAR(d.obb_target.extents.minCoeff(), 0.2, 3e-3);

@@ -12,6 +12,25 @@
 
 using namespace simu::training;
 
+namespace {
+
+// Rank 0's side of a lost peer: one all-reduce that rank 1 joins, then one it does not. Returns the
+// second one's error (with " (too late)" when it took 10 s or more), or "no error".
+std::string error_after_peer_left(Communicator& comm) {
+  std::vector<torch::Tensor> ts{torch::ones({2})};
+  comm.all_reduce_mean(ts);  // rank 1 joins this one
+  const auto t0 = std::chrono::steady_clock::now();
+  try {
+    comm.all_reduce_mean(ts);  // rank 1 is gone
+    return std::string("no error");
+  } catch (const simu::Error& e) {
+    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    return std::string(e.what()) + (s < 10 ? "" : " (too late)");
+  }
+}
+
+}  // namespace
+
 // Two ranks (threads) average their tensors; metrics sums agree.
 TEST(Distributed, StoreAllReduceAveragesAcrossRanks) {
   const int port = free_port();
@@ -49,16 +68,7 @@ TEST(Distributed, DeadRankIsNamedWithinTimeout) {
     env.master_port = port;
     auto store = connect_store(env, std::chrono::seconds(20));
     auto comm = make_store_communicator(store, 0, 2, std::chrono::milliseconds(1500));
-    std::vector<torch::Tensor> ts{torch::ones({2})};
-    comm->all_reduce_mean(ts);  // rank 1 joins this one
-    const auto t0 = std::chrono::steady_clock::now();
-    try {
-      comm->all_reduce_mean(ts);  // rank 1 is gone
-      return std::string("no error");
-    } catch (const simu::Error& e) {
-      const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      return std::string(e.what()) + (s < 10 ? "" : " (too late)");
-    }
+    return error_after_peer_left(*comm);
   });
   {
     DistEnv env;
@@ -169,16 +179,7 @@ TEST(Distributed, GlooDeadRankIsNamedWithinTimeout) {
   const int port = free_port();
   auto survivor = std::async(std::launch::async, [port] {
     auto comm = cpu_rank(0, port, std::chrono::milliseconds(2000));
-    std::vector<torch::Tensor> ts{torch::ones({2})};
-    comm->all_reduce_mean(ts);  // rank 1 joins this one
-    const auto t0 = std::chrono::steady_clock::now();
-    try {
-      comm->all_reduce_mean(ts);  // rank 1 is gone
-      return std::string("no error");
-    } catch (const simu::Error& e) {
-      const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      return std::string(e.what()) + (s < 10 ? "" : " (too late)");
-    }
+    return error_after_peer_left(*comm);
   });
   {
     auto comm = cpu_rank(1, port, std::chrono::seconds(5));

@@ -1,0 +1,206 @@
+// Reading a pair cache: PairCacheReader, the dataset description and the full validation scan
+// (pair_cache.h).
+#include <fmt/ranges.h>
+
+#include <algorithm>
+#include <filesystem>
+
+#include "common/error.h"
+#include "data/pair_cache_layout.h"
+
+namespace simu::data {
+
+namespace stdfs = std::filesystem;
+using namespace h5;
+using namespace layout;
+
+struct PairCacheReader::Impl {
+  CacheHandles h;
+  ~Impl() { h.close(); }
+};
+
+PairCacheReader PairCacheReader::open(const std::string& path) {
+  PairCacheReader r;
+  r.impl_ = std::make_shared<Impl>();
+  if (!stdfs::exists(path)) fail("pair cache '{}' does not exist", path);
+  preflight(path);
+  open_cache(r.impl_->h, path, /*writable=*/false);
+  return r;
+}
+
+const CacheInfo& PairCacheReader::info() const { return impl_->h.info; }
+int64_t PairCacheReader::size() const { return impl_->h.info.size; }
+const std::string& PairCacheReader::path() const { return impl_->h.info.path; }
+
+PairRecord PairCacheReader::read(int64_t i) const {
+  const auto& h = impl_->h;
+  const auto& path = h.info.path;
+  if (i < 0 || i >= h.info.size) fail("pair cache '{}': record {} out of range (size {})", path, i, h.info.size);
+  PairRecord r;
+  r.index = i;
+  H5Lock lock;
+  r.latent_pos = read_float_rows(h.latent_pos.get(), h.info.latent_dtype, i, 1, path, "latent_pos")[0];
+  r.latent_neg = read_float_rows(h.latent_neg.get(), h.info.latent_dtype, i, 1, path, "latent_neg")[0];
+  auto cond = read_float_rows(h.cond.get(), h.info.cond_dtype, i, 1, path, "cond")[0];
+  int32_t len = 0;
+  read_rows(h.cond_len.get(), H5T_NATIVE_INT32, i, 1, &len, path, "cond_len");
+  if (len < 1 || len > h.info.cond_shape[0])
+    fail("pair cache '{}': record {}: dataset 'cond_len' holds {}, expected 1..{}", path, i, len, h.info.cond_shape[0]);
+  r.cond = cond.narrow(0, 0, len);
+  uint8_t kind = 0;
+  read_rows(h.kind.get(), H5T_NATIVE_UINT8, i, 1, &kind, path, "kind");
+  if (kind > 1) fail("pair cache '{}': record {}: dataset 'kind' holds {}, expected 0 or 1", path, i, kind);
+  r.kind = static_cast<PairKind>(kind);
+  read_rows(h.weight.get(), H5T_NATIVE_FLOAT, i, 1, &r.weight, path, "weight");
+  r.id = read_strings(h.id.get(), i, 1, path, "id")[0];
+  // Non-finite values would poison training: refuse them here, naming the record.
+  const std::pair<const torch::Tensor*, const char*> checks[] = {
+      {&r.latent_pos, "latent_pos"}, {&r.latent_neg, "latent_neg"}, {&r.cond, "cond"}};
+  for (const auto& [t, name] : checks)
+    if (first_nonfinite_row(t->contiguous(), 1) >= 0)
+      fail("pair cache '{}': record {} (id '{}'): dataset '{}' holds NaN or Inf", path, i, r.id, name);
+  if (!std::isfinite(r.weight) || r.weight < 0)
+    fail("pair cache '{}': record {} (id '{}'): dataset 'weight' holds {}, expected finite >= 0", path, i, r.id,
+         r.weight);
+  return r;
+}
+
+std::vector<std::string> PairCacheReader::ids() const {
+  H5Lock lock;
+  return read_strings(impl_->h.id.get(), 0, size(), path(), "id");
+}
+
+torch::Tensor PairCacheReader::kinds() const {
+  auto t = torch::empty({size()}, torch::kUInt8);
+  H5Lock lock;
+  if (size() > 0) read_rows(impl_->h.kind.get(), H5T_NATIVE_UINT8, 0, size(), t.data_ptr(), path(), "kind");
+  return t;
+}
+
+torch::Tensor PairCacheReader::weights() const {
+  auto t = torch::empty({size()}, torch::kFloat32);
+  H5Lock lock;
+  if (size() > 0) read_rows(impl_->h.weight.get(), H5T_NATIVE_FLOAT, 0, size(), t.data_ptr(), path(), "weight");
+  return t;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Dataset description and full validation.
+
+std::vector<DatasetInfo> describe_datasets(const std::string& path) {
+  H5Lock lock;
+  if (H5Fis_hdf5(path.c_str()) <= 0) fail("pair cache '{}' is not a readable HDF5 file", path);
+  H5Id file(check_id(H5Fopen(path.c_str(), H5F_ACC_RDONLY, reader_fapl().get()), path, "open"));
+  // Names of the root's members.
+  std::vector<std::string> names;
+  H5Literate(
+      file.get(), H5_INDEX_NAME, H5_ITER_INC, nullptr,
+      [](hid_t, const char* name, const H5L_info_t*, void* data) -> herr_t {
+        static_cast<std::vector<std::string>*>(data)->emplace_back(name);
+        return 0;
+      },
+      &names);
+  std::vector<DatasetInfo> out;
+  for (const auto& name : names) {
+    H5O_info_t oi;
+    if (H5Oget_info_by_name(file.get(), name.c_str(), &oi, H5P_DEFAULT) < 0 || oi.type != H5O_TYPE_DATASET) continue;
+    H5Id d(check_id(H5Dopen2(file.get(), name.c_str(), H5P_DEFAULT), path, "open dataset " + name));
+    DatasetInfo di;
+    di.name = name;
+    H5Id t(H5Dget_type(d.get()));
+    di.dtype = type_name(t.get());
+    di.shape = dataset_dims(d.get());
+    H5Id dcpl(H5Dget_create_plist(d.get()));
+    if (H5Pget_layout(dcpl.get()) == H5D_CHUNKED) {
+      std::vector<hsize_t> c(di.shape.size());
+      H5Pget_chunk(dcpl.get(), static_cast<int>(c.size()), c.data());
+      di.chunk.assign(c.begin(), c.end());
+    }
+    const int nf = H5Pget_nfilters(dcpl.get());
+    for (int k = 0; k < nf; ++k) {
+      unsigned flags = 0, cd[8];
+      size_t ncd = 8;
+      char fname[64] = {0};
+      const H5Z_filter_t fid = H5Pget_filter2(dcpl.get(), k, &flags, &ncd, cd, sizeof fname, fname, nullptr);
+      if (fid == H5Z_FILTER_DEFLATE)
+        di.filters.push_back(fmt::format("gzip({})", ncd > 0 ? cd[0] : 0));
+      else if (fid == H5Z_FILTER_SHUFFLE)
+        di.filters.push_back("shuffle");
+      else
+        di.filters.push_back(fname[0] ? std::string(fname) : fmt::format("filter-{}", fid));
+    }
+    out.push_back(std::move(di));
+  }
+  return out;
+}
+
+namespace {
+CacheInfo validate_in_process(const std::string& path, const std::function<void(int64_t, int64_t)>& progress);
+}  // namespace
+
+CacheInfo validate_cache(const std::string& path, const std::function<void(int64_t, int64_t)>& progress) {
+  if (!stdfs::exists(path)) fail("pair cache '{}' does not exist", path);
+  // The full scan runs in a child process (a corrupt file cannot crash the caller, see isolated());
+  // the info then comes from a structure read in this process.
+  isolated(path, "records", [&](const std::function<void(int64_t, int64_t)>& report) {
+    (void)validate_in_process(path, report);
+  }, progress);
+  CacheHandles h;
+  open_cache(h, path, /*writable=*/false);
+  return h.info;
+}
+
+namespace {
+CacheInfo validate_in_process(const std::string& path, const std::function<void(int64_t, int64_t)>& progress) {
+  // Structure: attributes, datasets, dtypes, shapes, kinds (open_cache checks them all).
+  CacheHandles h;
+  open_cache(h, path, /*writable=*/false);
+  const auto& info = h.info;
+  const int64_t n = info.size;
+  const int64_t max_len = info.cond_shape[0];
+  H5Lock lock;
+  // Ids: non-empty and unique.
+  const auto ids = read_strings(h.id.get(), 0, n, path, "id");
+  std::map<std::string, int64_t> seen;
+  for (int64_t i = 0; i < n; ++i) {
+    if (ids[i].empty()) fail("pair cache '{}': record {}: dataset 'id' holds an empty id", path, i);
+    auto [it, fresh] = seen.emplace(ids[i], i);
+    if (!fresh) fail("pair cache '{}': record {}: id '{}' repeats record {}", path, i, ids[i], it->second);
+  }
+  // Per-pair scalars: weight finite and >= 0, cond_len in 1..L.
+  if (n > 0) {
+    std::vector<float> w(n);
+    std::vector<int32_t> len(n);
+    read_rows(h.weight.get(), H5T_NATIVE_FLOAT, 0, n, w.data(), path, "weight");
+    read_rows(h.cond_len.get(), H5T_NATIVE_INT32, 0, n, len.data(), path, "cond_len");
+    for (int64_t i = 0; i < n; ++i) {
+      if (!std::isfinite(w[i]) || w[i] < 0)
+        fail("pair cache '{}': record {} (id '{}'): dataset 'weight' holds {}, expected finite >= 0", path, i, ids[i], w[i]);
+      if (len[i] < 1 || len[i] > max_len)
+        fail("pair cache '{}': record {} (id '{}'): dataset 'cond_len' holds {}, expected 1..{}", path, i, ids[i], len[i],
+             max_len);
+    }
+  }
+  // Large datasets in blocks of records: every value decodes and is finite.
+  constexpr int64_t kBlock = 32;
+  if (progress) progress(0, n);
+  for (int64_t start = 0; start < n; start += kBlock) {
+    const int64_t count = std::min(kBlock, n - start);
+    const std::pair<hid_t, const char*> sets[] = {
+        {h.latent_pos.get(), "latent_pos"}, {h.latent_neg.get(), "latent_neg"}, {h.cond.get(), "cond"}};
+    for (const auto& [dset, name] : sets) {
+      const auto& dt = std::string(name) == "cond" ? info.cond_dtype : info.latent_dtype;
+      auto t = read_float_rows(dset, dt, start, count, path, name);  // [count, ...]
+      const int64_t row = first_nonfinite_row(t, count);
+      if (row >= 0) {
+        const int64_t bad = start + row;
+        fail("pair cache '{}': record {} (id '{}'): dataset '{}' holds NaN or Inf", path, bad, ids[bad], name);
+      }
+    }
+    if (progress) progress(start + count, n);
+  }
+  return info;
+}
+}  // namespace
+
+}  // namespace simu::data
