@@ -23,25 +23,6 @@ using detail::attention;
 using detail::inference_only_ok;
 using detail::register_dict;
 
-// ---------------------------------------------------------------------------------------------
-// Autocast
-
-Bf16Autocast::Bf16Autocast(bool enable) : enabled_(enable) {
-  if (!enabled_) return;
-  prev_enabled_ = at::autocast::is_autocast_enabled(at::kCUDA);
-  prev_dtype_ = at::autocast::get_autocast_dtype(at::kCUDA);
-  at::autocast::set_autocast_enabled(at::kCUDA, true);
-  at::autocast::set_autocast_dtype(at::kCUDA, at::kBFloat16);
-  at::autocast::increment_nesting();
-}
-
-Bf16Autocast::~Bf16Autocast() {
-  if (!enabled_) return;
-  if (at::autocast::decrement_nesting() == 0) at::autocast::clear_cache();
-  at::autocast::set_autocast_enabled(at::kCUDA, prev_enabled_);
-  at::autocast::set_autocast_dtype(at::kCUDA, prev_dtype_);
-}
-
 MOTBlockImpl::MOTBlockImpl(const FlowModelConfig& c) : share_mod(c.share_mod) {
   const auto names = c.stream_names();
   const int64_t C = c.model_channels;

@@ -19,7 +19,7 @@
 // simu::models::Linear (LoRA attaches there).
 //
 // Numerics: written so that the same ops run in fp32 on CPU (reference) and under CUDA bf16 autocast
-// (see Bf16Autocast): LayerNorms in fp32, the residual stream in fp32, projections in bf16,
+// (see models::Autocast in precision.h): LayerNorms in fp32, the residual stream in fp32, projections in bf16,
 // attention through at::scaled_dot_product_attention.
 #pragma once
 
@@ -88,20 +88,6 @@ struct FlowModelConfig {
   static FlowModelConfig from_official(const YAML::Node& backbone, const std::string& file = "");
   // From the project layout (configs/*.yaml `flow_model:` section); strict keys.
   static FlowModelConfig from(config::Reader& r);
-};
-
-// Enables CUDA bf16 autocast for its lifetime when `enable` (no-op otherwise); restores the state after.
-class Bf16Autocast {
- public:
-  explicit Bf16Autocast(bool enable);
-  ~Bf16Autocast();
-  Bf16Autocast(const Bf16Autocast&) = delete;
-  Bf16Autocast& operator=(const Bf16Autocast&) = delete;
-
- private:
-  bool enabled_ = false;
-  bool prev_enabled_ = false;
-  at::ScalarType prev_dtype_ = at::kBFloat16;
 };
 
 // Sinusoidal embedding of scalar times, then Linear-SiLU-Linear. t: [B] -> [B, C].

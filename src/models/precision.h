@@ -29,8 +29,7 @@ torch::ScalarType precision_dtype(Precision p);
 void check_precision(Precision p, const torch::Device& device, const std::string& what = "precision");
 
 // CUDA autocast with p's dtype for its lifetime (no-op when `enable` is false); restores the previous
-// state after. Generalises Bf16Autocast (which is Autocast(kBf16)). fp32 means IEEE float32: autocast
-// off inside the scope (also within an outer bf16/fp16 scope), and no TF32 in cuBLAS matmuls
+// state after; scopes nest. fp32 means IEEE float32: autocast off inside the scope (also within an outer bf16/fp16 scope), and no TF32 in cuBLAS matmuls
 // (at::NoTF32Guard) nor in cuDNN convolutions (PyTorch's default allows TF32 there, which put the
 // decoder 8e-4 away from the fp32 fixture on an H100).
 class Autocast {

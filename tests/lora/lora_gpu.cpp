@@ -5,6 +5,7 @@
 #include "data/safetensors.h"
 #include "lora/lora.h"
 #include "models/generator.h"
+#include "models/precision.h"
 #include "models/linear.h"
 #include "test_util.h"
 
@@ -20,7 +21,7 @@ torch::Tensor fm_loss_cuda(simu::models::Generator& gen, const std::map<std::str
   latents["shape"] = (1 - tb) * eps + tb * x;
   for (const auto& [k, v] : m)
     if (k.rfind("in.pose.", 0) == 0) latents[k.substr(8)] = v.to(dev);
-  simu::models::Bf16Autocast autocast(true);
+  simu::models::Autocast autocast(simu::models::Precision::kBf16);
   auto pred = gen->backbone()->forward(latents, t * 1000, m.at("in.cond").to(dev), torch::zeros_like(t));
   return (pred.at("shape").to(torch::kFloat32) - (x - eps)).pow(2).mean({1, 2});
 }
@@ -70,7 +71,7 @@ TEST(LoraGpu, FusedSumUnderAutocastMatchesDelta) {
   auto gy = torch::randn({2, 100, 768}, torch::TensorOptions().device(dev));
   // add_to (one product accumulating into the base output) vs base + delta, values and gradients.
   auto grads = [&](bool fused) {
-    simu::models::Bf16Autocast ac(true);
+    simu::models::Autocast ac(simu::models::Precision::kBf16);
     auto y = fused ? lin->forward(x) : torch::linear(x, lin->weight, lin->bias) + adapter->delta(x);
     EXPECT_EQ(y.scalar_type(), torch::kBFloat16);
     auto g = torch::autograd::grad({y}, {x, A->weight, B->weight}, {gy.to(torch::kBFloat16)});

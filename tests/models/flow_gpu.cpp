@@ -4,6 +4,7 @@
 
 #include "data/safetensors.h"
 #include "models/generator.h"
+#include "models/precision.h"
 #include "test_util.h"
 
 namespace {
@@ -36,7 +37,7 @@ TEST(FlowModelGpu, ForwardMatchesCpuReference) {
     auto y32 = gen->backbone()->forward(x, t, cond, d);
     simu::models::Latents y16;
     {
-      simu::models::Bf16Autocast ac(true);
+      simu::models::Autocast ac(simu::models::Precision::kBf16);
       y16 = gen->backbone()->forward(x, t, cond, d);
     }
     for (const auto& [k, v] : prefixed(io, "out.forward.", torch::kCPU)) {

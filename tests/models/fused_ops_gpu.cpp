@@ -161,7 +161,7 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   auto t = torch::full({1}, 400.0, torch::TensorOptions().device(dev));
   c10::optional<torch::Tensor> d = torch::zeros({1}, torch::TensorOptions().device(dev));
   torch::NoGradGuard ng;
-  simu::models::Bf16Autocast ac(true);
+  simu::models::Autocast ac(simu::models::Precision::kBf16);
   gen->backbone()->set_fused_kernels(false);
   const auto n0 = simu::models::fused::launch_count();
   auto want = gen->backbone()->forward(x, t, cond, d);
@@ -389,7 +389,7 @@ TEST(FusedOpsGpu, FlowTrainingKernelsMatchReferenceGradients) {
   c10::optional<torch::Tensor> d = torch::zeros({2}, torch::TensorOptions().device(dev));
   std::map<std::string, torch::Tensor> weights;
   for (const auto& [k, v] : x0) weights[k] = torch::randn(v.sizes(), rng).to(dev);
-  simu::models::Bf16Autocast ac(true);
+  simu::models::Autocast ac(simu::models::Precision::kBf16);
   // Forward + backward of sum(out * weights) with respect to the input latents.
   auto run = [&](bool fused, int64_t* launches) {
     backbone->set_fused_kernels(fused);

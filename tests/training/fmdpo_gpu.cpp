@@ -7,6 +7,7 @@
 
 #include "models/fused_ops.h"
 #include "models/generator.h"
+#include "models/precision.h"
 #include "flow_mid_config.h"
 #include "test_util.h"
 #include "training/fmdpo.h"
@@ -32,7 +33,7 @@ TEST(FmdpoGpu, PolicyAndReferenceShareOneArithmetic) {
   fin.cond = torch::randn({2, 77, gen->config().backbone.cond_channels}, rng).to(dev);
   fin.t = torch::tensor({0.3f, 0.8f}).to(dev);
   fin.w = torch::tensor({1.0f, 0.1f}).to(dev);
-  simu::models::Bf16Autocast ac(true);
+  simu::models::Autocast ac(simu::models::Precision::kBf16);
   const auto n0 = simu::models::fused::launch_count();
   auto terms = simu::training::fmdpo_terms(*policy, fin, 500.0, false);
   // Policy forward (graph) and reference forward (none): 3 blocks x 2 streams x 4 kernels each.
