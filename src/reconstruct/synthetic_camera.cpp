@@ -47,30 +47,10 @@ Mask CameraScene::mask_of_label(int value) const {
   return m;
 }
 
-CameraScene generate_camera_scene(const CameraSceneConfig& cfg, uint64_t seed, const std::string& name) {
-  CameraScene s;
-  physics::SyntheticConfig gc = cfg.generator;
-  gc.layout = "tabletop";
-  s.source = physics::generate_scene(gc, seed, name);
-  const auto& src = s.source;
-  const physics::Camera& cam = src.camera;
-  s.K = Pinhole{cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height};
-  s.R_world_cam = cam.R_world_cam;
-  s.t_world_cam = cam.t_world_cam;
-  const Mat3 Rcw = cam.R_world_cam.transpose();
-  auto to_cam = [&](const Vec3& p) { return Vec3(Rcw * (p - cam.t_world_cam)); };
-  std::mt19937_64 rng(seed * 0x2545F4914F6CDD1DULL + 77);
-  std::uniform_real_distribution<double> U(0, 1);
-  auto R = [&](double a, double b) { return a + (b - a) * U(rng); };
-  auto sign = [&]() { return U(rng) < 0.5 ? -1.0 : 1.0; };
+namespace {
 
-  // Room planes (world frame: y down, floor y = floor_y, back wall z = wall_z, left wall x = left_wall_x).
-  const double fy = src.floor.point.y(), wz = src.walls.at(0).point.z(), lx = cfg.left_wall_x, top = -1.5;
-  std::vector<physics::Mesh> world;
-  world.push_back(quad(Vec3(lx, fy, 0.2), Vec3(3, fy, 0.2), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // floor
-  world.push_back(quad(Vec3(lx, top, wz), Vec3(3, top, wz), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // back wall
-  world.push_back(quad(Vec3(lx, top, 0.2), Vec3(lx, top, wz), Vec3(lx, fy, wz), Vec3(lx, fy, 0.2)));  // left wall
-  // Objects: bases first.
+// The generator's bases (labelled "table") then its objects, with their ground-truth poses (world frame).
+void collect_objects(const physics::SyntheticScene& src, CameraScene& s) {
   for (const auto& b : src.bases) {
     CameraObject o;
     o.id = b.id;
@@ -95,8 +75,11 @@ CameraScene generate_camera_scene(const CameraSceneConfig& cfg, uint64_t seed, c
     o.gt_t = so.gt_t;
     s.objects.push_back(o);
   }
-  for (auto& o : s.objects) world.push_back(placed(physics::Mesh{o.canonical, o.faces}, o.gt_scale, o.gt_R, o.gt_t));
-  // Joint shaded render from the generator's camera (world frame).
+}
+
+// Joint shaded render of `world` from the camera: label image (0 = nothing, k + 1 = world[k]), Lambert-shaded
+// RGB with a fixed colour per label, depth and the camera-frame point map (NaN where nothing was hit).
+void render_photo(const physics::Camera& cam, const std::vector<physics::Mesh>& world, CameraScene& s) {
   std::vector<const physics::Mesh*> ptrs;
   for (auto& m : world) ptrs.push_back(&m);
   const physics::ShadedImage img = physics::render_shaded(cam, ptrs, 0.35);
@@ -121,6 +104,37 @@ CameraScene generate_camera_scene(const CameraSceneConfig& cfg, uint64_t seed, c
       const double z = s.depth[size_t(r) * W + c];
       if (std::isfinite(z)) s.points.p[size_t(r) * W + c] = Vec3((c - cam.cx) / cam.fx * z, (r - cam.cy) / cam.fy * z, z);
     }
+}
+
+}  // namespace
+
+CameraScene generate_camera_scene(const CameraSceneConfig& cfg, uint64_t seed, const std::string& name) {
+  CameraScene s;
+  physics::SyntheticConfig gc = cfg.generator;
+  gc.layout = "tabletop";
+  s.source = physics::generate_scene(gc, seed, name);
+  const auto& src = s.source;
+  const physics::Camera& cam = src.camera;
+  s.K = Pinhole{cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height};
+  s.R_world_cam = cam.R_world_cam;
+  s.t_world_cam = cam.t_world_cam;
+  const Mat3 Rcw = cam.R_world_cam.transpose();
+  auto to_cam = [&](const Vec3& p) { return Vec3(Rcw * (p - cam.t_world_cam)); };
+  std::mt19937_64 rng(seed * 0x2545F4914F6CDD1DULL + 77);
+  std::uniform_real_distribution<double> U(0, 1);
+  auto R = [&](double a, double b) { return a + (b - a) * U(rng); };
+  auto sign = [&]() { return U(rng) < 0.5 ? -1.0 : 1.0; };
+
+  // Room planes (world frame: y down, floor y = floor_y, back wall z = wall_z, left wall x = left_wall_x).
+  const double fy = src.floor.point.y(), wz = src.walls.at(0).point.z(), lx = cfg.left_wall_x, top = -1.5;
+  std::vector<physics::Mesh> world;
+  world.push_back(quad(Vec3(lx, fy, 0.2), Vec3(3, fy, 0.2), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // floor
+  world.push_back(quad(Vec3(lx, top, wz), Vec3(3, top, wz), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // back wall
+  world.push_back(quad(Vec3(lx, top, 0.2), Vec3(lx, top, wz), Vec3(lx, fy, wz), Vec3(lx, fy, 0.2)));  // left wall
+  // Objects (bases first) and the photo.
+  collect_objects(src, s);
+  for (auto& o : s.objects) world.push_back(placed(physics::Mesh{o.canonical, o.faces}, o.gt_scale, o.gt_R, o.gt_t));
+  render_photo(cam, world, s);
   // Ground truth in the camera frame.
   const Vec3 up_w(0, -1, 0);
   s.up = Rcw * up_w;

@@ -122,35 +122,21 @@ std::optional<PlaneFit> table_support_plane(const TabletopInput& in, const Table
   return f;
 }
 
-TabletopResult refine_tabletop(const TabletopInput& in, const TabletopConfig& cfg) {
-  TabletopResult res;
-  res.scale = in.scale;
-  res.R = in.R;
-  res.t = in.t;
-  std::string why;
-  auto support = table_support_plane(in, cfg, &why);
-  if (!support) {
-    res.message = fmt::format("table {}: {}", in.id, why);
-    return res;
-  }
-  res.support = *support;
-  const Vec3 nd = support->normal, pd = support->point;
-  // Placed, densified mesh.
-  Points C = in.canonical;
-  Faces F = in.faces;
-  densify(C, F, cfg.max_edge);
-  const Points W = place(C, in.scale, in.R, in.t);
-  // Mesh top plane from the vertices near the top along up.
+namespace {
+
+// The mesh's top plane: centroid of the vertices within the top band along up, normal from their
+// covariance (the up direction when they do not span a plane).
+PlaneFit mesh_top_plane(const Points& W, const Vec3& up, double top_band) {
   Eigen::VectorXd h(W.rows());
-  for (Eigen::Index i = 0; i < W.rows(); ++i) h[i] = in.up.dot(W.row(i).transpose());
+  for (Eigen::Index i = 0; i < W.rows(); ++i) h[i] = up.dot(W.row(i).transpose());
   const double hmax = h.maxCoeff(), hmin = h.minCoeff();
   std::vector<int64_t> top;
   for (Eigen::Index i = 0; i < W.rows(); ++i)
-    if (h[i] >= hmax - cfg.top_band * (hmax - hmin)) top.push_back(i);
+    if (h[i] >= hmax - top_band * (hmax - hmin)) top.push_back(i);
   Vec3 pm = Vec3::Zero();
   for (int64_t i : top) pm += W.row(i).transpose();
   pm /= double(top.size());
-  Vec3 nm = in.up;
+  Vec3 nm = up;
   if (top.size() >= 3) {
     Mat3 Cv = Mat3::Zero();
     for (int64_t i : top) {
@@ -159,32 +145,27 @@ TabletopResult refine_tabletop(const TabletopInput& in, const TabletopConfig& cf
     }
     Eigen::SelfAdjointEigenSolver<Mat3> es(Cv);
     if (es.eigenvalues()[1] > 1e-12) nm = es.eigenvectors().col(0).normalized();  // a planar top, not a line
-    if (nm.dot(in.up) < 0) nm = -nm;
+    if (nm.dot(up) < 0) nm = -nm;
   }
-  res.mesh_top.point = pm;
-  res.mesh_top.normal = nm;
-  // Eq. hard_snap.
-  const Mat3 Rs = rotation_between(nm, nd);
-  const Vec3 delta = ((pd - pm).dot(nd)) * nd;
-  res.snap = Similarity{1.0, Rs, pm - Rs * pm + delta};
-  const Points Ws = transform(W, res.snap);
-  const Vec3 c = res.snap.apply(pm);  // snapped top centre, on the plane
-  // Visible vertices at the snapped pose (once) and the observation.
-  const double diag = (Ws.colwise().maxCoeff() - Ws.colwise().minCoeff()).norm();
-  const std::vector<int64_t> vis = visible_vertices(Ws, F, in.K, cfg.visibility_tol * diag);
-  const Points Pobs = subsample(masked_points(*in.points, in.mask, "tabletop " + in.id), cfg.max_points);
-  if (vis.size() < 3 || Pobs.rows() < 3) {
-    res.message = fmt::format("table {}: insufficient plane support ({} visible vertices, {} depth points)", in.id,
-                              vis.size(), Pobs.rows());
-    return res;
-  }
-  Points Vh(Eigen::Index(vis.size()), 3);
-  for (size_t i = 0; i < vis.size(); ++i) Vh.row(Eigen::Index(i)) = Ws.row(vis[i]);
-  Vh = subsample(Vh, cfg.max_points);
-  const NearestNeighbors obs(Pobs), mesh(Vh);
-  Vec3 e1 = nd.unitOrthogonal(), e2 = nd.cross(e1);
-  // x = (theta, tx, ty, log s); T(x)(v) = c + s Rz(theta) (v - c) + tx e1 + ty e2.
-  auto loss = [&](const Eigen::Vector4d& x, Eigen::Vector4d* g) {
+  PlaneFit top_plane;
+  top_plane.point = pm;
+  top_plane.normal = nm;
+  return top_plane;
+}
+
+// Eq. table_refine: symmetric chamfer between the visible snapped vertices Vh and the observation, plus
+// the yaw / translation / log-scale regularisers. x = (theta, tx, ty, log s);
+// T(x)(v) = c + s Rz(theta) (v - c) + tx e1 + ty e2 with Rz about the support normal nd.
+struct TableRefineLoss {
+  const Points& Vh;      // [n, 3] visible snapped mesh vertices
+  const Points& Pobs;    // [k, 3] observed table points
+  const NearestNeighbors& obs;
+  const NearestNeighbors& mesh;
+  Vec3 nd, c, e1, e2;
+  const TabletopConfig& cfg;
+
+  // Returns (chamfer, regulariser); fills the gradient of chamfer + lambda * regulariser when g is given.
+  std::pair<double, double> operator()(const Eigen::Vector4d& x, Eigen::Vector4d* g) const {
     const Mat3 Rz = Eigen::AngleAxisd(x[0], nd).toRotationMatrix();
     const double s = std::exp(x[3]);
     const Vec3 off = x[1] * e1 + x[2] * e2;
@@ -230,7 +211,77 @@ TabletopResult refine_tabletop(const TabletopInput& in, const TabletopConfig& cf
       (*g)[3] += cfg.lambda * 2 * x[3] / (cfg.sigma0 * cfg.sigma0);
     }
     return std::make_pair(0.5 * (la / na + lb / nb), reg);
-  };
+  }
+};
+
+// The refinement's similarity composed after the snap, the top re-snapped onto the plane, and the object's
+// final pose written into res.
+void compose_refined_pose(const Eigen::Vector4d& x, const Points& W, const TableRefineLoss& L, const Vec3& pd,
+                          const TabletopInput& in, TabletopResult& res) {
+  const Vec3& nd = L.nd;
+  res.theta_deg = x[0] * 180 / kPi;
+  res.tx = x[1];
+  res.ty = x[2];
+  res.log_s = x[3];
+  const Mat3 Rz = Eigen::AngleAxisd(x[0], nd).toRotationMatrix();
+  const double s = std::exp(x[3]);
+  res.refine = Similarity{s, Rz, L.c - s * (Rz * L.c) + x[1] * L.e1 + x[2] * L.e2};
+  res.total = Similarity{s, Rz * res.snap.R, s * (Rz * res.snap.t) + res.refine.t};
+  // Re-snap the refined top onto the plane (the refinement keeps it there up to rounding).
+  const Points Wf = transform(W, res.total);
+  double top_h = -1e300;
+  for (Eigen::Index i = 0; i < Wf.rows(); ++i) top_h = std::max(top_h, nd.dot(Wf.row(i).transpose()));
+  const double gap = nd.dot(pd) - top_h;
+  res.total.t += gap * nd;
+  res.R = res.total.R * in.R;
+  res.scale = res.total.s * in.scale;
+  res.t = res.total.s * (res.total.R * in.t) + res.total.t;
+}
+
+}  // namespace
+
+TabletopResult refine_tabletop(const TabletopInput& in, const TabletopConfig& cfg) {
+  TabletopResult res;
+  res.scale = in.scale;
+  res.R = in.R;
+  res.t = in.t;
+  std::string why;
+  auto support = table_support_plane(in, cfg, &why);
+  if (!support) {
+    res.message = fmt::format("table {}: {}", in.id, why);
+    return res;
+  }
+  res.support = *support;
+  const Vec3 nd = support->normal, pd = support->point;
+  // Placed, densified mesh and its top plane.
+  Points C = in.canonical;
+  Faces F = in.faces;
+  densify(C, F, cfg.max_edge);
+  const Points W = place(C, in.scale, in.R, in.t);
+  res.mesh_top = mesh_top_plane(W, in.up, cfg.top_band);
+  const Vec3 pm = res.mesh_top.point, nm = res.mesh_top.normal;
+  // Eq. hard_snap.
+  const Mat3 Rs = rotation_between(nm, nd);
+  const Vec3 delta = ((pd - pm).dot(nd)) * nd;
+  res.snap = Similarity{1.0, Rs, pm - Rs * pm + delta};
+  const Points Ws = transform(W, res.snap);
+  const Vec3 c = res.snap.apply(pm);  // snapped top centre, on the plane
+  // Visible vertices at the snapped pose (once) and the observation.
+  const double diag = (Ws.colwise().maxCoeff() - Ws.colwise().minCoeff()).norm();
+  const std::vector<int64_t> vis = visible_vertices(Ws, F, in.K, cfg.visibility_tol * diag);
+  const Points Pobs = subsample(masked_points(*in.points, in.mask, "tabletop " + in.id), cfg.max_points);
+  if (vis.size() < 3 || Pobs.rows() < 3) {
+    res.message = fmt::format("table {}: insufficient plane support ({} visible vertices, {} depth points)", in.id,
+                              vis.size(), Pobs.rows());
+    return res;
+  }
+  Points Vh(Eigen::Index(vis.size()), 3);
+  for (size_t i = 0; i < vis.size(); ++i) Vh.row(Eigen::Index(i)) = Ws.row(vis[i]);
+  Vh = subsample(Vh, cfg.max_points);
+  const NearestNeighbors obs(Pobs), mesh(Vh);
+  const Vec3 e1 = nd.unitOrthogonal(), e2 = nd.cross(e1);
+  const TableRefineLoss loss{Vh, Pobs, obs, mesh, nd, c, e1, e2, cfg};
+  // Eq. table_refine by Adam from the snap (x = 0).
   Eigen::Vector4d x = Eigen::Vector4d::Zero();
   res.chamfer_before = loss(x, nullptr).first;
   Adam4 adam;
@@ -243,23 +294,7 @@ TabletopResult refine_tabletop(const TabletopInput& in, const TabletopConfig& cf
   }
   res.chamfer_after = loss(x, nullptr).first;
   if (!(res.chamfer_after <= res.chamfer_before)) x.setZero();  // never worse than the snap alone
-  res.theta_deg = x[0] * 180 / kPi;
-  res.tx = x[1];
-  res.ty = x[2];
-  res.log_s = x[3];
-  const Mat3 Rz = Eigen::AngleAxisd(x[0], nd).toRotationMatrix();
-  const double s = std::exp(x[3]);
-  res.refine = Similarity{s, Rz, c - s * (Rz * c) + x[1] * e1 + x[2] * e2};
-  res.total = Similarity{s, Rz * Rs, s * (Rz * res.snap.t) + res.refine.t};
-  // Re-snap the refined top onto the plane (the refinement keeps it there up to rounding).
-  const Points Wf = transform(W, res.total);
-  double top_h = -1e300;
-  for (Eigen::Index i = 0; i < Wf.rows(); ++i) top_h = std::max(top_h, nd.dot(Wf.row(i).transpose()));
-  const double gap = nd.dot(pd) - top_h;
-  res.total.t += gap * nd;
-  res.R = res.total.R * in.R;
-  res.scale = res.total.s * in.scale;
-  res.t = res.total.s * (res.total.R * in.t) + res.total.t;
+  compose_refined_pose(x, W, loss, pd, in, res);
   res.ok = true;
   return res;
 }

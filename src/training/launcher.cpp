@@ -46,130 +46,160 @@ bool process_stopped(pid_t pid) {
 }
 }  // namespace
 
+namespace {
+
+// The local ranks of one launch: their pids (-1 once reaped) and heartbeat files.
+struct LocalRanks {
+  int nproc = 0;
+  std::string beat_dir;
+  std::vector<pid_t> pids;
+  std::vector<std::string> beats;
+};
+
+// Forks and execs rank r of this program with torchrun's environment and its heartbeat file.
+pid_t start_rank(int r, const LocalRanks& lr, int port, const char* exe, const std::vector<std::string>& args) {
+  const int threads_per_rank = static_cast<int>(std::thread::hardware_concurrency()) / lr.nproc;
+  {
+    const int fd = ::open(lr.beats[r].c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    if (fd >= 0) ::close(fd);
+  }
+  const pid_t pid = ::fork();
+  SIMU_CHECK(pid >= 0, "fork failed: {}", std::strerror(errno));
+  if (pid != 0) return pid;
+  ::setenv("RANK", std::to_string(r).c_str(), 1);
+  ::setenv("LOCAL_RANK", std::to_string(r).c_str(), 1);
+  ::setenv("WORLD_SIZE", std::to_string(lr.nproc).c_str(), 1);
+  ::setenv("LOCAL_WORLD_SIZE", std::to_string(lr.nproc).c_str(), 1);
+  ::setenv("MASTER_ADDR", "127.0.0.1", 1);
+  ::setenv("MASTER_PORT", std::to_string(port).c_str(), 1);
+  ::setenv("NCCL_NVLS_ENABLE", "0", 1);
+  // Share the cores between the ranks (torchrun sets 1): N ranks each spinning up an intra-op pool
+  // as wide as the machine starve each other's launch threads.
+  if (!std::getenv("OMP_NUM_THREADS"))
+    ::setenv("OMP_NUM_THREADS", std::to_string(std::max(1, threads_per_rank)).c_str(), 1);
+  ::setenv("SIMU_HEARTBEAT_FILE", lr.beats[r].c_str(), 1);
+  std::vector<char*> argv;
+  argv.push_back(const_cast<char*>(exe));
+  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+  argv.push_back(nullptr);
+  ::execv(exe, argv.data());
+  std::fprintf(stderr, "error: rank %d: exec %s failed: %s\n", r, exe, std::strerror(errno));
+  ::_exit(127);
+}
+
+// Ends every rank still running: a stopped (SIGSTOPped, suspended) rank cannot act on SIGTERM, so it
+// gets SIGKILL at once; the others `sig`, then SIGKILL after 5 s.
+void stop_all(LocalRanks& lr, int sig) {
+  for (auto p : lr.pids)
+    if (p > 0) ::kill(p, process_stopped(p) ? SIGKILL : sig);
+  const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (std::chrono::steady_clock::now() < until) {
+    bool any = false;
+    for (auto& p : lr.pids) {
+      if (p <= 0) continue;
+      if (::waitpid(p, nullptr, WNOHANG) == p) p = -1; else any = true;
+    }
+    if (!any) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  for (auto& p : lr.pids)
+    if (p > 0) {
+      ::kill(p, SIGKILL);
+      ::waitpid(p, nullptr, 0);
+      p = -1;
+    }
+  simu::fs::remove_tree(lr.beat_dir);
+}
+
+// The ranks (other than `except`) that are stopped by a signal right now: they, not the rank that
+// reported a timeout waiting for them, are the cause.
+std::vector<int> stopped_ranks(const LocalRanks& lr, int except) {
+  std::vector<int> out;
+  for (int r = 0; r < lr.nproc; ++r)
+    if (r != except && lr.pids[r] > 0 && process_stopped(lr.pids[r])) out.push_back(r);
+  return out;
+}
+
+// Reaps the ranks that exited; returns how many. A failed rank stops all and throws naming it (or the
+// stopped rank it was waiting for).
+int reap_exited(LocalRanks& lr) {
+  int reaped = 0;
+  for (int r = 0; r < lr.nproc; ++r) {
+    if (lr.pids[r] <= 0) continue;
+    int status = 0;
+    if (::waitpid(lr.pids[r], &status, WNOHANG) != lr.pids[r]) continue;
+    lr.pids[r] = -1;
+    ++reaped;
+    if (WIFEXITED(status) && WEXITSTATUS(status) == 0) continue;
+    const std::string how = WIFSIGNALED(status) ? fmt::format("was killed by signal {} ({})", WTERMSIG(status), strsignal(WTERMSIG(status)))
+                                                : fmt::format("exited with status {}", WEXITSTATUS(status));
+    // A rank that failed waiting for a stopped one: name the stopped rank as the cause.
+    const auto stopped = stopped_ranks(lr, r);
+    stop_all(lr, SIGTERM);
+    if (!stopped.empty())
+      fail_hint("a stopped process (SIGSTOP, Ctrl-Z, a debugger) cannot take part in collectives",
+                "rank(s) {} stopped (hung) and rank {} {} waiting for it; all ranks stopped",
+                fmt::join(stopped, ", "), r, how);
+    fail("rank {} {}; the other ranks were stopped", r, how);
+  }
+  return reaped;
+}
+
+// A rank whose heartbeat file is older than hang_timeout: stop all and throw naming it.
+void check_heartbeats(LocalRanks& lr, std::chrono::seconds hang_timeout) {
+  const auto now = std::filesystem::file_time_type::clock::now();
+  for (int r = 0; r < lr.nproc; ++r) {
+    if (lr.pids[r] <= 0) continue;
+    std::error_code ec;
+    const auto t = std::filesystem::last_write_time(lr.beats[r], ec);
+    if (!ec && now - t > hang_timeout) {
+      const bool stopped = process_stopped(lr.pids[r]);
+      stop_all(lr, SIGTERM);
+      fail_hint("raise dist.hang_timeout_s if a step (or start-up) is legitimately this slow",
+                "rank {} made no progress for {} s ({}); all ranks stopped", r, hang_timeout.count(),
+                stopped ? "stopped by a signal" : "hung");
+    }
+  }
+}
+
+}  // namespace
+
 void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::chrono::seconds hang_timeout) {
   SIMU_CHECK(nproc >= 1, "--nproc-per-node must be >= 1, got {}", nproc);
   const int port = free_port();
-  const std::string beat_dir = fmt::format("{}/simu_launch_{}", std::filesystem::temp_directory_path().string(), ::getpid());
-  std::filesystem::create_directories(beat_dir);
+  LocalRanks lr;
+  lr.nproc = nproc;
+  lr.beat_dir = fmt::format("{}/simu_launch_{}", std::filesystem::temp_directory_path().string(), ::getpid());
+  std::filesystem::create_directories(lr.beat_dir);
   char exe[4096];
   const ssize_t n = ::readlink("/proc/self/exe", exe, sizeof(exe) - 1);
   SIMU_CHECK(n > 0, "cannot find this program's path (/proc/self/exe)");
   exe[n] = '\0';
-  std::vector<pid_t> pids(nproc, -1);
-  std::vector<std::string> beats(nproc);
-  const int threads_per_rank = static_cast<int>(std::thread::hardware_concurrency()) / nproc;
+  lr.pids.assign(nproc, -1);
+  lr.beats.resize(nproc);
   // Start the ranks.
   for (int r = 0; r < nproc; ++r) {
-    beats[r] = fmt::format("{}/rank{}", beat_dir, r);
-    {
-      const int fd = ::open(beats[r].c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-      if (fd >= 0) ::close(fd);
-    }
-    const pid_t pid = ::fork();
-    SIMU_CHECK(pid >= 0, "fork failed: {}", std::strerror(errno));
-    if (pid == 0) {
-      ::setenv("RANK", std::to_string(r).c_str(), 1);
-      ::setenv("LOCAL_RANK", std::to_string(r).c_str(), 1);
-      ::setenv("WORLD_SIZE", std::to_string(nproc).c_str(), 1);
-      ::setenv("LOCAL_WORLD_SIZE", std::to_string(nproc).c_str(), 1);
-      ::setenv("MASTER_ADDR", "127.0.0.1", 1);
-      ::setenv("MASTER_PORT", std::to_string(port).c_str(), 1);
-      ::setenv("NCCL_NVLS_ENABLE", "0", 1);
-      // Share the cores between the ranks (torchrun sets 1): N ranks each spinning up an intra-op pool
-      // as wide as the machine starve each other's launch threads.
-      if (!std::getenv("OMP_NUM_THREADS"))
-        ::setenv("OMP_NUM_THREADS", std::to_string(std::max(1, threads_per_rank)).c_str(), 1);
-      ::setenv("SIMU_HEARTBEAT_FILE", beats[r].c_str(), 1);
-      std::vector<char*> argv;
-      argv.push_back(exe);
-      for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-      argv.push_back(nullptr);
-      ::execv(exe, argv.data());
-      std::fprintf(stderr, "error: rank %d: exec %s failed: %s\n", r, exe, std::strerror(errno));
-      ::_exit(127);
-    }
-    pids[r] = pid;
+    lr.beats[r] = fmt::format("{}/rank{}", lr.beat_dir, r);
+    lr.pids[r] = start_rank(r, lr, port, exe, args);
   }
   simu::log::info("launched {} local ranks (MASTER_PORT {}, hang timeout {} s)", nproc, port, hang_timeout.count());
   struct sigaction sa {};
   sa.sa_handler = on_signal;
   ::sigaction(SIGINT, &sa, nullptr);
   ::sigaction(SIGTERM, &sa, nullptr);
-
-  // Ends every rank still running: a stopped (SIGSTOPped, suspended) rank cannot act on SIGTERM, so it
-  // gets SIGKILL at once; the others SIGTERM, then SIGKILL after 5 s.
-  auto stop_all = [&](int sig) {
-    for (auto p : pids)
-      if (p > 0) ::kill(p, process_stopped(p) ? SIGKILL : sig);
-    const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(5);
-    while (std::chrono::steady_clock::now() < until) {
-      bool any = false;
-      for (auto& p : pids) {
-        if (p <= 0) continue;
-        if (::waitpid(p, nullptr, WNOHANG) == p) p = -1; else any = true;
-      }
-      if (!any) break;
-      std::this_thread::sleep_for(std::chrono::milliseconds(20));
-    }
-    for (auto& p : pids)
-      if (p > 0) {
-        ::kill(p, SIGKILL);
-        ::waitpid(p, nullptr, 0);
-        p = -1;
-      }
-    simu::fs::remove_tree(beat_dir);
-  };
-  // The ranks (other than `except`) that are stopped by a signal right now: they, not the rank that
-  // reported a timeout waiting for them, are the cause.
-  auto stopped_ranks = [&](int except) {
-    std::vector<int> out;
-    for (int r = 0; r < nproc; ++r)
-      if (r != except && pids[r] > 0 && process_stopped(pids[r])) out.push_back(r);
-    return out;
-  };
-
   // Watch: exits, signals, heartbeats.
   int running = nproc;
   while (running > 0) {
     if (g_forward_signal) {
       const int sig = g_forward_signal;
-      stop_all(SIGTERM);
+      stop_all(lr, SIGTERM);
       fail("interrupted by signal {}; all ranks stopped", sig);
     }
-    for (int r = 0; r < nproc; ++r) {
-      if (pids[r] <= 0) continue;
-      int status = 0;
-      if (::waitpid(pids[r], &status, WNOHANG) != pids[r]) continue;
-      pids[r] = -1;
-      --running;
-      if (WIFEXITED(status) && WEXITSTATUS(status) == 0) continue;
-      const std::string how = WIFSIGNALED(status) ? fmt::format("was killed by signal {} ({})", WTERMSIG(status), strsignal(WTERMSIG(status)))
-                                                  : fmt::format("exited with status {}", WEXITSTATUS(status));
-      // A rank that failed waiting for a stopped one: name the stopped rank as the cause.
-      const auto stopped = stopped_ranks(r);
-      stop_all(SIGTERM);
-      if (!stopped.empty())
-        fail_hint("a stopped process (SIGSTOP, Ctrl-Z, a debugger) cannot take part in collectives",
-                  "rank(s) {} stopped (hung) and rank {} {} waiting for it; all ranks stopped",
-                  fmt::join(stopped, ", "), r, how);
-      fail("rank {} {}; the other ranks were stopped", r, how);
-    }
-    const auto now = std::filesystem::file_time_type::clock::now();
-    for (int r = 0; r < nproc; ++r) {
-      if (pids[r] <= 0) continue;
-      std::error_code ec;
-      const auto t = std::filesystem::last_write_time(beats[r], ec);
-      if (!ec && now - t > hang_timeout) {
-        const bool stopped = process_stopped(pids[r]);
-        stop_all(SIGTERM);
-        fail_hint("raise dist.hang_timeout_s if a step (or start-up) is legitimately this slow",
-                  "rank {} made no progress for {} s ({}); all ranks stopped", r, hang_timeout.count(),
-                  stopped ? "stopped by a signal" : "hung");
-      }
-    }
+    running -= reap_exited(lr);
+    check_heartbeats(lr, hang_timeout);
     std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
-  simu::fs::remove_tree(beat_dir);
+  simu::fs::remove_tree(lr.beat_dir);
 }
 
 }  // namespace simu::training
