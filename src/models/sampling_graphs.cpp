@@ -74,13 +74,9 @@ struct CaptureArgs {
   Latents* y;
 };
 
-// Host-synchronous capture (the earlier scheme): wait for the device, a discarded eager warm-up
-// forward on a side stream, wait again, capture, wait again.
-void capture_synchronous(CaptureArgs& a) {
-  a.main.synchronize();
-  const c10::cuda::CUDAStreamGuard stream_guard(a.side);
-  (void)a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
-  a.side.synchronize();
+// Records one backbone forward into a.graph (writing *a.y) on the current stream; the capture is ended
+// also when the forward throws.
+void record_forward(CaptureArgs& a) {
   a.graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
   try {
     *a.y = a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
@@ -92,6 +88,16 @@ void capture_synchronous(CaptureArgs& a) {
     throw;
   }
   a.graph->capture_end();
+}
+
+// Host-synchronous capture (the earlier scheme): wait for the device, a discarded eager warm-up
+// forward on a side stream, wait again, capture, wait again.
+void capture_synchronous(CaptureArgs& a) {
+  a.main.synchronize();
+  const c10::cuda::CUDAStreamGuard stream_guard(a.side);
+  (void)a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
+  a.side.synchronize();
+  record_forward(a);
   a.side.synchronize();
 }
 
@@ -107,17 +113,7 @@ Latents capture_overlapped(CaptureArgs& a) {
   {
     const c10::cuda::CUDAStreamGuard stream_guard(a.side);
     y_eager = a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
-    a.graph->capture_begin({0, 0}, cudaStreamCaptureModeThreadLocal);
-    try {
-      *a.y = a.backbone->forward(a.x, a.t, a.cond, a.d, a.cache);
-    } catch (...) {
-      try {
-        a.graph->capture_end();
-      } catch (...) {
-      }
-      throw;
-    }
-    a.graph->capture_end();
+    record_forward(a);
   }
   at::cuda::CUDAEvent warmup_done;
   warmup_done.record(a.side);

@@ -378,15 +378,26 @@ void place_hanging(SyntheticScene& s, double wall_z, const SyntheticConfig& cfg,
   }
 }
 
+}  // namespace
+
+LabelImage render_truth_labels(const SyntheticScene& s, std::vector<Mesh>* world) {
+  std::vector<Mesh> placed;
+  for (const auto& b : s.bases) placed.push_back(place(b.mesh, b.scale, b.R, b.t));
+  for (const auto& o : s.objects) placed.push_back(place(o.gt_mesh, o.gt_scale, o.gt_R, o.gt_t));
+  std::vector<const Mesh*> ptrs;
+  for (const auto& m : placed) ptrs.push_back(&m);
+  LabelImage img = render_labels(s.camera, ptrs);
+  if (world) *world = std::move(placed);
+  return img;
+}
+
+namespace {
+
 // Ground truth render: bases first, then objects; modal masks are the visible ground truth, with the
 // removed bottom hidden (as by an occluder) for BottomCut objects.
 void render_truth(SyntheticScene& s, const SyntheticConfig& cfg) {
   std::vector<Mesh> world;
-  for (const auto& b : s.bases) world.push_back(place(b.mesh, b.scale, b.R, b.t));
-  for (const auto& o : s.objects) world.push_back(place(o.gt_mesh, o.gt_scale, o.gt_R, o.gt_t));
-  std::vector<const Mesh*> ptrs;
-  for (const auto& m : world) ptrs.push_back(&m);
-  const LabelImage img = render_labels(s.camera, ptrs);
+  const LabelImage img = render_truth_labels(s, &world);
   for (size_t i = 0; i < s.objects.size(); ++i) {
     SyntheticObject& o = s.objects[i];
     const Mesh& wm = world[s.bases.size() + i];

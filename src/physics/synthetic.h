@@ -95,6 +95,10 @@ struct SyntheticScene {
 // Generates one scene (deterministic for a given config and seed).
 SyntheticScene generate_scene(const SyntheticConfig& config, uint64_t seed, const std::string& name);
 
+// The ground truth rendered from the scene's camera: bases first (labels 0..B-1), then the objects
+// (B..), each at its true pose. When `world` is given it receives the placed meshes in that order.
+LabelImage render_truth_labels(const SyntheticScene& s, std::vector<Mesh>* world = nullptr);
+
 // Builds the probe's input Scene (reconstructed poses; paths relative to dir as write_scene_dir
 // lays them out). Each object's `extra["synthetic"]` records the error, its magnitude, the expected
 // branch and the ground-truth pose/mesh.

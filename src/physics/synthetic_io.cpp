@@ -105,12 +105,7 @@ void write_scene_dir(const SyntheticScene& s, const std::string& dir_in) {
 #ifdef SIMU_HAVE_OPENCV
   // A flat-shaded picture of the ground truth (labels coloured, darker with depth) as the "image".
   {
-    std::vector<Mesh> world;
-    for (const auto& b : s.bases) world.push_back(place(b.mesh, b.scale, b.R, b.t));
-    for (const auto& o : s.objects) world.push_back(place(o.gt_mesh, o.gt_scale, o.gt_R, o.gt_t));
-    std::vector<const Mesh*> ptrs;
-    for (const auto& m : world) ptrs.push_back(&m);
-    const LabelImage img = render_labels(s.camera, ptrs);
+    const LabelImage img = render_truth_labels(s);
     cv::Mat rgb(s.camera.height, s.camera.width, CV_8UC3, cv::Scalar(200, 200, 200));
     for (int r = 0; r < img.height; ++r)
       for (int c = 0; c < img.width; ++c) {
