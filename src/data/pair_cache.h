@@ -12,6 +12,11 @@
 //   /kind        [N]        uint8             0 occlusion-completion, 1 clean-preservation
 //   /weight      [N]        float32           per-pair loss weight (default 1.0 / 0.1 by kind)
 //   /id          [N]        variable-length UTF-8 string, unique
+// cond_mode="inputs" stores the condition embedder's inputs instead of /cond and /cond_len (the six
+// official kwargs, see condition_input_names(); root attribute input_size=[S, P]):
+//   /image, /rgb_image            [N, 3, S, S]  float32 | float16 | uint8 (k/255)   chunk [1, 3, S, S]
+//   /mask, /rgb_image_mask        [N, 1, S, S]  uint8 (k/255, exact for 8-bit masks)
+//   /pointmap, /rgb_pointmap      [N, 3, P, P]  float32 | float16 (NaN = invalid point)
 //
 // Every HDF5 call of the toolkit runs under one process-wide mutex (hdf5_mutex()): Debian's libhdf5
 // is not built thread-safe. Errors are simu::Error naming the file and the dataset or record.
@@ -25,6 +30,7 @@
 #include <deque>
 #include <exception>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <set>
@@ -36,6 +42,24 @@ namespace simu::data {
 
 // The schema version this code writes and reads.
 constexpr int kPairCacheSchemaVersion = 1;
+
+// The condition inputs an inputs-mode cache stores, in dataset order: the condition embedder's
+// kwargs (models/cond_embedder.h) as data/preprocess.h prepare_condition_inputs makes them.
+const std::vector<std::string>& condition_input_names();
+
+// Storage of an inputs-mode cache. float32 keeps every value bit-exact (training on it equals
+// training on the tokens the same embedder made at build time); uint8 images (round(255 x), k/255
+// on read) and float16 point maps are about 2.5x smaller but not exact (images after the
+// preprocessing's bilinear resize are not multiples of 1/255). Masks are always uint8: exact for
+// masks read from 8-bit files (their values are k/255) and for binary ones.
+struct InputsLayout {
+  int64_t image_size = 518;     // S: image, rgb_image [3, S, S], mask, rgb_image_mask [1, S, S]
+  int64_t pointmap_size = 518;  // P: pointmap, rgb_pointmap [3, P, P]
+  torch::ScalarType image_dtype = torch::kFloat32;     // kFloat32, kFloat16 or kByte
+  torch::ScalarType pointmap_dtype = torch::kFloat32;  // kFloat32 or kFloat16
+  // "exact" = float32 images and point maps; "compact" = uint8 images, float16 point maps.
+  static InputsLayout storage_named(const std::string& name, int64_t image_size, int64_t pointmap_size);
+};
 
 enum class PairKind : uint8_t { OcclusionCompletion = 0, CleanPreservation = 1 };
 // "occlusion_completion" / "clean_preservation".
@@ -50,20 +74,27 @@ struct PairRecord {
   float weight = 1.0f;
   torch::Tensor latent_pos, latent_neg;  // [T, C] float32 CPU (preferred, rejected)
   torch::Tensor cond;                    // [l, Cc] float32 CPU (tokens mode), l = this pair's cond_len <= L
+  // Inputs mode: kwarg -> [ch, S, S] float32 CPU (condition_input_names(); [1, ch, S, S] accepted
+  // by the writer). Empty in tokens mode (and cond undefined in inputs mode).
+  std::map<std::string, torch::Tensor> inputs;
   int64_t index = -1;                    // record index in the file (set by the reader)
 };
 
 // What a cache holds (from its attributes and dataset shapes).
 struct CacheInfo {
   int schema_version = 0;
-  std::vector<int64_t> latent_shape, cond_shape;  // [T, C], [L, Cc]
-  std::string cond_mode;                          // "tokens" ("inputs" is reserved, see the doc)
+  std::vector<int64_t> latent_shape, cond_shape;  // [T, C], [L, Cc] (inputs mode: the embedder's tokens)
+  std::string cond_mode;                          // "tokens" or "inputs"
   std::string latent_dtype;                       // "float16" or "float32" (cond has the same dtype)
   int64_t size = 0;                               // number of pairs N
   int64_t counts[2] = {0, 0};                     // pairs per kind (index = PairKind value)
   std::string path;
   std::string created_by;
-  std::string cond_dtype;                         // "float16" or "float32"
+  std::string cond_dtype;                         // "float16" or "float32" (tokens mode)
+  // Inputs mode: input_size [S, P] and the storage dtypes ("uint8", "float16", "float32").
+  std::vector<int64_t> input_size;
+  std::string image_dtype, pointmap_dtype;
+  bool inputs_mode() const { return cond_mode == "inputs"; }
 };
 
 // Storage description of one dataset (for `pairs inspect`).
@@ -91,6 +122,11 @@ class PairCacheWriter {
   // dtype torch::kFloat16 or torch::kFloat32 (storage of latents and cond).
   PairCacheWriter(const std::string& path, std::vector<int64_t> latent_shape, std::vector<int64_t> cond_shape,
                   torch::ScalarType dtype, bool resume = false);
+  // Inputs mode: the condition is stored as the embedder's inputs (layout); cond_shape [L, Cc] is
+  // what the embedder makes of them (kept as an attribute so training can check its embedder);
+  // dtype is the latents' storage. Resuming needs the same shapes and storage.
+  PairCacheWriter(const std::string& path, std::vector<int64_t> latent_shape, std::vector<int64_t> cond_shape,
+                  torch::ScalarType dtype, const InputsLayout& layout, bool resume = false);
   PairCacheWriter(const PairCacheWriter&) = delete;
   PairCacheWriter& operator=(const PairCacheWriter&) = delete;
   ~PairCacheWriter();
@@ -99,6 +135,8 @@ class PairCacheWriter {
   bool contains(const std::string& id) const;
   // Appends one pair: latent_pos/neg [T, C], cond [l, Cc] with 1 <= l <= L (padded with zeros to L),
   // any float dtype, finite values, a non-empty id not yet present, weight finite and >= 0.
+  // Inputs mode: record.inputs instead of cond, each kwarg of condition_input_names() with its shape
+  // ([ch, S, S]); images and masks in [0, 1] (see check_condition_input), point maps without +-Inf.
   // Throws simu::Error naming the file and the id otherwise.
   void append(const PairRecord& record);
   // Number of pairs written so far (including resumed ones).
@@ -111,6 +149,10 @@ class PairCacheWriter {
   const std::string& temp_path() const { return tmp_path_; }
 
  private:
+  PairCacheWriter(const std::string& path, std::vector<int64_t> latent_shape, std::vector<int64_t> cond_shape,
+                  torch::ScalarType dtype, const InputsLayout* layout, bool resume);
+  void resume_from(const std::string& path);
+  void create_fresh();
   struct Impl;
   std::string path_, tmp_path_;
   std::unique_ptr<Impl> impl_;
@@ -141,9 +183,21 @@ class PairCacheReader {
 
 // Storage of every dataset in the file (name order).
 std::vector<DatasetInfo> describe_datasets(const std::string& path);
+// Bytes the datasets of a cache take on disk (after compression), per pair: the latents, the
+// condition (tokens or inputs) and the rest; file_bytes is the whole file's size.
+struct StorageBytes {
+  int64_t pairs = 0;
+  double latents = 0, condition = 0, other = 0, file_bytes = 0;
+};
+StorageBytes storage_bytes(const std::string& path);
+
+// Why one condition input [ch, S, S] (float32) is not acceptable, or "" when it is: images within
+// [-0.25, 1.25] (values in [0, 1] plus the resize's overshoot) and finite, masks in [0, 1], point
+// maps without +-Inf (NaN marks invalid points).
+std::string check_condition_input(const std::string& name, const torch::Tensor& value);
 
 // Full scan: structure as in open(), then every record decoded and checked: latents and cond finite,
-// cond_len in 1..L, kind 0 or 1, weight finite and >= 0, ids non-empty and unique. Returns the info;
+// cond_len in 1..L (inputs mode: every condition input decoded and checked by check_condition_input), kind 0 or 1, weight finite and >= 0, ids non-empty and unique. Returns the info;
 // throws simu::Error naming the file and the record index (and dataset) at the first problem.
 // progress(done, total) is called now and then when given.
 CacheInfo validate_cache(const std::string& path,
@@ -159,6 +213,15 @@ void make_synthetic_cache(const std::string& path, int64_t n, std::vector<int64_
                           std::vector<int64_t> cond_shape, uint64_t seed, torch::ScalarType dtype,
                           const std::function<void(int64_t, int64_t)>& progress = nullptr,
                           int64_t cond_len_min = 0);
+
+// Inputs-mode synthetic cache: latents and kinds as make_synthetic_cache; the condition inputs are
+// examples[i % examples.size()] (kwarg -> [ch, S, S] or [1, ch, S, S], e.g. preprocessed images) or,
+// without examples, smooth random images in [0, 1], box masks and a plane-like point map.
+void make_synthetic_inputs_cache(const std::string& path, int64_t n, std::vector<int64_t> latent_shape,
+                                 std::vector<int64_t> cond_shape, const InputsLayout& layout, uint64_t seed,
+                                 torch::ScalarType dtype,
+                                 const std::vector<std::map<std::string, torch::Tensor>>& examples = {},
+                                 const std::function<void(int64_t, int64_t)>& progress = nullptr);
 
 // Position of a stream: the next global batch to produce is batch `step` of epoch `epoch`.
 struct StreamPosition {
@@ -225,7 +288,8 @@ struct PairBatch {
   torch::Tensor kind;                    // [B] uint8
   std::vector<std::string> ids;
 };
-// Stacks records (Lmax = the longest cond among them). Throws on an empty list or mismatched shapes.
+// Stacks records (Lmax = the longest cond among them). Throws on an empty list or mismatched shapes,
+// and for inputs-mode records (their condition is made by the embedder at training time).
 PairBatch collate(const std::vector<PairRecord>& records);
 
 }  // namespace simu::data

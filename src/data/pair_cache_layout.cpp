@@ -23,8 +23,6 @@ namespace layout {
 namespace stdfs = std::filesystem;
 using namespace h5;
 
-namespace {
-
 // Opens a dataset that must exist, naming the file if it does not.
 H5Id open_dataset(hid_t file, const char* name, const std::string& path) {
   if (H5Lexists(file, name, H5P_DEFAULT) <= 0)
@@ -46,6 +44,8 @@ std::string check_dataset(hid_t dset, const char* name, const std::vector<std::s
          fmt::join(shape, ", "));
   return dt;
 }
+
+namespace {
 
 torch::ScalarType torch_type(const std::string& dtype) {
   return dtype == "float16" ? torch::kFloat16 : torch::kFloat32;
@@ -81,14 +81,16 @@ void read_root_attributes(hid_t root, const std::string& path, CacheInfo& info) 
   if (info.latent_shape.size() != 2 || info.latent_shape[0] <= 0 || info.latent_shape[1] <= 0)
     fail("pair cache '{}': attribute latent_shape is [{}], expected [T, C] with T, C > 0", path,
          fmt::join(info.latent_shape, ", "));
-  if (info.cond_mode == "inputs")
-    fail_hint("write condition tokens (cond_mode tokens) for now",
-              "pair cache '{}': cond_mode 'inputs' is reserved in schema 1 but not implemented yet", path);
-  if (info.cond_mode != "tokens")
-    fail("pair cache '{}': attribute cond_mode is '{}', expected 'tokens'", path, info.cond_mode);
+  if (info.cond_mode != "tokens" && info.cond_mode != "inputs")
+    fail("pair cache '{}': attribute cond_mode is '{}', expected 'tokens' or 'inputs'", path, info.cond_mode);
   if (info.cond_shape.size() != 2 || info.cond_shape[0] <= 0 || info.cond_shape[1] <= 0)
     fail("pair cache '{}': attribute cond_shape is [{}], expected [L, Cc] with L, Cc > 0", path,
          fmt::join(info.cond_shape, ", "));
+  if (!info.inputs_mode()) return;
+  info.input_size = read_attr_ints(root, "input_size", path);
+  if (info.input_size.size() != 2 || info.input_size[0] <= 0 || info.input_size[1] <= 0)
+    fail("pair cache '{}': attribute input_size is [{}], expected [S, P] with S, P > 0 (cond_mode inputs)", path,
+         fmt::join(info.input_size, ", "));
 }
 
 // Sizes from the file's header are checked against the file's length before anything is allocated
@@ -102,8 +104,14 @@ void check_sizes_fit_file(const std::string& path, const CacheInfo& info, int64_
               "pair cache '{}': dataset 'latent_pos' declares {} records, more than a file of {} bytes can hold",
               path, n, file_bytes);
   const uint64_t limit = std::max<uint64_t>(uint64_t{1} << 20, kMaxExpansion * (ec ? 0 : file_bytes));
+  // Inputs mode: a record's largest inputs are [3, S, S] and [3, P, P] (the tokens are not stored).
+  const std::vector<int64_t> image_rec = info.inputs_mode() ? std::vector<int64_t>{3, info.input_size[0], info.input_size[0]}
+                                                             : info.cond_shape;
+  const std::vector<int64_t> point_rec = info.inputs_mode() ? std::vector<int64_t>{3, info.input_size[1], info.input_size[1]}
+                                                             : info.cond_shape;
   for (const auto& [shape, what] : {std::pair<const std::vector<int64_t>*, const char*>{&info.latent_shape, "latent_shape"},
-                                    {&info.cond_shape, "cond_shape"}}) {
+                                    {&image_rec, info.inputs_mode() ? "input_size" : "cond_shape"},
+                                    {&point_rec, info.inputs_mode() ? "input_size" : "cond_shape"}}) {
     unsigned __int128 bytes = 4;
     for (auto d : *shape) bytes = std::min<unsigned __int128>(bytes * static_cast<uint64_t>(d), UINT64_MAX);
     if (bytes > limit)
@@ -122,8 +130,10 @@ void check_datasets(CacheHandles& h, const std::string& path, int64_t n) {
   info.latent_dtype = check_dataset(h.latent_pos.get(), "latent_pos", {"float16", "float32"}, lat, path);
   const auto neg_dt = check_dataset(h.latent_neg.get(), "latent_neg", {info.latent_dtype}, lat, path);
   (void)neg_dt;
-  info.cond_dtype = check_dataset(h.cond.get(), "cond", {"float16", "float32"}, cnd, path);
-  check_dataset(h.cond_len.get(), "cond_len", {"int32"}, {n}, path);
+  if (!info.inputs_mode()) {
+    info.cond_dtype = check_dataset(h.cond.get(), "cond", {"float16", "float32"}, cnd, path);
+    check_dataset(h.cond_len.get(), "cond_len", {"int32"}, {n}, path);
+  }
   check_dataset(h.kind.get(), "kind", {"uint8"}, {n}, path);
   check_dataset(h.weight.get(), "weight", {"float32"}, {n}, path);
   {
@@ -180,8 +190,10 @@ void open_cache(CacheHandles& h, const std::string& path, bool writable) {
   // Datasets: presence first (so a missing one is named), then dtypes and shapes.
   h.latent_pos = open_dataset(root, "latent_pos", path);
   h.latent_neg = open_dataset(root, "latent_neg", path);
-  h.cond = open_dataset(root, "cond", path);
-  h.cond_len = open_dataset(root, "cond_len", path);
+  if (!info.inputs_mode()) {
+    h.cond = open_dataset(root, "cond", path);
+    h.cond_len = open_dataset(root, "cond_len", path);
+  }
   h.kind = open_dataset(root, "kind", path);
   h.weight = open_dataset(root, "weight", path);
   h.id = open_dataset(root, "id", path);
@@ -192,6 +204,7 @@ void open_cache(CacheHandles& h, const std::string& path, bool writable) {
   const int64_t n = pos_dims[0];
   info.size = n;
   check_sizes_fit_file(path, info, n);
+  if (info.inputs_mode()) open_input_datasets(h, path, n);
   check_datasets(h, path, n);
 }
 

@@ -1,8 +1,8 @@
 // The pair cache's on-disk layout (internal to src/data/pair_cache*.cpp and pair_stream.cpp): the
 // constants of schema 1, the open datasets of a file with its CacheInfo, the structure checks shared
 // by the reader and the writer's resume, and float record decoding (pair_cache_layout.cpp).
-// A new cond_mode ("inputs") enters here (open_cache's checks, the datasets of CacheHandles) and in
-// the writer and reader that use them.
+// Both cond_modes enter here: "tokens" (cond, cond_len) and "inputs" (the six condition-input
+// datasets of condition_input_names(), pair_cache_inputs.cpp).
 #pragma once
 
 #include <string>
@@ -23,17 +23,55 @@ constexpr uint64_t kMaxExpansion = 1100;
 // Open datasets of a cache and its info; ids are closed under the HDF5 lock by the owner.
 struct CacheHandles {
   h5::H5Id file;
-  h5::H5Id latent_pos, latent_neg, cond, cond_len, kind, weight, id;
+  h5::H5Id latent_pos, latent_neg, cond, cond_len, kind, weight, id;  // cond, cond_len: tokens mode
+  h5::H5Id inputs[6];  // inputs mode: the datasets of condition_input_names(), in that order
   CacheInfo info;
   bool half = false;  // latents/cond stored as float16
 
   ~CacheHandles() { close(); }
+  // Every open dataset (those of the file's mode).
+  std::vector<h5::H5Id*> datasets() {
+    std::vector<h5::H5Id*> out{&latent_pos, &latent_neg, &kind, &weight, &id};
+    if (info.inputs_mode())
+      for (auto& d : inputs) out.push_back(&d);
+    else
+      out.insert(out.end(), {&cond, &cond_len});
+    return out;
+  }
   void close() {
     std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
     for (h5::H5Id* d : {&latent_pos, &latent_neg, &cond, &cond_len, &kind, &weight, &id}) d->reset();
+    for (auto& d : inputs) d.reset();
     file.reset();
   }
 };
+
+// Inputs mode (pair_cache_inputs.cpp). Channels of condition input k (3 or 1) and its side (S or P).
+int64_t input_channels(size_t k);
+int64_t input_side(size_t k, const CacheInfo& info);
+bool is_mask_input(size_t k);
+bool is_pointmap_input(size_t k);
+// The float32 value of mask/image level q (0..255) as the preprocessing's 8-bit reader makes it:
+// float(q) * float(1/255), rounded once (OpenCV's convertTo scale). kLevels[255] == 1.0f.
+float u8_level(uint8_t q);
+// Opens and checks the six datasets of an inputs-mode file (N records) into h.inputs, fills
+// info.image_dtype / pointmap_dtype.
+void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n);
+// Rows [start, start+count) of condition input k decoded to float32 [count, ch, s, s].
+torch::Tensor read_input_rows(const CacheHandles& h, size_t k, int64_t start, int64_t count);
+// Creates the six empty extendible datasets of a fresh inputs-mode file.
+void create_input_datasets(CacheHandles& h, const InputsLayout& layout, const std::string& path);
+// One record's input k in the dataset's storage dtype (contiguous CPU [ch, s, s]); throws naming
+// the file, pair id and dataset when it has the wrong shape or values the storage cannot hold.
+torch::Tensor encode_input(size_t k, const torch::Tensor& value, const CacheInfo& info, const std::string& path,
+                           const std::string& id);
+// HDF5 memory type of a storage dtype name ("uint8", "float16", "float32").
+h5::H5Id storage_mem_type(const std::string& dtype);
+// Checks a dataset's dtype name (one of dtypes) and shape; returns the dtype name.
+std::string check_dataset(hid_t dset, const char* name, const std::vector<std::string>& dtypes,
+                          const std::vector<int64_t>& shape, const std::string& path);
+// Opens a dataset that must exist, naming the file if it does not.
+h5::H5Id open_dataset(hid_t file, const char* name, const std::string& path);
 
 // File access properties of every read-only open. Readers skip HDF5's flock: many ranks read one
 // file, often on network file systems where flock fails, and writers never modify a file in place

@@ -41,12 +41,17 @@ PairRecord PairCacheReader::read(int64_t i) const {
   H5Lock lock;
   r.latent_pos = read_float_rows(h.latent_pos.get(), h.info.latent_dtype, i, 1, path, "latent_pos")[0];
   r.latent_neg = read_float_rows(h.latent_neg.get(), h.info.latent_dtype, i, 1, path, "latent_neg")[0];
-  auto cond = read_float_rows(h.cond.get(), h.info.cond_dtype, i, 1, path, "cond")[0];
-  int32_t len = 0;
-  read_rows(h.cond_len.get(), H5T_NATIVE_INT32, i, 1, &len, path, "cond_len");
-  if (len < 1 || len > h.info.cond_shape[0])
-    fail("pair cache '{}': record {}: dataset 'cond_len' holds {}, expected 1..{}", path, i, len, h.info.cond_shape[0]);
-  r.cond = cond.narrow(0, 0, len);
+  if (h.info.inputs_mode()) {
+    const auto& names = condition_input_names();
+    for (size_t k = 0; k < names.size(); ++k) r.inputs[names[k]] = read_input_rows(h, k, i, 1)[0];  // [ch, s, s]
+  } else {
+    auto cond = read_float_rows(h.cond.get(), h.info.cond_dtype, i, 1, path, "cond")[0];
+    int32_t len = 0;
+    read_rows(h.cond_len.get(), H5T_NATIVE_INT32, i, 1, &len, path, "cond_len");
+    if (len < 1 || len > h.info.cond_shape[0])
+      fail("pair cache '{}': record {}: dataset 'cond_len' holds {}, expected 1..{}", path, i, len, h.info.cond_shape[0]);
+    r.cond = cond.narrow(0, 0, len);
+  }
   uint8_t kind = 0;
   read_rows(h.kind.get(), H5T_NATIVE_UINT8, i, 1, &kind, path, "kind");
   if (kind > 1) fail("pair cache '{}': record {}: dataset 'kind' holds {}, expected 0 or 1", path, i, kind);
@@ -57,8 +62,11 @@ PairRecord PairCacheReader::read(int64_t i) const {
   const std::pair<const torch::Tensor*, const char*> checks[] = {
       {&r.latent_pos, "latent_pos"}, {&r.latent_neg, "latent_neg"}, {&r.cond, "cond"}};
   for (const auto& [t, name] : checks)
-    if (first_nonfinite_row(t->contiguous(), 1) >= 0)
+    if (t->defined() && first_nonfinite_row(t->contiguous(), 1) >= 0)
       fail("pair cache '{}': record {} (id '{}'): dataset '{}' holds NaN or Inf", path, i, r.id, name);
+  for (const auto& [name, t] : r.inputs)
+    if (const auto problem = check_condition_input(name, t); !problem.empty())
+      fail("pair cache '{}': record {} (id '{}'): dataset '{}' {}", path, i, r.id, name, problem);
   if (!std::isfinite(r.weight) || r.weight < 0)
     fail("pair cache '{}': record {} (id '{}'): dataset 'weight' holds {}, expected finite >= 0", path, i, r.id,
          r.weight);
@@ -134,6 +142,26 @@ std::vector<DatasetInfo> describe_datasets(const std::string& path) {
   return out;
 }
 
+StorageBytes storage_bytes(const std::string& path) {
+  CacheHandles h;
+  open_cache(h, path, /*writable=*/false);
+  StorageBytes b;
+  b.pairs = h.info.size;
+  std::error_code ec;
+  b.file_bytes = static_cast<double>(stdfs::file_size(path, ec));
+  H5Lock lock;
+  auto bytes = [](const H5Id& d) { return d.valid() ? static_cast<double>(H5Dget_storage_size(d.get())) : 0.0; };
+  b.latents = bytes(h.latent_pos) + bytes(h.latent_neg);
+  b.condition = bytes(h.cond) + bytes(h.cond_len);
+  for (const auto& d : h.inputs) b.condition += bytes(d);
+  b.other = bytes(h.kind) + bytes(h.weight) + bytes(h.id);
+  if (b.pairs > 0) {
+    const double n = static_cast<double>(b.pairs);
+    b.latents /= n, b.condition /= n, b.other /= n;
+  }
+  return b;
+}
+
 namespace {
 CacheInfo validate_in_process(const std::string& path, const std::function<void(int64_t, int64_t)>& progress);
 }  // namespace
@@ -151,6 +179,19 @@ CacheInfo validate_cache(const std::string& path, const std::function<void(int64
 }
 
 namespace {
+
+// Inputs mode: records [start, start+count) of every condition input decoded and checked.
+void check_input_block(const CacheHandles& h, int64_t start, int64_t count, const std::vector<std::string>& ids) {
+  const auto& names = condition_input_names();
+  for (size_t k = 0; k < names.size(); ++k) {
+    const auto block = read_input_rows(h, k, start, count);  // [count, ch, s, s]
+    for (int64_t j = 0; j < count; ++j)
+      if (const auto problem = check_condition_input(names[k], block[j]); !problem.empty())
+        fail("pair cache '{}': record {} (id '{}'): dataset '{}' {}", h.info.path, start + j, ids[start + j], names[k],
+             problem);
+  }
+}
+
 CacheInfo validate_in_process(const std::string& path, const std::function<void(int64_t, int64_t)>& progress) {
   // Structure: attributes, datasets, dtypes, shapes, kinds (open_cache checks them all).
   CacheHandles h;
@@ -158,6 +199,7 @@ CacheInfo validate_in_process(const std::string& path, const std::function<void(
   const auto& info = h.info;
   const int64_t n = info.size;
   const int64_t max_len = info.cond_shape[0];
+  const bool inputs = info.inputs_mode();
   H5Lock lock;
   // Ids: non-empty and unique.
   const auto ids = read_strings(h.id.get(), 0, n, path, "id");
@@ -170,9 +212,9 @@ CacheInfo validate_in_process(const std::string& path, const std::function<void(
   // Per-pair scalars: weight finite and >= 0, cond_len in 1..L.
   if (n > 0) {
     std::vector<float> w(n);
-    std::vector<int32_t> len(n);
+    std::vector<int32_t> len(n, 1);
     read_rows(h.weight.get(), H5T_NATIVE_FLOAT, 0, n, w.data(), path, "weight");
-    read_rows(h.cond_len.get(), H5T_NATIVE_INT32, 0, n, len.data(), path, "cond_len");
+    if (!inputs) read_rows(h.cond_len.get(), H5T_NATIVE_INT32, 0, n, len.data(), path, "cond_len");
     for (int64_t i = 0; i < n; ++i) {
       if (!std::isfinite(w[i]) || w[i] < 0)
         fail("pair cache '{}': record {} (id '{}'): dataset 'weight' holds {}, expected finite >= 0", path, i, ids[i], w[i]);
@@ -181,13 +223,15 @@ CacheInfo validate_in_process(const std::string& path, const std::function<void(
              max_len);
     }
   }
-  // Large datasets in blocks of records: every value decodes and is finite.
-  constexpr int64_t kBlock = 32;
+  // Large datasets in blocks of records: every value decodes and is finite (condition inputs:
+  // check_condition_input per record).
+  const int64_t kBlock = inputs ? 4 : 32;
   if (progress) progress(0, n);
   for (int64_t start = 0; start < n; start += kBlock) {
     const int64_t count = std::min(kBlock, n - start);
-    const std::pair<hid_t, const char*> sets[] = {
-        {h.latent_pos.get(), "latent_pos"}, {h.latent_neg.get(), "latent_neg"}, {h.cond.get(), "cond"}};
+    std::vector<std::pair<hid_t, const char*>> sets = {{h.latent_pos.get(), "latent_pos"}, {h.latent_neg.get(), "latent_neg"}};
+    if (!inputs) sets.push_back({h.cond.get(), "cond"});
+    if (inputs) check_input_block(h, start, count, ids);
     for (const auto& [dset, name] : sets) {
       const auto& dt = std::string(name) == "cond" ? info.cond_dtype : info.latent_dtype;
       auto t = read_float_rows(dset, dt, start, count, path, name);  // [count, ...]

@@ -131,6 +131,8 @@ PairBatch collate(const std::vector<PairRecord>& records) {
   const auto& first = records.front();
   int64_t max_len = 0;
   for (const auto& r : records) {
+    SIMU_CHECK(r.cond.defined(), "collate: pair '{}' has no condition tokens (an inputs-mode record: its tokens are "
+               "made by the condition embedder at training time)", r.id);
     SIMU_CHECK(r.latent_pos.sizes() == first.latent_pos.sizes() && r.latent_neg.sizes() == first.latent_pos.sizes(),
                "collate: pair '{}' has latents [{}], expected [{}]", r.id, fmt::join(r.latent_pos.sizes(), ", "),
                fmt::join(first.latent_pos.sizes(), ", "));
