@@ -22,7 +22,8 @@ void on_signal(int) { g_stop = true; }
 
 int main(int argc, char** argv) {
   CLI::App app{"Build an FM-DPO pair cache from a manifest of image pairs: condition embedder + Stage-1 sampling on "
-               "both sides, condition c = (I, M, I_M', D) stored as tokens. Manifest and layout: docs/pair_cache.md"};
+               "both sides, condition c = (I, M, I_M', D) stored as tokens or as the embedder's inputs. Manifest and layout: "
+               "docs/pair_cache.md"};
   std::string manifest, dtype = "f16";
   simu::resample::PairBuilderConfig cfg;
   auto& rc = cfg.resampler;
@@ -57,6 +58,16 @@ int main(int argc, char** argv) {
   app.add_option("--seed", cfg.seed, "noise seed (each pair's noise comes from the seed and its id)")
       ->capture_default_str();
   app.add_option("--dtype", dtype, "storage dtype of latents and condition: f16 or f32")->capture_default_str();
+  app.add_option("--cond-mode", cfg.cond_mode,
+                 "tokens: store the embedder's condition tokens; inputs: store its six preprocessed inputs (train_fmdpo "
+                 "then runs the embedder in the step; several times smaller at the released sizes)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"tokens", "inputs"}));
+  app.add_option("--inputs-storage", cfg.inputs_storage,
+                 "inputs mode: exact (float32 images and point maps, bit-exact) or compact (uint8 images, float16 point "
+                 "maps; about 3x smaller, not bit-exact)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"exact", "compact"}));
   app.add_option("--commit-every", cfg.commit_every, "pairs between commits of --out (0: only at the end)")
       ->capture_default_str();
   simu::cli::CommonOptions common;
@@ -82,6 +93,12 @@ int main(int argc, char** argv) {
     fmt::print("{}: {} pairs ({} written now, {} already there), {} bad record(s) skipped, {} records in {:.1f} s{}\n",
                cfg.out, report.cache_size, report.written, report.skipped_existing, report.issues.size(),
                report.records, report.seconds, report.interrupted ? " (interrupted: run again to continue)" : "");
+    if (report.cache_size > 0) {
+      const auto b = simu::data::storage_bytes(cfg.out);
+      fmt::print("{}: {} bytes per pair on disk ({:.2f} MB: latents {:.0f}, condition {:.0f}, other {:.0f})\n", cfg.out,
+                 b.latents + b.condition + b.other, (b.latents + b.condition + b.other) / 1e6, b.latents, b.condition,
+                 b.other);
+    }
     for (const auto& issue : report.issues)
       fmt::print("  {}:{}: {}{}\n", manifest, issue.line, issue.id.empty() ? "" : "'" + issue.id + "': ",
                  issue.message);

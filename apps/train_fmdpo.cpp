@@ -10,6 +10,7 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
+#include "training/cond_inputs.h"
 #include "training/distributed.h"
 #include "training/launcher.h"
 #include "training/generator_policy.h"
@@ -58,6 +59,7 @@ int main(int argc, char** argv) {
     auto comm = Communicator::create(env, device, std::chrono::milliseconds(static_cast<int64_t>(cfg.dist.timeout_s * 1000)));
     auto model = make_generator_policy(cfg, device);
     Trainer trainer(cfg, *model, pair_cache_source(cfg.data.cache, cfg.data.prefetch), *comm, device);
+    attach_condition_embedder(trainer, cfg, device);  // inputs-mode caches: the embedder runs in the step
     if (!resume.empty()) trainer.resume(resolve_resume(cfg.run.out_dir + "/checkpoints", resume));
     trainer.run();
     return 0;

@@ -150,7 +150,13 @@ class CacheSink {
  private:
   void open() {
     const bool extend = std::filesystem::exists(cfg_.out) && (cfg_.resume || appended_any_);
-    writer_ = std::make_unique<data::PairCacheWriter>(cfg_.out, latent_shape_, cond_shape_, cfg_.dtype, extend);
+    if (cfg_.cond_mode == "inputs")
+      writer_ = std::make_unique<data::PairCacheWriter>(
+          cfg_.out, latent_shape_, cond_shape_, cfg_.dtype,
+          data::InputsLayout::storage_named(cfg_.inputs_storage, cfg_.preprocess.image_size, cfg_.preprocess.pointmap_size),
+          extend);
+    else
+      writer_ = std::make_unique<data::PairCacheWriter>(cfg_.out, latent_shape_, cond_shape_, cfg_.dtype, extend);
     writer_->set_created_by(cfg_.created_by);
   }
   void commit() {
@@ -183,6 +189,9 @@ std::vector<PairManifestRecord> pending_records(std::vector<PairManifestRecord>&
                "[{}, {}] (use another --out, or --overwrite)",
                cfg.out, reader.info().latent_shape[0], reader.info().latent_shape[1], reader.info().cond_shape[0],
                reader.info().cond_shape[1], latent_shape[0], latent_shape[1], cond_shape[0], cond_shape[1]);
+    SIMU_CHECK(reader.info().cond_mode == cfg.cond_mode,
+               "build_pairs: existing cache {} stores cond_mode {}, this run writes {} (use another --out, or --overwrite)",
+               cfg.out, reader.info().cond_mode, cfg.cond_mode);
   }
   std::vector<PairManifestRecord> todo;
   for (auto& r : records) {
@@ -196,11 +205,13 @@ std::vector<PairManifestRecord> pending_records(std::vector<PairManifestRecord>&
 
 // Condition tokens of every side of a batch (and of every resampling condition), from ONE embedder
 // call: tokens[pos[k]], tokens[neg[k]] and tokens[cond[k]] belong to pair k ([L, Cc], CPU float32).
+// with_cond false (inputs mode: the cache stores the condition's inputs): the resampling conditions
+// are not embedded (cond[k] is unset).
 struct BatchTokens {
   std::vector<torch::Tensor> tokens;
   std::vector<size_t> pos, neg, cond;
 };
-BatchTokens embed_batch(Resampler& resampler, const std::vector<PreparedPair>& batch) {
+BatchTokens embed_batch(Resampler& resampler, const std::vector<PreparedPair>& batch, bool with_cond) {
   BatchTokens bt;
   std::vector<ResampleRequest> requests;
   bt.pos.resize(batch.size()), bt.neg.resize(batch.size()), bt.cond.resize(batch.size());
@@ -210,7 +221,7 @@ BatchTokens embed_batch(Resampler& resampler, const std::vector<PreparedPair>& b
     bt.neg[k] = requests.size();
     requests.push_back({torch::Tensor(), batch[k].neg});
     bt.cond[k] = bt.pos[k];
-    if (!batch[k].cond.empty()) {
+    if (with_cond && !batch[k].cond.empty()) {
       bt.cond[k] = requests.size();
       requests.push_back({torch::Tensor(), batch[k].cond});
     }
@@ -267,7 +278,7 @@ void add_pair_issue(PairBuildReport& report, const std::string& manifest_path, i
 // broken cache).
 void append_batch(const std::vector<PreparedPair>& batch, const BatchTokens& bt, const std::vector<torch::Tensor>& shape_pos,
                   const std::vector<torch::Tensor>& shape_neg, const std::string& manifest_path, CacheSink& sink,
-                  PairBuildReport& report) {
+                  PairBuildReport& report, bool inputs_mode) {
   for (size_t k = 0; k < batch.size(); ++k) {
     const auto& r = batch[k].record;
     data::PairRecord rec;
@@ -276,9 +287,14 @@ void append_batch(const std::vector<PreparedPair>& batch, const BatchTokens& bt,
     rec.weight = r.weight;
     rec.latent_pos = shape_pos[k];
     rec.latent_neg = shape_neg[k];
-    rec.cond = bt.tokens[bt.cond[k]];
+    if (inputs_mode) {
+      // The resampling condition's preprocessed inputs ([1, ch, S, S] each; the clean input for kind 1).
+      for (const auto& [name, t] : batch[k].cond.empty() ? batch[k].pos : batch[k].cond) rec.inputs[name] = t[0];
+    } else {
+      rec.cond = bt.tokens[bt.cond[k]];
+    }
     if (!(torch::isfinite(rec.latent_pos).all().item<bool>() && torch::isfinite(rec.latent_neg).all().item<bool>() &&
-          torch::isfinite(rec.cond).all().item<bool>())) {
+          (inputs_mode || torch::isfinite(rec.cond).all().item<bool>()))) {
       add_pair_issue(report, manifest_path, r.line, r.id, "the models produced non-finite latents or condition tokens");
       continue;
     }
@@ -295,6 +311,10 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
   SIMU_CHECK(cfg.batch > 0, "build_pairs: batch must be positive, got {}", cfg.batch);
   SIMU_CHECK(cfg.dtype == torch::kFloat16 || cfg.dtype == torch::kFloat32, "build_pairs: dtype must be float16 or float32");
   SIMU_CHECK(resampler.embedder(), "build_pairs: the resampler has no condition embedder (set embedder_config)");
+  SIMU_CHECK(cfg.cond_mode == "tokens" || cfg.cond_mode == "inputs", "build_pairs: cond_mode '{}' (expected tokens or inputs)",
+             cfg.cond_mode);
+  if (cfg.cond_mode == "inputs")  // the storage's sizes must be known before the first pair
+    (void)data::InputsLayout::storage_named(cfg.inputs_storage, cfg.preprocess.image_size, cfg.preprocess.pointmap_size);
   PairBuildReport report;
 
   // Manifest: parse every line; malformed ones and duplicate ids become issues.
@@ -340,10 +360,11 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
       if (progress) progress(done, total);
       continue;
     }
-    const BatchTokens bt = embed_batch(resampler, batch);
+    const bool inputs_mode = cfg.cond_mode == "inputs";
+    const BatchTokens bt = embed_batch(resampler, batch, !inputs_mode);
     std::vector<torch::Tensor> shape_pos, shape_neg;
     sample_both_sides(resampler, cfg, batch, bt, &shape_pos, &shape_neg);
-    append_batch(batch, bt, shape_pos, shape_neg, manifest_path, sink, report);
+    append_batch(batch, bt, shape_pos, shape_neg, manifest_path, sink, report, inputs_mode);
     done += static_cast<int64_t>(batch.size());
     if (progress) progress(done, total);
     sink.commit_now_and_then();

@@ -16,7 +16,8 @@
 // Both sides of a pair start from the same initial noise, drawn from a CPU generator seeded with
 // pair_noise_seed(seed, id), so a pair's latents depend only on its inputs, the seed and its id (not
 // on the batch it was built in, nor on resuming). The condition is stored as the embedder's tokens
-// (cond_mode "tokens"). Manifest format: see parse_manifest_line and docs/pair_cache.md.
+// (cond_mode "tokens") or as the embedder's inputs (cond_mode "inputs": the six preprocessed tensors,
+// which train_fmdpo embeds in the step). Manifest format: see parse_manifest_line and docs/pair_cache.md.
 //
 //   simu::resample::PairBuilderConfig cfg;
 //   cfg.resampler.generator_config = ...; cfg.resampler.embedder_config = ...;   // models
@@ -95,6 +96,8 @@ struct PairBuilderConfig {
   data::PreprocessConfig preprocess;  // Stage-1 preprocessing; default: the released pipeline.yaml preset
   std::string out;                    // the cache (.h5); written atomically
   torch::ScalarType dtype = torch::kFloat16;  // storage of latents and cond (float16 | float32)
+  std::string cond_mode = "tokens";   // "tokens" (embedder output) or "inputs" (embedder inputs)
+  std::string inputs_storage = "exact";  // inputs mode: "exact" (float32) or "compact" (data::InputsLayout)
   int64_t batch = 4;                  // pairs embedded and sampled per batched call
   uint64_t seed = 0;                  // noise seed (see pair_noise_seed)
   bool resume = true;                 // an existing `out` is kept and extended; false replaces it

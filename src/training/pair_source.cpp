@@ -11,6 +11,7 @@ Pair pair_from_record(const data::PairRecord& r) {
   p.x_pos = r.latent_pos;
   p.x_neg = r.latent_neg;
   p.cond = r.cond;
+  p.inputs = r.inputs;
   return p;
 }
 

@@ -6,6 +6,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -19,7 +20,10 @@ struct Pair {
   int64_t id = 0;      // stable record index in the cache (seeds its noise)
   data::PairKind kind = data::PairKind::OcclusionCompletion;
   torch::Tensor x_pos, x_neg;  // [T, C] float32
-  torch::Tensor cond;          // [l, Cc] float32 (l may differ between pairs)
+  torch::Tensor cond;          // [l, Cc] float32 (l may differ between pairs); undefined for inputs
+  // Inputs-mode pairs: the condition embedder's inputs (kwarg -> [ch, S, S] float32), embedded in the
+  // step by the trainer's condition embedder (Trainer::set_condition_embedder).
+  std::map<std::string, torch::Tensor> inputs;
 };
 
 // A pair cache record as the trainer sees it (id = the record index).

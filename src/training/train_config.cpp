@@ -58,6 +58,8 @@ ModelConfig ModelConfig::from(simu::config::Reader& r) {
   ModelConfig c;
   c.config = r.require<std::string>("config");
   r.field("weights", c.weights);
+  r.field("embedder_config", c.embedder_config);
+  r.field("embedder_weights", c.embedder_weights);
   return c;
 }
 

@@ -17,6 +17,11 @@ namespace simu::training {
 struct ModelConfig {
   std::string config;   // generator config (official JSON/YAML or project layout)
   std::string weights;  // safetensors with the official names ("" = random init, benchmarks only)
+  // The frozen condition embedder, needed (only) for an inputs-mode pair cache (cond_mode inputs):
+  // its config (official ss_generator.yaml layout or the fixture JSON) and weights ("" = take them
+  // from `weights`, which in the released ss_generator.safetensors hold the embedder too; both ""
+  // = random init, benchmarks only).
+  std::string embedder_config, embedder_weights;
   static ModelConfig from(simu::config::Reader& r);
 };
 

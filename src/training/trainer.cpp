@@ -178,13 +178,42 @@ std::vector<std::vector<int64_t>> forward_groups(const std::vector<Pair>& pairs,
   std::vector<std::vector<int64_t>> groups;
   for (int64_t m0 = 0; m0 < share; m0 += micro) {
     std::map<int64_t, std::vector<int64_t>> by_len;
-    for (int64_t i = m0; i < std::min(share, m0 + micro); ++i) by_len[pairs[i].cond.size(0)].push_back(i);
+    // Inputs-mode pairs (no tokens yet) all give the embedder's one length: key -1.
+    for (int64_t i = m0; i < std::min(share, m0 + micro); ++i)
+      by_len[pairs[i].cond.defined() ? pairs[i].cond.size(0) : -1].push_back(i);
     for (auto& [len, idx] : by_len) groups.push_back(idx);
   }
   return groups;
 }
 
 }  // namespace
+
+torch::Tensor Trainer::group_condition(const std::vector<Pair>& pairs, const std::vector<int64_t>& group, bool bf16) {
+  if (pairs[group.front()].cond.defined()) {
+    std::vector<torch::Tensor> cd;
+    for (int64_t i : group) cd.push_back(pairs[i].cond);
+    // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.
+    return torch::stack(cd).to(device_).to(torch::kFloat32);
+  }
+  if (!embed_)
+    fail_hint("set model.embedder_config (and model.embedder_weights) in the training config",
+              "{}: the pair cache holds condition inputs (cond_mode inputs) but no condition embedder is loaded",
+              cfg_.file);
+  std::map<std::string, torch::Tensor> batch;
+  for (const auto& [name, first] : pairs[group.front()].inputs) {
+    std::vector<torch::Tensor> parts;
+    for (int64_t i : group) {
+      const auto it = pairs[i].inputs.find(name);
+      SIMU_CHECK(it != pairs[i].inputs.end(), "pair {} lacks condition input '{}'", pairs[i].id, name);
+      parts.push_back(it->second);
+    }
+    batch[name] = torch::stack(parts).to(device_, torch::kFloat32);  // [m, ch, S, S]
+  }
+  // The frozen embedder: no gradient, the step's precision policy.
+  torch::NoGradGuard no_grad;
+  models::Autocast ac(models::Precision::kBf16, bf16);
+  return embed_(batch).to(torch::kFloat32);  // [m, L, Cc]
+}
 
 StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
   const int64_t share = static_cast<int64_t>(pairs.size());
@@ -194,14 +223,13 @@ StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
   std::vector<int> metric_kinds;
   for (const auto& group : forward_groups(pairs, cfg_.data.micro_batch)) {
     // One forward: stack pairs, draw their noise.
-    std::vector<torch::Tensor> xp, xn, cd, ts, ep, en, ws;
+    std::vector<torch::Tensor> xp, xn, ts, ep, en, ws;
     std::vector<int> kinds;
     for (int64_t i : group) {
       const Pair& p = pairs[i];
       auto nz = draw_pair_noise(cfg_.train.seed, step_, p.id, p.x_pos.sizes(), cfg_.objective.t_mean, cfg_.objective.t_std);
       xp.push_back(p.x_pos);
       xn.push_back(p.x_neg);
-      cd.push_back(p.cond);
       ts.push_back(nz.t);
       ep.push_back(nz.eps_pos);
       en.push_back(nz.eps_neg);
@@ -212,7 +240,7 @@ StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
     // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.
     in.x_pos = torch::stack(xp).to(device_).to(torch::kFloat32);
     in.x_neg = torch::stack(xn).to(device_).to(torch::kFloat32);
-    in.cond = torch::stack(cd).to(device_).to(torch::kFloat32);
+    in.cond = group_condition(pairs, group, bf16);
     in.t = torch::stack(ts).to(device_);
     in.eps_pos = torch::stack(ep).to(device_);
     in.eps_neg = torch::stack(en).to(device_);

@@ -53,6 +53,12 @@ struct StepSums {
   static StepSums unpack(const std::vector<double>& v);
 };
 
+// The frozen condition embedder of an inputs-mode run: stacked inputs (kwarg -> [B, ch, S, S] float32
+// on the trainer's device) -> condition tokens [B, L, Cc]. The trainer calls it under no_grad and in
+// the step's precision (bf16 autocast on CUDA when train.precision is bf16). training/cond_inputs.h
+// loads one.
+using ConditionEmbedFn = std::function<torch::Tensor(const std::map<std::string, torch::Tensor>& inputs)>;
+
 class Trainer {
  public:
   // model: adapters injected, on `device`; comm: this rank's communicator.
@@ -70,8 +76,14 @@ class Trainer {
   // Writes a checkpoint now (rank 0 only writes; every rank must call). Returns its dir (rank 0).
   std::string save();
   AdamW& optimizer() { return *opt_; }
+  // Pairs that carry condition inputs (an inputs-mode cache) are embedded with fn inside the step;
+  // without one, such pairs are an error.
+  void set_condition_embedder(ConditionEmbedFn fn) { embed_ = std::move(fn); }
 
  private:
+  // Condition tokens of one forward group [m, L, Cc] float32 on the device: the pairs' tokens, or
+  // their inputs through the condition embedder (no_grad, the step's precision).
+  torch::Tensor group_condition(const std::vector<Pair>& pairs, const std::vector<int64_t>& group, bool bf16);
   // Forward and backward over this rank's pairs, one group (micro-batch, one condition length) at a
   // time; gradients accumulate on the adapters. Returns this rank's metric sums.
   StepSums forward_backward(const std::vector<Pair>& pairs);
@@ -83,6 +95,7 @@ class Trainer {
   torch::Device device_;
   std::unique_ptr<PairSource> source_;
   std::unique_ptr<AdamW> opt_;
+  ConditionEmbedFn embed_;
   int64_t step_ = 0;
 };
 
