@@ -18,6 +18,22 @@ std::atomic<bool> g_stop{false};
 // Seed of torch's global generator for the random initialisation of --random-weights.
 constexpr uint64_t kRandomWeightsSeed = 0;
 void on_signal(int) { g_stop = true; }
+
+// The summary: pairs, bytes per pair on disk, the skipped records.
+void print_report(const std::string& manifest, const std::string& out, const simu::resample::PairBuildReport& report) {
+  fmt::print("{}: {} pairs ({} written now, {} already there), {} bad record(s) skipped, {} records in {:.1f} s{}\n",
+             out, report.cache_size, report.written, report.skipped_existing, report.issues.size(),
+             report.records, report.seconds, report.interrupted ? " (interrupted: run again to continue)" : "");
+  if (report.cache_size > 0) {
+    const auto b = simu::data::storage_bytes(out);
+    fmt::print("{}: {} bytes per pair on disk ({:.2f} MB: latents {:.0f}, condition {:.0f}, other {:.0f})\n", out,
+               b.latents + b.condition + b.other, (b.latents + b.condition + b.other) / 1e6, b.latents, b.condition,
+               b.other);
+  }
+  for (const auto& issue : report.issues)
+    fmt::print("  {}:{}: {}{}\n", manifest, issue.line, issue.id.empty() ? "" : "'" + issue.id + "': ",
+               issue.message);
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -90,18 +106,7 @@ int main(int argc, char** argv) {
     std::signal(SIGTERM, on_signal);
     simu::Progress progress{"build_pairs", "records"};
     const auto report = simu::resample::build_pairs(manifest, cfg, std::ref(progress), &g_stop);
-    fmt::print("{}: {} pairs ({} written now, {} already there), {} bad record(s) skipped, {} records in {:.1f} s{}\n",
-               cfg.out, report.cache_size, report.written, report.skipped_existing, report.issues.size(),
-               report.records, report.seconds, report.interrupted ? " (interrupted: run again to continue)" : "");
-    if (report.cache_size > 0) {
-      const auto b = simu::data::storage_bytes(cfg.out);
-      fmt::print("{}: {} bytes per pair on disk ({:.2f} MB: latents {:.0f}, condition {:.0f}, other {:.0f})\n", cfg.out,
-                 b.latents + b.condition + b.other, (b.latents + b.condition + b.other) / 1e6, b.latents, b.condition,
-                 b.other);
-    }
-    for (const auto& issue : report.issues)
-      fmt::print("  {}:{}: {}{}\n", manifest, issue.line, issue.id.empty() ? "" : "'" + issue.id + "': ",
-                 issue.message);
+    print_report(manifest, cfg.out, report);
     return report.interrupted ? 130 : 0;
   });
 }

@@ -13,6 +13,12 @@
 // the machine's measured bf16 matmul rate instead).
 // With --nproc-per-node 2 every rank first measures alone (world 1, no all-reduce), then all ranks
 // train together; scaling efficiency = pairs/s together / sum of pairs/s alone.
+// --cond-mode inputs (or tokens,inputs for both in one run): the pairs carry the condition
+// embedder's inputs at the released sizes (images and masks 518 px, point maps 518 px) and the
+// released embedder (CondEmbedderConfig::sam3d_stage1, random weights) makes the tokens inside the
+// step, as train_fmdpo does for an inputs-mode cache (no_grad, bf16 autocast). "embed" is the
+// embedder's share of the step, timed with a device synchronisation before and after each embedder
+// call (those two waits are in the step time too); MFU and "needed" count the flow model only.
 #include <cstdlib>
 #include <cstring>
 
@@ -24,6 +30,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "gpu_profile.h"
+#include "models/cond_embedder.h"
 #include "training/distributed.h"
 #include "training/launcher.h"
 #include "training/generator_policy.h"
@@ -36,10 +43,53 @@ using namespace simu::training;
 namespace {
 
 struct Row {
+  std::string mode = "tokens";
   int64_t micro = 0;
   int world = 1;
-  double step_s = 0, pairs_s = 0, mfu = 0, needed_util = 0, peak_gib = 0;
+  double step_s = 0, pairs_s = 0, mfu = 0, needed_util = 0, peak_gib = 0, embed_share = 0;
 };
+
+// The condition embedder of --cond-mode inputs and its timing: wall seconds inside it (between device
+// synchronisations) while `timing` is on.
+struct TimedEmbedder {
+  simu::models::CondEmbedder embedder{nullptr};
+  bool timing = false;
+  double seconds = 0;
+  ConditionEmbedFn fn() {
+    return [this](const std::map<std::string, torch::Tensor>& inputs) {
+      torch::cuda::synchronize();
+      const auto t0 = std::chrono::steady_clock::now();
+      auto out = embedder->forward(inputs);
+      torch::cuda::synchronize();
+      if (timing) seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      return out;
+    };
+  }
+};
+
+// n synthetic pairs: random latents [T, C] and either condition tokens [cond_len, Cc] or the six
+// embedder inputs at 518 px (images uniform in [0, 1], binary masks, normal point maps).
+std::shared_ptr<std::vector<Pair>> synthetic_pairs(int64_t n, int64_t T, int64_t C, int64_t cond_len, int64_t Cc,
+                                                   bool inputs) {
+  auto pairs = std::make_shared<std::vector<Pair>>();
+  torch::manual_seed(1);
+  for (int64_t i = 0; i < n; ++i) {
+    Pair p{i, static_cast<simu::data::PairKind>(i % 2), torch::randn({T, C}), torch::randn({T, C}), torch::Tensor()};
+    if (inputs) {
+      const int64_t S = 518;
+      p.inputs = {{"image", torch::rand({3, S, S})},
+                  {"rgb_image", torch::rand({3, S, S})},
+                  {"mask", (torch::rand({1, S, S}) > 0.5).to(torch::kFloat32)},
+                  {"rgb_image_mask", (torch::rand({1, S, S}) > 0.5).to(torch::kFloat32)},
+                  {"pointmap", torch::randn({3, S, S})},
+                  {"rgb_pointmap", torch::randn({3, S, S})}};
+    } else {
+      p.cond = torch::randn({cond_len, Cc});
+    }
+    pairs->push_back(std::move(p));
+  }
+  return pairs;
+}
 
 // Matrix-product FLOPs (2 per multiply-add) one FM-DPO pair needs with the base frozen and LoRA of
 // rank r on the shape stream's five attention projections (self qkv/out, cross q/kv/out), both
@@ -68,25 +118,192 @@ double needed_pair_flops(const simu::models::FlowModelConfig& c, double T, doubl
   return 2 * ((F + c.num_blocks * lora_f) + policy_bwd + F);
 }
 
-}  // namespace
+// Rates of the rows measured alone (world 1), 0 elsewhere: summed over ranks for the scaling.
+std::vector<double> alone_rates(const std::vector<Row>& rows) {
+  std::vector<double> alone;
+  for (auto& r : rows) alone.push_back(r.world == 1 ? r.pairs_s : 0.0);
+  return alone;
+}
 
-int main(int argc, char** argv) {
-  CLI::App app{"FM-DPO training-step benchmark (GPU, real-size generator with random weights)"};
+void print_header(const std::string& generator, const simu::models::FlowModelConfig& fc, int64_t T, int64_t L,
+                  const std::string& mode, bool checkpointing, double fwd_flops, double needed_flops, double peak_tflops) {
+  fmt::print("bench_fmdpo: {} ({} blocks, {} ch, {} shape tokens), cond {} tokens ({}), LoRA r64 shape branch, bf16{}\n",
+             generator, fc.num_blocks, fc.model_channels, T, L,
+             mode == "inputs" ? "made in the step by the released condition embedder, random weights" : "in the pairs",
+             checkpointing ? ", activation checkpointing" : "");
+  fmt::print("forward FLOPs per member F = {:.3f} TFLOP; per pair 8F (policy fwd+bwd 3F x2, reference fwd 1F x2); peak {} TFLOP/s\n",
+             fwd_flops / 1e12, peak_tflops);
+  fmt::print("needed FLOPs per pair with the base frozen = {:.3f} TFLOP = {:.2f}F (no base weight gradients, shape stream "
+             "backward only, LoRA products counted)\n",
+             needed_flops / 1e12, needed_flops / fwd_flops);
+}
+
+// The table (rank 0); alone[i] = the summed world-1 rate of the setting before row i.
+void print_rows(const std::vector<Row>& rows, const std::vector<double>& alone, int rank) {
+  if (rank != 0) return;
+  fmt::print("{:>6} {:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8} {:>7}\n", "mode", "micro", "world", "step [ms]",
+             "pairs/s", "MFU", "needed", "peak GiB", "scaling", "embed");
+  for (size_t i = 0; i < rows.size(); ++i) {
+    const auto& r = rows[i];
+    std::string scaling = "-";
+    if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
+    const std::string embed = r.mode == "inputs" ? fmt::format("{:.1f}%", 100.0 * r.embed_share) : "-";
+    fmt::print("{:>6} {:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8} {:>7}\n", r.mode, r.micro, r.world,
+               r.step_s * 1e3, r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling, embed);
+  }
+}
+
+// Command-line settings.
+struct Options {
   std::string generator = "configs/stage1_real.yaml";
   std::vector<int64_t> micros = {1, 2, 4};
   int steps = 10, warmup = 3, nproc = 0;
   int64_t cond_len = 7528;  // the released embedder's tokens per object (4 x 1,370 + 2 x 1,024)
   double peak_tflops = 989.4;
   bool checkpointing = false, profile = false;
-  app.add_option("--generator", generator, "generator config (official layout)");
-  app.add_option("--micro", micros, "micro-batch sizes")->delimiter(',');
-  app.add_option("--steps", steps, "timed steps per setting");
-  app.add_option("--warmup", warmup, "untimed steps per setting");
-  app.add_option("--cond-len", cond_len, "condition tokens per pair (1024 channels)");
-  app.add_option("--peak-tflops", peak_tflops, "device peak dense bf16 TFLOP/s for MFU");
-  app.add_flag("--activation-checkpointing", checkpointing, "recompute the policy forward in backward");
-  app.add_option("--nproc-per-node", nproc, "ranks (GPUs) to start");
-  app.add_flag("--profile", profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
+  std::vector<std::string> modes = {"tokens"};
+};
+
+// What every setting shares: the policy and its initial adapters, the communicators, the embedder.
+struct Bench {
+  Options o;
+  DistEnv env;
+  torch::Device device{torch::kCUDA};
+  std::unique_ptr<PolicyModel> policy;
+  std::vector<torch::Tensor> initial_adapters;
+  std::unique_ptr<Communicator> solo, together;
+  TimedEmbedder timed;
+};
+
+// One setting (mode, micro-batch, communicator): warm-up, timed steps, the row. fwd/needed: FLOPs per pair.
+Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& comm, const std::string& mode, int64_t m,
+                    double fwd_flops, double needed_flops) {
+  const auto& o = b.o;
+  TrainConfig cfg;
+  cfg.model.config = o.generator;
+  cfg.objective.beta = 500;
+  cfg.optim.warmup_steps = 0;
+  cfg.data.global_batch = m * comm.world_size();
+  cfg.data.micro_batch = m;
+  cfg.train.steps = o.warmup + o.steps;
+  cfg.train.precision = "bf16";
+  cfg.train.activation_checkpointing = o.checkpointing;
+  cfg.train.device = "cuda";
+  cfg.run.progress = false;
+  {
+    torch::NoGradGuard ng;
+    auto params = b.policy->adapter_parameters();
+    for (size_t i = 0; i < params.size(); ++i) params[i].second.copy_(b.initial_adapters[i]);
+  }
+  Trainer tr(cfg, *b.policy, source, comm, b.device);
+  const bool inputs = mode == "inputs";
+  if (inputs) tr.set_condition_embedder(b.timed.fn());
+  for (int s = 0; s < o.warmup; ++s) tr.step();
+  b.together->barrier();
+  torch::cuda::synchronize();
+  c10::cuda::CUDACachingAllocator::resetPeakStats(b.env.local_rank);
+  b.timed.seconds = 0;
+  b.timed.timing = true;
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int s = 0; s < o.steps; ++s) tr.step();
+  torch::cuda::synchronize();
+  const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() / o.steps;
+  b.timed.timing = false;
+  const auto stats = c10::cuda::CUDACachingAllocator::getDeviceStats(b.env.local_rank);
+  Row r;
+  r.mode = mode;
+  r.micro = m;
+  r.world = comm.world_size();
+  r.step_s = secs;
+  r.pairs_s = cfg.data.global_batch / secs;
+  r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
+  r.needed_util = needed_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
+  r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
+  r.embed_share = inputs ? b.timed.seconds / o.steps / secs : 0.0;
+  if (o.profile && m == o.micros.front() && &comm == b.solo.get() && b.env.rank == 0) {
+    const auto title = fmt::format("FM-DPO step ({}), micro-batch {}", mode, m);
+    simu::bench::print_gpu_kernel_profile(title, [&] { tr.step(); }, 25);
+    simu::bench::print_gpu_op_profile(title, [&] { tr.step(); }, 40);
+  }
+  b.together->barrier();
+  return r;
+}
+
+// Every micro-batch size of one condition mode, alone and (with several ranks) together.
+void measure_mode(Bench& b, const std::string& mode, std::vector<Row>& rows) {
+  const auto gcfg = simu::models::GeneratorConfig::from_official_file(b.o.generator);
+  const auto& fc = gcfg.backbone;
+  int64_t T = 0;
+  for (const auto& s : fc.latents)
+    if (s.name == "shape") T = s.tokens();
+  const bool inputs = mode == "inputs";
+  const int64_t L = inputs ? b.timed.embedder->num_tokens() : b.o.cond_len;
+  // Synthetic pairs: enough for every setting.
+  const int64_t n_pairs = 4 * 8 * std::max<int>(b.o.nproc, b.env.world_size);
+  auto pairs = synthetic_pairs(n_pairs, T, fc.in_channels, L, fc.cond_channels, inputs);
+  PairSourceFactory source = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
+    return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
+  };
+  const double fwd_flops = simu::models::flow_forward_flops(fc, 1, L);
+  const double needed_flops = needed_pair_flops(fc, static_cast<double>(T), static_cast<double>(L), 64, fwd_flops);
+  if (b.env.rank == 0)
+    print_header(b.o.generator, fc, T, L, mode, b.o.checkpointing, fwd_flops, needed_flops, b.o.peak_tflops);
+  for (int64_t m : b.o.micros)
+    for (Communicator* comm : {b.solo.get(), b.together.get()}) {
+      if (comm == b.together.get() && b.env.world_size == 1) continue;
+      rows.push_back(measure_setting(b, source, *comm, mode, m, fwd_flops, needed_flops));
+    }
+}
+
+// One rank's benchmark: the real-size policy (random base weights, LoRA r 64 / alpha 128 on the
+// shape projections), the released embedder when inputs mode is asked for, every mode and setting.
+void run_rank(const Options& o) {
+  Bench b;
+  b.o = o;
+  b.env = DistEnv::from_environment();
+  simu::log::set_rank(b.env.rank);
+  c10::cuda::set_device(static_cast<c10::DeviceIndex>(b.env.local_rank));
+  b.device = torch::Device(torch::kCUDA, b.env.local_rank);
+  YAML::Node lora = YAML::Load(
+      "{r: 64, alpha: 128, dropout: 0.0, target_modules: "
+      "'.*blocks\\.\\d+\\.(self_attn\\.(to_qkv|to_out)\\.shape|cross_attn\\.shape\\.(to_q|to_kv|to_out))$'}");
+  torch::manual_seed(0);
+  b.policy = make_generator_policy(o.generator, "", lora, "", b.device);
+  // Every setting starts from these adapters: GPU training is not bit-reproducible across GPUs, so
+  // ranks that trained alone first no longer hold identical adapters for the multi-rank setting.
+  for (auto& [name, p] : b.policy->adapter_parameters()) b.initial_adapters.push_back(p.detach().clone());
+  if (std::find(o.modes.begin(), o.modes.end(), "inputs") != o.modes.end()) {
+    b.timed.embedder = simu::models::CondEmbedder(simu::models::CondEmbedderConfig::sam3d_stage1());
+    b.timed.embedder->to(b.device);
+    b.timed.embedder->eval();
+    for (auto& p : b.timed.embedder->parameters()) p.set_requires_grad(false);
+  }
+  b.solo = Communicator::create(DistEnv{}, b.device, std::chrono::minutes(10));
+  b.together = Communicator::create(b.env, b.device, std::chrono::minutes(10));
+  std::vector<Row> rows;
+  for (const auto& mode : o.modes) measure_mode(b, mode, rows);
+  print_rows(rows, b.together->all_reduce_sum(alone_rates(rows)), b.env.rank);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"FM-DPO training-step benchmark (GPU, real-size generator with random weights)"};
+  Options o;
+  app.add_option("--generator", o.generator, "generator config (official layout)");
+  app.add_option("--micro", o.micros, "micro-batch sizes")->delimiter(',');
+  app.add_option("--steps", o.steps, "timed steps per setting");
+  app.add_option("--warmup", o.warmup, "untimed steps per setting");
+  app.add_option("--cond-len", o.cond_len, "condition tokens per pair (1024 channels) in tokens mode");
+  app.add_option("--peak-tflops", o.peak_tflops, "device peak dense bf16 TFLOP/s for MFU");
+  app.add_flag("--activation-checkpointing", o.checkpointing, "recompute the policy forward in backward");
+  app.add_option("--nproc-per-node", o.nproc, "ranks (GPUs) to start");
+  app.add_flag("--profile", o.profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
+  app.add_option("--cond-mode", o.modes,
+                 "tokens (condition tokens in the pairs, --cond-len of them) and/or inputs (the released embedder's "
+                 "inputs; its random-weight embedder runs in the step), e.g. tokens,inputs")
+      ->delimiter(',')
+      ->check(CLI::IsMember({"tokens", "inputs"}));
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&]() -> int {
@@ -95,117 +312,16 @@ int main(int argc, char** argv) {
       fmt::print("bench_fmdpo: skipped: needs a CUDA device (none here)\n");
       return 0;
     }
-    if (nproc > 1 && !std::getenv("RANK")) {
+    if (o.nproc > 1 && !std::getenv("RANK")) {
       std::vector<std::string> args;
       for (int i = 1; i < argc; ++i) {
         if (std::strcmp(argv[i], "--nproc-per-node") == 0) { ++i; continue; }
         args.push_back(argv[i]);
       }
-      launch_local_ranks(nproc, args, std::chrono::seconds(1200));
+      launch_local_ranks(o.nproc, args, std::chrono::seconds(1200));
       return 0;
     }
-    const auto env = DistEnv::from_environment();
-    simu::log::set_rank(env.rank);
-    c10::cuda::set_device(static_cast<c10::DeviceIndex>(env.local_rank));
-    const torch::Device device(torch::kCUDA, env.local_rank);
-    // Real-size policy: random base weights, LoRA r 64 / alpha 128 on the shape projections.
-    YAML::Node lora = YAML::Load(
-        "{r: 64, alpha: 128, dropout: 0.0, target_modules: "
-        "'.*blocks\\.\\d+\\.(self_attn\\.(to_qkv|to_out)\\.shape|cross_attn\\.shape\\.(to_q|to_kv|to_out))$'}");
-    torch::manual_seed(0);
-    auto policy = make_generator_policy(generator, "", lora, "", device);
-    // Every setting starts from these adapters: GPU training is not bit-reproducible across GPUs, so
-    // ranks that trained alone first no longer hold identical adapters for the multi-rank setting.
-    std::vector<torch::Tensor> initial_adapters;
-    for (auto& [name, p] : policy->adapter_parameters()) initial_adapters.push_back(p.detach().clone());
-    const auto gcfg = simu::models::GeneratorConfig::from_official_file(generator);
-    const auto& fc = gcfg.backbone;
-    int64_t T = 0;
-    for (const auto& s : fc.latents)
-      if (s.name == "shape") T = s.tokens();
-    const double fwd_flops = simu::models::flow_forward_flops(fc, 1, cond_len);
-    const double needed_flops = needed_pair_flops(fc, static_cast<double>(T), static_cast<double>(cond_len), 64, fwd_flops);
-    // Synthetic pairs: enough for every setting.
-    const int64_t n_pairs = 4 * 8 * std::max<int>(nproc, env.world_size);
-    auto pairs = std::make_shared<std::vector<Pair>>();
-    torch::manual_seed(1);
-    for (int64_t i = 0; i < n_pairs; ++i)
-      pairs->push_back(Pair{i, static_cast<simu::data::PairKind>(i % 2), torch::randn({T, fc.in_channels}), torch::randn({T, fc.in_channels}),
-                            torch::randn({cond_len, fc.cond_channels})});
-    auto source = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
-      return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
-    };
-    auto solo = Communicator::create(DistEnv{}, device, std::chrono::minutes(10));
-    auto together = Communicator::create(env, device, std::chrono::minutes(10));
-    std::vector<Row> rows;
-    for (int64_t m : micros) {
-      for (Communicator* comm : {solo.get(), together.get()}) {
-        if (comm == together.get() && env.world_size == 1) continue;
-        TrainConfig cfg;
-        cfg.model.config = generator;
-        cfg.objective.beta = 500;
-        cfg.optim.warmup_steps = 0;
-        cfg.data.global_batch = m * comm->world_size();
-        cfg.data.micro_batch = m;
-        cfg.train.steps = warmup + steps;
-        cfg.train.precision = "bf16";
-        cfg.train.activation_checkpointing = checkpointing;
-        cfg.train.device = "cuda";
-        cfg.run.progress = false;
-        {
-          torch::NoGradGuard ng;
-          auto params = policy->adapter_parameters();
-          for (size_t i = 0; i < params.size(); ++i) params[i].second.copy_(initial_adapters[i]);
-        }
-        Trainer tr(cfg, *policy, source, *comm, device);
-        for (int s = 0; s < warmup; ++s) tr.step();
-        together->barrier();
-        torch::cuda::synchronize();
-        c10::cuda::CUDACachingAllocator::resetPeakStats(env.local_rank);
-        const auto t0 = std::chrono::steady_clock::now();
-        for (int s = 0; s < steps; ++s) tr.step();
-        torch::cuda::synchronize();
-        const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() / steps;
-        const auto stats = c10::cuda::CUDACachingAllocator::getDeviceStats(env.local_rank);
-        Row r;
-        r.micro = m;
-        r.world = comm->world_size();
-        r.step_s = secs;
-        r.pairs_s = cfg.data.global_batch / secs;
-        r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * peak_tflops * 1e12);
-        r.needed_util = needed_flops * cfg.data.global_batch / (secs * r.world * peak_tflops * 1e12);
-        r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
-        rows.push_back(r);
-        if (profile && m == micros.front() && comm == solo.get() && env.rank == 0) {
-          const auto title = fmt::format("FM-DPO step, micro-batch {}", m);
-          simu::bench::print_gpu_kernel_profile(title, [&] { tr.step(); }, 25);
-          simu::bench::print_gpu_op_profile(title, [&] { tr.step(); }, 40);
-        }
-        together->barrier();
-      }
-    }
-    // Alone rates summed over ranks for the scaling efficiency.
-    std::vector<double> alone;
-    for (auto& r : rows) alone.push_back(r.world == 1 ? r.pairs_s : 0.0);
-    alone = together->all_reduce_sum(alone);
-    if (env.rank == 0) {
-      fmt::print("bench_fmdpo: {} ({} blocks, {} ch, {} shape tokens), cond {} tokens, LoRA r64 shape branch, bf16{}\n",
-                 generator, fc.num_blocks, fc.model_channels, T, cond_len, checkpointing ? ", activation checkpointing" : "");
-      fmt::print("forward FLOPs per member F = {:.3f} TFLOP; per pair 8F (policy fwd+bwd 3F x2, reference fwd 1F x2); peak {} TFLOP/s\n",
-                 fwd_flops / 1e12, peak_tflops);
-      fmt::print("needed FLOPs per pair with the base frozen = {:.3f} TFLOP = {:.2f}F (no base weight gradients, shape stream "
-                 "backward only, LoRA products counted)\n",
-                 needed_flops / 1e12, needed_flops / fwd_flops);
-      fmt::print("{:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8}\n", "micro", "world", "step [ms]", "pairs/s", "MFU",
-                 "needed", "peak GiB", "scaling");
-      for (size_t i = 0; i < rows.size(); ++i) {
-        const auto& r = rows[i];
-        std::string scaling = "-";
-        if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
-        fmt::print("{:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8}\n", r.micro, r.world, r.step_s * 1e3,
-                   r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling);
-      }
-    }
+    run_rank(o);
     return 0;
   });
 }
