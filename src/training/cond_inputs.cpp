@@ -30,7 +30,16 @@ models::CondEmbedder load_condition_embedder(const TrainConfig& cfg, const data:
               "{}: the condition embedder {} makes [{}, {}] tokens, the pair cache '{}' was built for [{}, {}]", cfg.file,
               m.embedder_config, made[0], made[1], cache.path, cache.cond_shape.at(0), cache.cond_shape.at(1));
   const std::string& weights = m.embedder_weights.empty() ? m.weights : m.embedder_weights;
-  auto embedder = models::load_cond_embedder(m.embedder_config, weights, "auto", device);
+  models::CondEmbedder embedder{nullptr};
+  try {
+    embedder = models::load_cond_embedder(m.embedder_config, weights, "auto", device);
+  } catch (const Error& e) {
+    if (!m.embedder_weights.empty() || weights.empty()) throw;
+    throw Error(fmt::format("{}: model.embedder_weights is not set, so the condition embedder's weights were read from "
+                            "model.weights '{}': {}", cfg.file, weights, e.what()),
+                "set model.embedder_weights to the embedder's safetensors (the released ss_generator.safetensors holds "
+                "both, under _base_models.condition_embedder.)");
+  }
   const auto names = embedder->input_names();
   for (const auto& name : names) {
     const auto& stored = data::condition_input_names();
