@@ -8,6 +8,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 
 #include "common/error.h"
 #include "data/pair_cache.h"
@@ -60,6 +61,15 @@ std::string write_cache(const std::string& path, const std::string& storage, int
   for (int i = 0; i < n; ++i) w.append(record("p" + std::to_string(i), i));
   w.finish();
   return path;
+}
+
+// Runs f with the file opened read-write under the HDF5 lock (test-only surgery).
+void with_h5(const std::string& path, const std::function<void(hid_t)>& f) {
+  std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
+  hid_t file = H5Fopen(path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT);
+  ASSERT_GE(file, 0);
+  f(file);
+  ASSERT_GE(H5Fclose(file), 0);
 }
 
 }  // namespace
@@ -143,20 +153,17 @@ TEST(PairCacheInputs, WriterRefusesWhatItCannotStore) {
 TEST(PairCacheInputs, ValidationNamesRecordAndDataset) {
   const auto dir = simu::testing::temp_dir("pci_validate");
   const auto path = write_cache(dir + "/c.h5", "exact", 3);
-  {
-    std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
-    hid_t f = H5Fopen(path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT);
-    ASSERT_GE(f, 0);
+  // rgb_image of record 2 gets one value 7 (channel 1, row 3, column 4).
+  with_h5(path, [](hid_t f) {
     hid_t d = H5Dopen2(f, "rgb_image", H5P_DEFAULT);
     hid_t space = H5Dget_space(d);
     const hsize_t start[4] = {2, 1, 3, 4}, count[4] = {1, 1, 1, 1};
     H5Sselect_hyperslab(space, H5S_SELECT_SET, start, nullptr, count, nullptr);
     hid_t mem = H5Screate_simple(1, count, nullptr);
     const float v = 7.0f;
-    ASSERT_GE(H5Dwrite(d, H5T_NATIVE_FLOAT, mem, space, H5P_DEFAULT, &v), 0);
+    EXPECT_GE(H5Dwrite(d, H5T_NATIVE_FLOAT, mem, space, H5P_DEFAULT, &v), 0);
     H5Sclose(mem), H5Sclose(space), H5Dclose(d);
-    ASSERT_GE(H5Fclose(f), 0);
-  }
+  });
   const auto e = error_of([&] { validate_cache(path); });
   EXPECT_NE(e.find("record 2 (id 'p2'): dataset 'rgb_image' holds values in ["), std::string::npos) << e;
   EXPECT_NE(e.find(path), std::string::npos) << e;
@@ -204,16 +211,12 @@ print("h5py ok")
 TEST(PairCacheInputs, HugeInputSizeIsRefusedBeforeAllocating) {
   const auto dir = simu::testing::temp_dir("pci_huge");
   const auto path = write_cache(dir + "/c.h5", "exact", 1);
-  {
-    std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
-    hid_t f = H5Fopen(path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT);
-    ASSERT_GE(f, 0);
+  with_h5(path, [](hid_t f) {
     hid_t a = H5Aopen(f, "input_size", H5P_DEFAULT);
     const int64_t v[2] = {int64_t{1} << 30, 12};
-    ASSERT_GE(H5Awrite(a, H5T_NATIVE_INT64, v), 0);
+    EXPECT_GE(H5Awrite(a, H5T_NATIVE_INT64, v), 0);
     H5Aclose(a);
-    ASSERT_GE(H5Fclose(f), 0);
-  }
+  });
   const auto e = error_of([&] { PairCacheReader::open(path); });
   EXPECT_NE(e.find("attribute input_size"), std::string::npos) << e;
 }
