@@ -12,12 +12,14 @@
 
 #include "common/error.h"
 #include "data/pair_cache.h"
+#include "pair_cache_test_util.h"
 #include "test_util.h"
 
 namespace {
 
 using namespace simu::data;
 using simu::testing::error_of;
+using simu::testing::with_h5;
 
 constexpr int64_t S = 20, P = 12, T = 16, C = 8;
 
@@ -63,14 +65,6 @@ std::string write_cache(const std::string& path, const std::string& storage, int
   return path;
 }
 
-// Runs f with the file opened read-write under the HDF5 lock (test-only surgery).
-void with_h5(const std::string& path, const std::function<void(hid_t)>& f) {
-  std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
-  hid_t file = H5Fopen(path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT);
-  ASSERT_GE(file, 0);
-  f(file);
-  ASSERT_GE(H5Fclose(file), 0);
-}
 
 }  // namespace
 

@@ -11,6 +11,7 @@
 
 #include "common/error.h"
 #include "common/fs.h"
+#include "pair_cache_test_util.h"
 #include "test_util.h"
 
 namespace {
@@ -19,6 +20,7 @@ using namespace simu::data;
 namespace stdfs = std::filesystem;
 
 using simu::testing::error_of;
+using simu::testing::with_h5;
 
 // A record with random content; cond with len rows.
 PairRecord random_record(const std::string& id, PairKind kind, int64_t T, int64_t C, int64_t len, int64_t Cc) {
@@ -50,14 +52,6 @@ void dump_f32(const torch::Tensor& t, const std::string& path) {
   std::ofstream(path, std::ios::binary).write(static_cast<const char*>(c.data_ptr()), c.numel() * 4);
 }
 
-// Runs f with an HDF5 file opened read-write (test-only surgery on a copy).
-void with_h5(const std::string& path, const std::function<void(hid_t)>& f) {
-  std::lock_guard<std::recursive_mutex> lock(hdf5_mutex());
-  hid_t file = H5Fopen(path.c_str(), H5F_ACC_RDWR, H5P_DEFAULT);
-  ASSERT_GE(file, 0);
-  f(file);
-  ASSERT_GE(H5Fclose(file), 0);
-}
 
 std::string copy_of(const std::string& src, const std::string& dst) {
   stdfs::copy_file(src, dst, stdfs::copy_options::overwrite_existing);
