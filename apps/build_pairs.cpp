@@ -73,7 +73,8 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber);
   app.add_option("--seed", cfg.seed, "noise seed (each pair's noise comes from the seed and its id)")
       ->capture_default_str();
-  app.add_option("--dtype", dtype, "storage dtype of latents and condition: f16 or f32")->capture_default_str();
+  app.add_option("--dtype", dtype, "storage dtype of latents and condition tokens (inputs mode: latents only): f16 or f32")
+      ->capture_default_str();
   app.add_option("--cond-mode", cfg.cond_mode,
                  "tokens: store the embedder's condition tokens; inputs: store its six preprocessed inputs (train_fmdpo "
                  "then runs the embedder in the step; several times smaller at the released sizes)")
