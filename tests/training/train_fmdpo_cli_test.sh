@@ -25,6 +25,9 @@
 #     metrics.jsonl's loss in float32, and the same tags as the metrics keys.
 #  5. (a)'s metrics.jsonl lines carry loss, accuracy (in [0,1]), margin, grad_norm, lr, pairs_per_s,
 #     time/*, and completion|preservation/{policy,ref}_{pos,neg}.
+#  6. An inputs-mode cache (pairs make --cond-mode inputs; it validates): train_fmdpo loads the condition
+#     embedder named by model.embedder_config (the demo's small one, random weights seeded by train.seed)
+#     and runs it in the step; one process (f) and --nproc-per-node 2 (g) give bit-identical adapters.
 # Without torchrun (or the venv python it needs) part (c) is skipped ("SKIP: ..."); the rest always runs.
 set -euo pipefail
 
@@ -304,4 +307,24 @@ echo "ok 4: TensorBoard event files load, 'loss' matches metrics.jsonl ($SECONDS
 # ---- 5. metrics keys ---------------------------------------------------------------------------
 check keys "$A/metrics.jsonl" "$STEPS"
 echo "ok 5: metrics.jsonl keys and ranges ($SECONDS s)"
+
+# ---- 6. inputs-mode cache ------------------------------------------------------------------------
+# The demo embedder with its image ViT at 70 px: 136 tokens x 48 channels (the small generator's).
+# Inputs stored at the ViTs' and point embedder's own sizes (70, 32), so the embedder resizes nothing:
+# LibTorch's CPU bilinear resize rounds differently with 1 thread (each of 2 ranks) than with 2.
+EMB=$WORK/embedder.json
+"$PY" -c "import json, sys; j = json.load(open(sys.argv[1])); j['dino_image_input_size'] = 70; json.dump(j, open(sys.argv[2], 'w'))" \
+  "$REPO/configs/demo_embedder_small.json" "$EMB"
+ICACHE=$WORK/inputs.h5
+run_logged pairs-inputs "$WORK/pairs_inputs.log" "$PAIRS" make --out "$ICACHE" --n 8 --tokens 64 --channels 8 \
+  --cond-mode inputs --cond-len 136 --cond-channels 48 --input-size 70 --pointmap-size 32
+run_logged validate-inputs "$WORK/validate_inputs.log" "$PAIRS" validate "$ICACHE"
+INPUTS=(--config "$REPO/configs/tiny.yaml" --set "model.config=$FIX/ss_generator_small.json" --set "model.weights=''"
+  --set "model.embedder_config=$EMB" --set "data.cache=$ICACHE" --set train.steps=2 --set run.checkpoint_every=0)
+run_logged f "$WORK/f.log" "$TRAIN" "${INPUTS[@]}" --set "run.out_dir=$WORK/f"
+run_logged g "$WORK/g.log" "$TRAIN" "${INPUTS[@]}" --set "run.out_dir=$WORK/g" --nproc-per-node 2
+grep -q "condition embedder .* runs in the step" "$WORK/f.log" || fail "(f) did not load the condition embedder: $WORK/f.log"
+check adapters "$WORK/f/adapter/adapter_model.safetensors" "$WORK/g/adapter/adapter_model.safetensors" \
+  "inputs-mode cache: adapter of one process (f) vs --nproc-per-node 2 (g)"
+echo "ok 6: inputs-mode cache: embedder in the step, 1 process == 2 ranks ($SECONDS s)"
 echo "PASS: train_fmdpo end-to-end ($SECONDS s)"
