@@ -7,11 +7,14 @@
 #                                                ./run test (ctest Fuzz.Smoke)
 #   scripts/fuzz.sh --long SECONDS [TARGET...]   fuzz each target for SECONDS (working corpus and
 #                                                crashes under <build>/work/<target>); prints executions
-# Options: --build DIR (default build-fuzz), --jobs N (parallel fuzzing processes per target, --long),
-#   --runs N (--long: stop a target after N executions, or at SECONDS, whichever comes first),
-#   --no-build (use the targets as built). fuzz_pair_cache --long fuzzes the reads behind the HDF5
-#   crash guard (SIMU_HDF5_ISOLATE=0, libFuzzer -fork=1 keeps going past libhdf5 1.10's own crashes)
-#   and then replays every crash/hang input with the guard on: only a failure there counts.
+# Options: --build DIR (default build-fuzz), --jobs N (--long: libFuzzer fork mode, N processes sharing
+#   one corpus and one execution count), --runs N (--long: stop a target after N executions, or at
+#   SECONDS, whichever comes first), --no-build (use the targets as built; with --long no compiler is
+#   needed, so targets copied with the libraries they link run on a many-core machine too).
+#   fuzz_pair_cache --long fuzzes the reads behind the HDF5 crash guard (SIMU_HDF5_ISOLATE=0, libFuzzer
+#   fork mode keeps going past libhdf5 1.10's own crashes; set ASAN_OPTIONS=symbolize=0 there: each such
+#   crash is otherwise symbolised) and then replays every crash/hang input with the guard on: only a
+#   failure there counts.
 # Exit status: 0 clean, 1 a crash / sanitizer report / build failure, 77 clang or libFuzzer missing.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -31,15 +34,19 @@ while (($#)); do
     --jobs) JOBS="$2"; shift ;;
     --runs) RUNS="$2"; shift ;;
     --no-build) BUILD_TARGETS=0 ;;
-    -h|--help) sed -n 2,16p "$0"; exit 0 ;;
+    -h|--help) sed -n 2,18p "$0"; exit 0 ;;
     fuzz_*) TARGETS+=("$1") ;;
     *) echo "fuzz.sh: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
   shift
 done
-[[ -n $MODE ]] || { sed -n 2,16p "$0"; exit 2; }
+[[ -n $MODE ]] || { sed -n 2,18p "$0"; exit 2; }
 ((${#TARGETS[@]})) || TARGETS=(fuzz_safetensors fuzz_peft fuzz_config fuzz_scene fuzz_pair_cache fuzz_manifest fuzz_depth)
 
+# Prebuilt targets (--no-build, e.g. copied to a many-core machine with the libraries they link): no compiler needed.
+if ((!BUILD_TARGETS)) && [[ $MODE == long ]]; then
+  for t in "${TARGETS[@]}"; do [[ -x $BUILD/$t ]] || { echo "fuzz.sh: --no-build: $BUILD/$t is missing" >&2; exit 1; }; done
+else
 # clang with libFuzzer (Debian: clang + libclang-rt-dev, installed by scripts/setup.sh).
 CXX="${SIMU_FUZZ_CXX:-$(command -v clang++ || true)}"
 if [[ -z $CXX ]]; then echo "SKIP: clang++ not found (apt-get install clang libclang-rt-dev)"; exit 77; fi
@@ -58,6 +65,7 @@ fi
 if ((BUILD_TARGETS)); then
   cmake --build "$BUILD" -j"${JOBS_BUILD:-2}" --target "${TARGETS[@]}" >"$BUILD/build.log" 2>&1 ||
     { tail -n 40 "$BUILD/build.log" >&2; echo "fuzz.sh: build failed ($BUILD/build.log)" >&2; exit 1; }
+fi
 fi
 [[ $MODE == build ]] && exit 0
 
@@ -110,27 +118,36 @@ for t in "${TARGETS[@]}"; do
     args=(-max_total_time="$SECS" -rss_limit_mb=4096 -timeout=30 -max_len=$maxlen -artifact_prefix="$work/crashes/"
           -print_final_stats=1)
     ((RUNS > 0)) && args+=(-runs="$RUNS")
-    ((JOBS > 1)) && args+=(-jobs="$JOBS" -workers="$JOBS")
     start=$(date +%s)
     if [[ $t == fuzz_pair_cache ]]; then
       # Behind the guard: libhdf5 1.10's own crashes end a fork-mode child, libFuzzer starts another.
       rm -f "$work"/crashes/*
       TIMEFORMAT='%U %S'
-      { time SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
+      { time SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork="$JOBS" -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
         "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt" || true
       cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
       execs=$(grep -o '^#[0-9]*' "$work/fuzz.log" | tail -n 1 | tr -d '#')
-      # Triage with the guard on (as users run it): every input must end cleanly.
+      # Triage with the guard on (as users run it): every input must end cleanly, each in its own process
+      # (in parallel); the ones that do not are listed in $work/failing.txt, their logs under $work/triage/.
       r=ok
       nart=$(find "$work/crashes" -type f | wc -l)
-      if ((nart)) && ! "$exe" -rss_limit_mb=4096 -timeout=60 "$work"/crashes/* >"$work/triage.log" 2>&1; then
-        r=CRASH; status=1
+      rm -rf "$work/triage" && mkdir -p "$work/triage"
+      : >"$work/failing.txt"
+      if ((nart)); then
+        find "$work/crashes" -type f -print0 |
+          xargs -0 -P "$(nproc)" -I{} sh -c 'timeout 300 "$0" -rss_limit_mb=4096 -timeout=60 "$1" >"$2/$(basename "$1").log" 2>&1 || echo "$1"' \
+            "$exe" {} "$work/triage" >>"$work/failing.txt" || true
       fi
+      nfail=$(wc -l <"$work/failing.txt")
+      ((nfail)) && { r=CRASH; status=1; }
       echo "$r: $t: ${execs:-?} executions in $(( $(date +%s) - start )) s ($cpu s CPU) behind the guard, $nart libhdf5 crash/hang" \
-        "inputs, all clean with the guard on: $r; corpus $(ls "$work/corpus" | wc -l) files, log $work/fuzz.log"
+        "inputs, $nfail of them failing with the guard on (listed in $work/failing.txt); corpus $(ls "$work/corpus" | wc -l) files," \
+        "log $work/fuzz.log"
       continue
     fi
     # CPU seconds beside wall seconds: on a shared machine the CPU rate is the one to compare.
+    # --jobs N > 1: libFuzzer's fork mode with N parallel processes (one corpus, one execution count).
+    ((JOBS > 1)) && args+=(-fork="$JOBS")
     TIMEFORMAT='%U %S'
     if { time "$exe" "${args[@]}" "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt"; then
       r=ok
@@ -138,7 +155,11 @@ for t in "${TARGETS[@]}"; do
       r=CRASH; status=1
     fi
     cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
-    execs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$work/fuzz.log" | grep -o '[0-9]*$' | awk '{s+=$1} END {print s+0}')
+    if ((JOBS > 1)); then
+      execs=$(grep -o '^#[0-9]*' "$work/fuzz.log" | tail -n 1 | tr -d '#')
+    else
+      execs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$work/fuzz.log" | grep -o '[0-9]*$' | awk '{s+=$1} END {print s+0}')
+    fi
     echo "$r: $t: $execs executions in $(( $(date +%s) - start )) s ($cpu s CPU, $(( execs / (cpu > 0 ? cpu : 1) )) per CPU second)," \
       "corpus $(ls "$work/corpus" | wc -l) files, log $work/fuzz.log"
     [[ $r == ok ]] || ls "$work/crashes"

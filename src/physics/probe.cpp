@@ -522,6 +522,7 @@ void store_corrected_scene(const Ctx& c, ProbeResult& res) {
 
 ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::string& out_dir,
                       const ResampleFn& resampler, const ProbeProgress& progress) {
+  cfg.validate();  // a config built in code is checked as a loaded one is
   const auto t0 = Clock::now();
   ProbeResult res;
   res.scene = scene_in;

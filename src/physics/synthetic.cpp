@@ -111,6 +111,7 @@ double footprint(const Shape& s) {
 // A support rectangle: x in [x0, x1], z in [z0, z1], top surface at y.
 struct Support {
   double x0, x1, z0, z1, y;
+  bool floor = false;  // a floor strip (placements must be in view, floor_visible)
 };
 
 }  // namespace
@@ -239,10 +240,11 @@ double make_layout(SyntheticScene& s, std::vector<Support>& supports, double flo
     table.t = Vec3(0, floor_y - e.y() / 2, 1.9);
     s.bases.push_back(table);
     supports.push_back({-0.6, 0.6, 1.55, 2.25, floor_y - e.y()});
-    // Floor strips left and right of the table (in view of the default camera behind z = 1.9).
+    // Floor strips left and right of the table; much of them is hidden behind the table from the
+    // camera, so place_free_objects keeps only floor placements the camera sees (floor_visible).
     if (cfg.floor_supports) {
-      supports.push_back({-1.05, -0.75, 1.9, 2.5, floor_y});
-      supports.push_back({0.75, 1.05, 1.9, 2.5, floor_y});
+      supports.push_back({-1.08, -0.72, 1.6, 2.55, floor_y, true});
+      supports.push_back({0.72, 1.45, 1.6, 2.55, floor_y, true});
     }
     return 2.6;
   }
@@ -300,8 +302,41 @@ void inject_error(SyntheticObject& o, const Shape& shape, const SyntheticConfig&
   }
 }
 
+// Whether the segment from the camera centre to p misses the box [lo, hi] (slab test).
+bool segment_misses_box(const Vec3& c, const Vec3& p, const Vec3& lo, const Vec3& hi) {
+  double t0 = 0, t1 = 1;
+  for (int k = 0; k < 3; ++k) {
+    const double d = p[k] - c[k];
+    if (std::abs(d) < 1e-12) {
+      if (c[k] < lo[k] || c[k] > hi[k]) return true;
+      continue;
+    }
+    double a = (lo[k] - c[k]) / d, b = (hi[k] - c[k]) / d;
+    if (a > b) std::swap(a, b);
+    t0 = std::max(t0, a), t1 = std::min(t1, b);
+    if (t0 > t1) return true;
+  }
+  return false;
+}
+
+// A floor placement the camera sees: the object's top centre and mid-height centre project inside the
+// image (5% margin) and no base's box lies between them and the camera.
+bool floor_visible(const SyntheticScene& s, double x, double z, double support_y, double height) {
+  for (const double f : {1.0, 0.5}) {
+    const Vec3 p(x, support_y - f * height, z);
+    const Projection pr = project(s.camera, p);
+    const double mu = 0.05 * s.camera.width, mv = 0.05 * s.camera.height;
+    if (!pr.in_front() || pr.u < mu || pr.u > s.camera.width - mu || pr.v < mv || pr.v > s.camera.height - mv) return false;
+    for (const auto& b : s.bases) {
+      const Vec3 half = 0.5 * b.scale.cwiseProduct(b.mesh.V.colwise().maxCoeff().transpose() - b.mesh.V.colwise().minCoeff().transpose());
+      if (!segment_misses_box(camera_center(s.camera), p, b.t - half, b.t + half)) return false;
+    }
+  }
+  return true;
+}
+
 // Free objects: rejection-sampled footprints on the supports (placement_attempts tries each; an object
-// that does not fit is left out).
+// that does not fit is left out). With floor_supports, a floor placement must also be in view (floor_visible).
 void place_free_objects(SyntheticScene& s, const std::vector<Support>& supports, const SyntheticConfig& cfg, Rng& rng) {
   const int n_free = cfg.min_objects + int(unit(rng) * (cfg.max_objects - cfg.min_objects + 1));
   std::vector<std::array<double, 4>> placed;  // x, z, radius, support index
@@ -316,7 +351,7 @@ void place_free_objects(SyntheticScene& s, const std::vector<Support>& supports,
       const Support& sp = supports[si];
       if (sp.x1 - sp.x0 < 2 * rad || sp.z1 - sp.z0 < 2 * rad) continue;
       x = uniform(rng, sp.x0 + rad, sp.x1 - rad), z = uniform(rng, sp.z0 + rad, sp.z1 - rad);
-      ok = true;
+      ok = !sp.floor || floor_visible(s, x, z, sp.y, shape.height());
       for (const auto& p : placed)
         if (int(p[3]) == si && std::hypot(p[0] - x, p[1] - z) < p[2] + rad + 0.01) ok = false;
     }

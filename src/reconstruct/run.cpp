@@ -22,6 +22,7 @@
 
 #include <chrono>
 #include <cstring>
+#include <unistd.h>
 #include <filesystem>
 #include <map>
 
@@ -560,12 +561,45 @@ ReconstructResult reconstruct(const ReconstructFiles& files, const ReconstructOp
   return res;
 }
 
+namespace {
+ReconstructResult reconstruct_into(const ReconstructInputs& in, const ReconstructOptions& opt, resample::Resampler* resampler,
+                                   const std::string& out_dir);
+}  // namespace
+
 ReconstructResult reconstruct(const ReconstructInputs& in, const ReconstructOptions& opt, resample::Resampler* resampler,
                               const std::string& out_dir) {
   resample::check_output_dir(out_dir, opt.overwrite);
-  if (sfs::exists(out_dir)) sfs::remove_all(out_dir);
-  sfs::create_directories(sfs::path(out_dir) / "input" / "meshes");
-  sfs::create_directories(sfs::path(out_dir) / "input" / "masks");
+  // Everything is written into "<out>.tmp-<pid>" and moved into place at the end (fs::replace_dir): a
+  // failed run leaves an earlier output as it was; temporaries of dead runs are removed first.
+  const sfs::path final_dir = sfs::absolute(out_dir).lexically_normal();
+  sfs::create_directories(final_dir.parent_path());
+  fs::remove_stale_temps(final_dir.string());
+  const std::string stage = final_dir.string() + ".tmp-" + std::to_string(::getpid());
+  fs::remove_tree(stage);
+  sfs::create_directories(sfs::path(stage) / "input" / "meshes");
+  sfs::create_directories(sfs::path(stage) / "input" / "masks");
+  try {
+    ReconstructResult res = reconstruct_into(in, opt, resampler, stage);
+    fs::replace_dir(stage, final_dir.string());
+    // The in-memory scene and pictures named the staging folder.
+    res.scene = physics::load_scene((final_dir / "input" / "scene.json").string());
+    if (res.probe)
+      for (auto& f : res.probe->pictures)
+        if (f.rfind(stage, 0) == 0) f = final_dir.string() + f.substr(stage.size());
+    return res;
+  } catch (...) {
+    try {
+      fs::remove_tree(stage);
+    } catch (...) {
+    }
+    throw;
+  }
+}
+
+namespace {
+// The steps of reconstruct(), writing into dir (the staging folder).
+ReconstructResult reconstruct_into(const ReconstructInputs& in, const ReconstructOptions& opt, resample::Resampler* resampler,
+                                   const std::string& out_dir) {
   const auto t_all = Clock::now();
   Run run(in, opt, resampler, out_dir);
   resample::LiftInputs to_lift;
@@ -589,5 +623,6 @@ ReconstructResult reconstruct(const ReconstructInputs& in, const ReconstructOpti
                    detail::report_json(run.res, opt.run_probe).dump(2) + "\n");
   return std::move(run.res);
 }
+}  // namespace
 
 }  // namespace simu::reconstruct

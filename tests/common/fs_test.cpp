@@ -1,4 +1,5 @@
-// File helpers: remove_tree removes nested trees without following links; atomic_write replaces whole files.
+// File helpers: remove_tree removes nested trees without following links; atomic_write replaces whole files;
+// no source calls std::filesystem::remove_all (libtorch.so's exported copy crashes on non-empty folders).
 #include "common/fs.h"
 
 #include <sys/wait.h>
@@ -6,6 +7,8 @@
 
 #include <filesystem>
 #include <fstream>
+#include <string>
+#include <vector>
 
 #include "common/error.h"
 #include "test_files.h"
@@ -99,4 +102,29 @@ TEST(Fs, ReplaceDirAndOverwriteCheck) {
   }
   EXPECT_NO_THROW(simu::fs::check_overwrite(target, true, "output directory"));
   EXPECT_NO_THROW(simu::fs::check_overwrite(dir + "/absent", false, "output directory"));
+}
+
+// No source of the tree calls std::filesystem::remove_all: programs link libtorch.so, whose exported copy of it
+// is what the dynamic linker binds, and it crashes on a non-empty folder (fs::remove_tree is the replacement).
+TEST(Fs, NoSourceCallsStdRemoveAll) {
+  namespace sfs = std::filesystem;
+  const std::string needle = std::string("remove_") + "all(";  // split so this file does not match itself
+  std::vector<std::string> hits;
+  for (const char* top : {"src", "apps", "bench", "tests", "fuzz"}) {
+    const sfs::path root = sfs::path(SIMU_SOURCE_DIR) / top;
+    ASSERT_TRUE(sfs::is_directory(root)) << root;
+    for (const auto& e : sfs::recursive_directory_iterator(root)) {
+      const std::string ext = e.path().extension().string();
+      if (!e.is_regular_file() || (ext != ".cpp" && ext != ".h" && ext != ".cu")) continue;
+      std::ifstream f(e.path());
+      std::string line;
+      for (int n = 1; std::getline(f, line); ++n) {
+        const size_t code_end = line.find("//");
+        if (line.substr(0, code_end).find(needle) != std::string::npos)
+          hits.push_back(e.path().string() + ":" + std::to_string(n));
+      }
+    }
+  }
+  EXPECT_TRUE(hits.empty()) << "std::filesystem::remove_all called at " << hits.front() << " (and " << hits.size() - 1
+                            << " more): use simu::fs::remove_tree";
 }

@@ -3,8 +3,14 @@
 // (the fitted meshes' canonical up axes) is within 3 degrees of the true up and decides up when there is
 // no wall pair, no floor mask and no fallback floor; the floor then sits at the lowest fitted vertex; a
 // hanging object is anchored to the back wall, and without wall masks gets a wall fitted to the depth
-// around its mask, within 1 degree / 2 cm of the true back wall.
+// around its mask, within 1 degree / 2 cm of the true back wall; an output is replaced atomically (a failed
+// run keeps the earlier one).
 #include <gtest/gtest.h>
+
+#include <filesystem>
+
+#include "common/error.h"
+#include "physics/scene.h"
 
 #include "reconstruct/planes.h"
 #include "physics/mesh.h"
@@ -116,4 +122,40 @@ TEST(ReconstructRun, HangingObjectGetsAWallFromTheDepthAroundIt) {
   ASSERT_NE(p, nullptr);
   EXPECT_LT(angle_deg(p->normal, s.back_wall.plane.normal), 1.0);
   EXPECT_LT(std::abs(s.back_wall.plane.distance(p->point)), 0.02);
+}
+
+// Output replacement: an existing output is refused without overwrite; with it, a run that fails part-way
+// (an invalid probe config) leaves the earlier output as it was and no temporary; a good run replaces
+// it and its scene.json names files inside the final folder.
+TEST(ReconstructRun, OverwriteIsAtomicAndAFailedRunKeepsTheEarlierOutput) {
+  namespace sfs = std::filesystem;
+  const CameraScene s = small_scene();
+  const auto dir = simu::testing::temp_dir("reconstruct_run_overwrite");
+  write_camera_scene_lift(s, dir + "/photo");
+  const ReconstructInputs byo = camera_scene_inputs(s, dir + "/photo", true);
+  const std::string out = dir + "/out";
+  reconstruct(byo, options(), nullptr, out);
+  const auto first_time = sfs::last_write_time(out + "/input/scene.json");
+  // Refused without overwrite.
+  EXPECT_THROW(reconstruct(byo, options(), nullptr, out), simu::Error);
+  // A run with overwrite that fails part-way (its probe config is invalid: the inputs are written, then the
+  // probe refuses): the old output untouched, no temporary left.
+  ReconstructOptions ow = options();
+  ow.overwrite = true;
+  ReconstructOptions bad = ow;
+  bad.run_probe = true;
+  bad.probe.physics.timestep = -1;
+  EXPECT_THROW(reconstruct(byo, bad, nullptr, out), simu::Error);
+  EXPECT_EQ(sfs::last_write_time(out + "/input/scene.json"), first_time);
+  for (const auto& e : sfs::directory_iterator(dir))
+    EXPECT_EQ(e.path().filename().string().find(".tmp-"), std::string::npos) << e.path();
+  // A good run with overwrite replaces it; every file the result and the scene name is in the final folder.
+  const ReconstructResult r = reconstruct(byo, ow, nullptr, out);
+  ASSERT_FALSE(r.scene.objects.empty());
+  for (const auto& o : r.scene.objects) {
+    EXPECT_TRUE(sfs::exists(o.mesh_path)) << o.mesh_path;
+    EXPECT_EQ(o.mesh_path.find(".tmp-"), std::string::npos) << o.mesh_path;
+  }
+  const auto reread = simu::physics::load_scene(out + "/input/scene.json");
+  for (const auto& o : reread.objects) EXPECT_TRUE(sfs::exists(o.mesh_path)) << o.mesh_path;
 }
