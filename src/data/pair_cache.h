@@ -38,6 +38,8 @@
 #include <thread>
 #include <vector>
 
+#include "common/error.h"
+
 namespace simu::data {
 
 // The schema version this code writes and reads.
@@ -109,6 +111,13 @@ struct DatasetInfo {
 // The process-wide lock every HDF5 call of the toolkit takes (libhdf5 is not thread-safe here).
 std::recursive_mutex& hdf5_mutex();
 
+// Thrown by PairCacheWriter::append when the record itself is refused (shape, values, id, kind,
+// weight, a condition of the other mode); nothing was written, the writer stays usable.
+class RecordRefused : public Error {
+ public:
+  using Error::Error;
+};
+
 // Writes a cache atomically: everything goes to `path.tmp-<pid>`; finish() flushes, closes, fsyncs
 // and renames it over `path`. A writer destroyed without finish() (exception, crash) removes its
 // temporary file and leaves `path` as it was (absent, or the previous complete cache); a process
@@ -137,7 +146,7 @@ class PairCacheWriter {
   // any float dtype, finite values, a non-empty id not yet present, weight finite and >= 0.
   // Inputs mode: record.inputs instead of cond, each kwarg of condition_input_names() with its shape
   // ([ch, S, S]); images and masks in [0, 1] (see check_condition_input), point maps without +-Inf.
-  // Throws simu::Error naming the file and the id otherwise.
+  // Throws RecordRefused (a simu::Error) naming the file and the id otherwise, before writing anything.
   void append(const PairRecord& record);
   // Number of pairs written so far (including resumed ones).
   int64_t size() const;

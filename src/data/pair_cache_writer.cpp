@@ -229,27 +229,34 @@ std::vector<torch::Tensor> encoded_inputs(const PairRecord& r, const CacheInfo& 
 void PairCacheWriter::append(const PairRecord& r) {
   auto& m = *impl_;
   if (m.finished) fail("pair cache '{}': append after finish()", path_);
-  // Check the record before touching the file.
-  if (r.id.empty()) fail("pair cache '{}': record {} has an empty id", path_, m.n);
-  if (m.ids.count(r.id)) fail("pair cache '{}': pair id '{}' is already in the cache", path_, r.id);
-  const auto kind = static_cast<uint8_t>(r.kind);
-  if (kind > 1) fail("pair cache '{}': pair '{}': kind {} is not 0 or 1", path_, r.id, kind);
-  if (!std::isfinite(r.weight) || r.weight < 0)
-    fail("pair cache '{}': pair '{}': weight {} must be finite and >= 0", path_, r.id, r.weight);
-  expect_shape(r.latent_pos, m.latent_shape, path_, r.id, "latent_pos");
-  expect_shape(r.latent_neg, m.latent_shape, path_, r.id, "latent_neg");
-  // Convert to the storage dtype (contiguous CPU); the condition padded (tokens) or encoded (inputs).
-  auto pos = r.latent_pos.detach().to(torch::kCPU, m.dtype).contiguous();
-  auto neg = r.latent_neg.detach().to(torch::kCPU, m.dtype).contiguous();
-  if (m.dtype == torch::kFloat16 && !(torch::isfinite(pos).all().item<bool>() && torch::isfinite(neg).all().item<bool>()))
-    fail("pair cache '{}': pair '{}': values overflow float16 (|x| > 65504)", path_, r.id);
+  torch::Tensor pos, neg, cond;
   int32_t cond_len = 0;
-  torch::Tensor cond;
   std::vector<torch::Tensor> inputs;
-  if (m.inputs_mode)
-    inputs = encoded_inputs(r, m.h.info, path_);
-  else
-    cond = padded_tokens(r, m.cond_shape, m.dtype, path_, &cond_len);
+  try {
+    // Check the record before touching the file; convert to the storage dtype (contiguous CPU); the
+    // condition padded (tokens) or encoded (inputs).
+    if (r.id.empty()) fail("pair cache '{}': record {} has an empty id", path_, m.n);
+    if (m.ids.count(r.id)) fail("pair cache '{}': pair id '{}' is already in the cache", path_, r.id);
+    if (static_cast<uint8_t>(r.kind) > 1)
+      fail("pair cache '{}': pair '{}': kind {} is not 0 or 1", path_, r.id, static_cast<int>(r.kind));
+    if (!std::isfinite(r.weight) || r.weight < 0)
+      fail("pair cache '{}': pair '{}': weight {} must be finite and >= 0", path_, r.id, r.weight);
+    expect_shape(r.latent_pos, m.latent_shape, path_, r.id, "latent_pos");
+    expect_shape(r.latent_neg, m.latent_shape, path_, r.id, "latent_neg");
+    pos = r.latent_pos.detach().to(torch::kCPU, m.dtype).contiguous();
+    neg = r.latent_neg.detach().to(torch::kCPU, m.dtype).contiguous();
+    if (m.dtype == torch::kFloat16 && !(torch::isfinite(pos).all().item<bool>() && torch::isfinite(neg).all().item<bool>()))
+      fail("pair cache '{}': pair '{}': values overflow float16 (|x| > 65504)", path_, r.id);
+    if (m.inputs_mode)
+      inputs = encoded_inputs(r, m.h.info, path_);
+    else
+      cond = padded_tokens(r, m.cond_shape, m.dtype, path_, &cond_len);
+  } catch (const RecordRefused&) {
+    throw;
+  } catch (const Error& e) {
+    throw RecordRefused(e.what(), e.hint());
+  }
+  const auto kind = static_cast<uint8_t>(r.kind);
   // Grow every dataset by one row and write it.
   H5Lock lock;
   const int64_t i = m.n;

@@ -127,6 +127,10 @@ class CacheSink {
             PairBuildReport& report)
       : cfg_(cfg), latent_shape_(std::move(latent_shape)), cond_shape_(std::move(cond_shape)), report_(report) {}
 
+  // Opens the writer now (its errors concern the cache, not a record).
+  void ensure_open() {
+    if (!writer_) open();
+  }
   void append(const data::PairRecord& rec) {
     if (!writer_) open();
     writer_->append(rec);
@@ -298,7 +302,13 @@ void append_batch(const std::vector<PreparedPair>& batch, const BatchTokens& bt,
       add_pair_issue(report, manifest_path, r.line, r.id, "the models produced non-finite latents or condition tokens");
       continue;
     }
-    sink.append(rec);
+    sink.ensure_open();
+    try {
+      sink.append(rec);  // checks the whole record before writing: a refused one leaves the cache as it was
+    } catch (const data::RecordRefused& e) {
+      // e.g. inputs mode: a 16-bit mask (not an 8-bit level) or an image far outside [0, 1].
+      add_pair_issue(report, manifest_path, r.line, r.id, e.what());
+    }
   }
 }
 

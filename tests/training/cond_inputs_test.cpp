@@ -1,7 +1,8 @@
 // Training on an inputs-mode pair cache (src/training/cond_inputs.cpp): build_pairs writes a tokens-mode
 // (float32) and an inputs-mode (exact storage) cache from the same records, and the trainer, running the
 // frozen condition embedder inside the step for the latter, ends with bit-identical adapters on CPU; the
-// compact storage (rounded inputs) gives different adapters, so the comparison can fail. Also: a missing
+// compact storage (rounded inputs) gives different adapters, so the comparison can fail. build_pairs skips
+// (and reports) a record whose inputs the storage refuses (a 16-bit mask). Also: a missing
 // model.embedder_config, an embedder that makes other tokens than the cache's, and inputs-mode pairs
 // without an embedder are errors naming the key / file.
 #include <filesystem>
@@ -91,8 +92,9 @@ std::string write_manifest(const std::string& dir) {
 #endif
 
 // Builds a cache from the manifest with the small fixture generator (2 sampling steps), float32.
-std::string build(const std::string& manifest, const std::string& out, const std::string& cond_mode,
-                  const std::string& storage, const std::string& emb_cfg, const std::string& emb_w) {
+simu::resample::PairBuildReport build_report(const std::string& manifest, const std::string& out,
+                                             const std::string& cond_mode, const std::string& storage,
+                                             const std::string& emb_cfg, const std::string& emb_w) {
   simu::resample::PairBuilderConfig cfg;
   auto& rc = cfg.resampler;
   rc.generator_config = simu::testing::fixture("ss_generator_small.json");
@@ -109,8 +111,11 @@ std::string build(const std::string& manifest, const std::string& out, const std
   cfg.batch = 2;
   cfg.cond_mode = cond_mode;
   cfg.inputs_storage = storage;
-  const auto report = simu::resample::build_pairs(manifest, cfg);
-  EXPECT_EQ(report.written, 4) << out;
+  return simu::resample::build_pairs(manifest, cfg);
+}
+std::string build(const std::string& manifest, const std::string& out, const std::string& cond_mode,
+                  const std::string& storage, const std::string& emb_cfg, const std::string& emb_w) {
+  EXPECT_EQ(build_report(manifest, out, cond_mode, storage, emb_cfg, emb_w).written, 4) << out;
   return out;
 }
 
@@ -173,6 +178,26 @@ TEST(CondInputs, TokensAndInputsCachesTrainToIdenticalAdapters) {
   EXPECT_GT(moved, 0);
   EXPECT_TRUE(all_equal(a_tokens, a_inputs)) << "tokens-mode and inputs-mode adapters differ";
   EXPECT_FALSE(all_equal(a_tokens, a_compact)) << "compact (rounded) inputs should change the adapters";
+#endif
+}
+
+TEST(CondInputs, BuildPairsSkipsARecordTheInputsStorageRefuses) {
+#ifndef SIMU_HAVE_OPENCV
+  GTEST_SKIP() << "needs OpenCV to write the image files";
+#else
+  const auto dir = simu::testing::temp_dir("cond_inputs_refused");
+  const auto manifest = write_manifest(dir);
+  // Record 0's modal mask as a 16-bit PNG: its levels k/65535 are not 8-bit levels k/255.
+  cv::Mat m16 = cv::imread(dir + "/r0_mask.png", cv::IMREAD_UNCHANGED);
+  m16.convertTo(m16, CV_16U, 40000.0 / 255.0);
+  ASSERT_TRUE(cv::imwrite(dir + "/r0_mask.png", m16));
+  const auto emb_cfg = embedder_config(dir);
+  const auto report = build_report(manifest, dir + "/inputs.h5", "inputs", "exact", emb_cfg, embedder_weights(dir, emb_cfg));
+  EXPECT_EQ(report.written, 3);
+  ASSERT_EQ(report.issues.size(), 1u);
+  EXPECT_EQ(report.issues[0].id, "occ0");
+  EXPECT_NE(report.issues[0].message.find("not an 8-bit level"), std::string::npos) << report.issues[0].message;
+  EXPECT_EQ(simu::data::validate_cache(dir + "/inputs.h5").size, 3);
 #endif
 }
 
