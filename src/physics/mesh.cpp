@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
@@ -33,6 +34,51 @@ int ply_type_size(const std::string& t) {
   return 0;
 }
 bool ply_integer_type(const std::string& t) { return ply_type_size(t) && t.rfind("float", 0) != 0 && t != "double"; }
+// Largest list length a PLY count type can hold (counts are never negative).
+uint64_t ply_count_max(const std::string& t) {
+  const int b = ply_type_size(t);
+  const bool is_signed = t == "char" || t == "int8" || t == "short" || t == "int16" || t == "int" || t == "int32";
+  return (uint64_t{1} << (8 * b - (is_signed ? 1 : 0))) - 1;
+}
+
+// A PLY element of a header: its count and properties (list_count[k]: the count type of list property k,
+// "" for a scalar).
+struct PlyElement {
+  std::string name;
+  uint64_t count = 0;
+  uint64_t min_bytes = 0;  // per element, in the file's format
+  std::vector<std::string> props, list_count;
+};
+
+// Walks an ASCII PLY body as the header declares it: every value a number, every list length an integer
+// that its count type holds, and the file holding that many values. assimp 5.2 allocates a list from its
+// length unchecked: "3611295284" as a uchar length asked for 29 GB
+// (fuzz/regressions/fuzz_scene/assimp_ply_ascii_list_count_oom.bin).
+void check_ply_ascii_body(const std::string& path, std::ifstream& in, uint64_t pos, const std::vector<PlyElement>& elements) {
+  in.clear();
+  in.seekg(static_cast<std::streamoff>(pos));
+  std::string tok;
+  auto number = [&](const PlyElement& e, uint64_t i, const std::string& prop) {
+    SIMU_CHECK(static_cast<bool>(in >> tok), "mesh file {}: ASCII PLY data ends in {} {} (property '{}'): fewer values than the "
+               "header declares", path, e.name, i, prop);
+    char* end = nullptr;
+    const double v = std::strtod(tok.c_str(), &end);
+    SIMU_CHECK(end == tok.c_str() + tok.size(), "mesh file {}: ASCII PLY value '{}' in {} {} (property '{}') is not a number",
+               path, tok.substr(0, 32), e.name, i, prop);
+    return v;
+  };
+  for (const auto& e : elements)
+    for (uint64_t i = 0; i < e.count; ++i)
+      for (size_t k = 0; k < e.props.size(); ++k) {
+        const double v = number(e, i, e.props[k]);
+        if (e.list_count[k].empty()) continue;
+        const uint64_t max = ply_count_max(e.list_count[k]);
+        SIMU_CHECK(v >= 0 && v <= static_cast<double>(max) && v == std::floor(v),
+                   "mesh file {}: ASCII PLY list length '{}' in {} {} (property '{}') is not an integer in [0, {}] (its "
+                   "type {})", path, tok.substr(0, 32), e.name, i, e.props[k], max, e.list_count[k]);
+        for (uint64_t j = 0; j < static_cast<uint64_t>(v); ++j) number(e, i, e.props[k]);
+      }
+}
 
 // Checks a PLY file's header before assimp sees it: assimp 5.2's PLY reader loops forever on some
 // malformed headers (an unknown property type, no end_header: fuzz/regressions/fuzz_scene/). Checks:
@@ -57,13 +103,7 @@ void check_ply_header(const std::string& path) {
     fail_hint("write the PLY with a standard tool (trimesh, Open3D, MeshLab, Blender)",
               "mesh file {}: malformed PLY header (line {}): {}", path, line, why);
   };
-  struct Element {
-    std::string name;
-    uint64_t count = 0;
-    uint64_t min_bytes = 0;  // per element, in the file's format
-    std::vector<std::string> props;
-  };
-  std::vector<Element> elements;
+  std::vector<PlyElement> elements;
   bool binary = false, have_format = false, ended = false;
   size_t pos = 0;
   int line_no = 0;
@@ -101,7 +141,7 @@ void check_ply_header(const std::string& path) {
       if (c.empty() || c.size() > 10 || c.find_first_not_of("0123456789") != std::string::npos ||
           std::stoull(c) > std::numeric_limits<uint32_t>::max())
         bad(line_no, fmt::format("element '{}' count '{}' is not an integer in [0, 2^32)", tok[1], c));
-      elements.push_back({tok[1], std::stoull(c), 0, {}});
+      elements.push_back({tok[1], std::stoull(c), 0, {}, {}});
     } else if (tok[0] == "property") {
       if (elements.empty()) bad(line_no, "a property before any element");
       auto& e = elements.back();
@@ -110,12 +150,14 @@ void check_ply_header(const std::string& path) {
           bad(line_no, "expected 'property list COUNT_TYPE INDEX_TYPE NAME' with integer types (uchar, int, ...)");
         e.min_bytes += binary ? static_cast<uint64_t>(ply_type_size(tok[2])) : 2;
         e.props.push_back(tok[4]);
+        e.list_count.push_back(tok[2]);
       } else {
         if (tok.size() != 3 || !ply_type_size(tok[1]))
           bad(line_no, "expected 'property TYPE NAME' with TYPE one of char uchar short ushort int uint float double "
                        "(or int8 ... float64)");
         e.min_bytes += binary ? static_cast<uint64_t>(ply_type_size(tok[1])) : 2;
         e.props.push_back(tok[2]);
+        e.list_count.push_back("");
       }
     } else {
       bad(line_no, fmt::format("unknown keyword '{}' (expected element, property, comment, obj_info, end_header)",
@@ -161,6 +203,7 @@ void check_ply_header(const std::string& path) {
     }
   }
   SIMU_CHECK(have_xyz, "mesh file {}: the PLY header declares no 'vertex' element with x, y, z properties", path);
+  if (!binary) check_ply_ascii_body(path, in, pos, elements);
 }
 
 }  // namespace

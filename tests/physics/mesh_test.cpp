@@ -94,6 +94,11 @@ TEST(ReadMesh, MalformedPlyHeadersFailFastInsteadOfHanging) {
       {"noxyz.ply", "ply\nformat ascii 1.0\nelement vertex 1\nproperty float q\nend_header\n0\n", "x, y, z"},
       // A NUL in an ASCII body made assimp allocate 13.9 GB (fuzz/regressions/fuzz_scene/assimp_ply_ascii_nul_oom.bin).
       {"nul.ply", std::string(kPlyHead) + "0 0 0\n1 0" + std::string(1, '\0') + "0\n0 1 0\n3 0 1 2\n", "byte 0x00"},
+      // A uchar list length of 3611295284 made assimp allocate 29 GB
+      // (fuzz/regressions/fuzz_scene/assimp_ply_ascii_list_count_oom.bin); other body errors name the element.
+      {"listlen.ply", std::string(kPlyHead) + "0 0 0\n1 0 0\n0 1 0\n3611295284 0 1 2\n", "list length"},
+      {"nan_text.ply", std::string(kPlyHead) + "0 0 0\n1 zero 0\n0 1 0\n3 0 1 2\n", "not a number"},
+      {"short.ply", std::string(kPlyHead) + "0 0 0\n1 0 0\n0 1 0\n3 0 1\n", "fewer values"},
   };
   for (const auto& c : cases) {
     const auto p = write(dir, c.name, c.text);
