@@ -316,14 +316,17 @@ struct Run {
     }
     if (opt.do_align) {
       std::vector<std::string> errors(objs.size());
+      std::vector<double> seconds(objs.size(), 0.0);
       at::parallel_for(0, int64_t(objs.size()), 1, [&](int64_t b, int64_t e) {
         for (int64_t k = b; k < e; ++k) {
           if (!objs[size_t(k)].ok) continue;
+          const auto tk = Clock::now();
           try {
             results[size_t(k)] = align_translation_scale(inputs[size_t(k)], opt.align);
           } catch (const std::exception& ex) {
             errors[size_t(k)] = ex.what();
           }
+          seconds[size_t(k)] = since(tk);
         }
       });
       for (size_t k = 0; k < objs.size(); ++k) {
@@ -337,7 +340,7 @@ struct Run {
         }
         w.scale = ar.s * inputs[k].shape;
         w.t = ar.t;
-        w.rep.steps.push_back(fmt::format("aligned (start rho {})", ar.candidates[size_t(ar.best)].rho));
+        w.rep.steps.push_back(fmt::format("aligned (start rho {}, {:.2f} s)", ar.candidates[size_t(ar.best)].rho, seconds[k]));
       }
     }
     res.timings["align"] = since(t0);
