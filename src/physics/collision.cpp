@@ -199,6 +199,17 @@ std::mutex& coacd_mutex() {
   return m;
 }
 
+#if defined(__SANITIZE_ADDRESS__)
+#define SIMU_ASAN 1
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer)
+#define SIMU_ASAN 1
+#endif
+#endif
+#ifndef SIMU_ASAN
+#define SIMU_ASAN 0
+#endif
+
 // CoACD's entry points, from lib_coacd.so opened privately. The library carries its own copy of the
 // C++ runtime and exports it (__cxa_throw, std:: symbols); linked normally, that copy serves every
 // exception thrown in the process, and a yaml-cpp parse error aborted the program on the GPU image.
@@ -216,7 +227,13 @@ const CoacdApi& coacd_api() {
     CoacdApi a;
     const char* env = std::getenv("SIMU_COACD_LIBRARY");
     const std::string path = env && *env ? env : SIMU_COACD_LIBRARY;
+#if SIMU_ASAN
+    // AddressSanitizer cannot run a library opened with RTLD_DEEPBIND (google/sanitizers#611): sanitizer
+    // builds (SIMU_SANITIZE) open it without, and CoACD then binds to the process's C++ runtime.
+    void* h = dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL);
+#else
     void* h = dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL | RTLD_DEEPBIND);
+#endif
     if (!h) {
       a.error = fmt::format("cannot load CoACD from '{}' ({}); set SIMU_COACD_LIBRARY to lib_coacd.so of "
                             "pip's coacd==1.0.14", path, dlerror());
