@@ -54,9 +54,11 @@ struct Row {
 struct TimedEmbedder {
   simu::models::CondEmbedder embedder{nullptr};
   bool timing = false;
+  bool sync = true;  // --embed-timing off: no synchronisations (they stall the step's CPU/GPU overlap)
   double seconds = 0;
   ConditionEmbedFn fn() {
     return [this](const std::map<std::string, torch::Tensor>& inputs) {
+      if (!sync) return embedder->forward(inputs);
       torch::cuda::synchronize();
       const auto t0 = std::chrono::steady_clock::now();
       auto out = embedder->forward(inputs);
@@ -147,7 +149,7 @@ void print_rows(const std::vector<Row>& rows, const std::vector<double>& alone, 
     const auto& r = rows[i];
     std::string scaling = "-";
     if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
-    const std::string embed = r.mode == "inputs" ? fmt::format("{:.1f}%", 100.0 * r.embed_share) : "-";
+    const std::string embed = r.embed_share >= 0 ? fmt::format("{:.1f}%", 100.0 * r.embed_share) : "-";
     fmt::print("{:>6} {:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8} {:>7}\n", r.mode, r.micro, r.world,
                r.step_s * 1e3, r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling, embed);
   }
@@ -160,7 +162,7 @@ struct Options {
   int steps = 10, warmup = 3, nproc = 0;
   int64_t cond_len = 7528;  // the released embedder's tokens per object (4 x 1,370 + 2 x 1,024)
   double peak_tflops = 989.4;
-  bool checkpointing = false, profile = false;
+  bool checkpointing = false, profile = false, embed_timing = true;
   std::vector<std::string> modes = {"tokens"};
 };
 
@@ -219,7 +221,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
   r.needed_util = needed_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
   r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
-  r.embed_share = inputs ? b.timed.seconds / o.steps / secs : 0.0;
+  r.embed_share = inputs && o.embed_timing ? b.timed.seconds / o.steps / secs : -1.0;
   if (o.profile && m == o.micros.front() && &comm == b.solo.get() && b.env.rank == 0) {
     const auto title = fmt::format("FM-DPO step ({}), micro-batch {}", mode, m);
     simu::bench::print_gpu_kernel_profile(title, [&] { tr.step(); }, 25);
@@ -274,6 +276,7 @@ void run_rank(const Options& o) {
   for (auto& [name, p] : b.policy->adapter_parameters()) b.initial_adapters.push_back(p.detach().clone());
   if (std::find(o.modes.begin(), o.modes.end(), "inputs") != o.modes.end()) {
     b.timed.embedder = simu::models::CondEmbedder(simu::models::CondEmbedderConfig::sam3d_stage1());
+    b.timed.sync = o.embed_timing;
     b.timed.embedder->to(b.device);
     b.timed.embedder->eval();
     for (auto& p : b.timed.embedder->parameters()) p.set_requires_grad(false);
@@ -298,6 +301,9 @@ int main(int argc, char** argv) {
   app.add_option("--peak-tflops", o.peak_tflops, "device peak dense bf16 TFLOP/s for MFU");
   app.add_flag("--activation-checkpointing", o.checkpointing, "recompute the policy forward in backward");
   app.add_option("--nproc-per-node", o.nproc, "ranks (GPUs) to start");
+  app.add_option("--embed-timing", o.embed_timing,
+                 "time the embedder of inputs mode (a device synchronisation before and after it; off: no syncs, no embed column)")
+      ->capture_default_str();
   app.add_flag("--profile", o.profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
   app.add_option("--cond-mode", o.modes,
                  "tokens (condition tokens in the pairs, --cond-len of them) and/or inputs (the released embedder's "
