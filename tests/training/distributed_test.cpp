@@ -143,6 +143,17 @@ std::unique_ptr<Communicator> cpu_rank(int rank, int port, std::chrono::millisec
   env.master_port = port;
   return make_cpu_communicator(connect_store(env, std::chrono::seconds(20)), rank, 2, timeout);
 }
+// A barrier expected to fail: its error message ("no error" if it returned) and the seconds it took.
+std::pair<std::string, double> failing_barrier(Communicator& comm) {
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string msg = "no error";
+  try {
+    comm.barrier();
+  } catch (const simu::Error& e) {
+    msg = e.what();
+  }
+  return {msg, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count()};
+}
 }  // namespace
 
 // The CPU communicator is c10d ProcessGroupGloo: means, sums and barriers agree across two ranks.
@@ -206,14 +217,7 @@ TEST(Distributed, GlooHungRankIsNamedAfterTimeout) {
   });
   auto comm = cpu_rank(0, port, std::chrono::milliseconds(1500));
   comm->all_reduce_sum({1.0});
-  const auto t0 = std::chrono::steady_clock::now();
-  std::string msg = "no error";
-  try {
-    comm->barrier();
-  } catch (const simu::Error& e) {
-    msg = e.what();
-  }
-  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const auto [msg, s] = failing_barrier(*comm);
   survivor_done.set_value();
   EXPECT_EQ(hung.get(), std::vector<double>{2.0});
   EXPECT_NE(msg.find("gloo barrier"), std::string::npos) << msg;
@@ -248,14 +252,7 @@ TEST(Distributed, GlooRankZeroDeathIsNamedPlainly) {
   comm->all_reduce_sum({1.0});
   int status = 0;
   ::waitpid(pid, &status, 0);  // rank 0 is gone now
-  const auto t0 = std::chrono::steady_clock::now();
-  std::string msg = "no error";
-  try {
-    comm->barrier();
-  } catch (const simu::Error& e) {
-    msg = e.what();
-  }
-  const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const auto [msg, s] = failing_barrier(*comm);
   EXPECT_NE(msg.find("rank 1: gloo barrier"), std::string::npos) << msg;
   EXPECT_NE(msg.find("rank 0 is gone"), std::string::npos) << msg;
   EXPECT_EQ(msg.find("timed out"), std::string::npos) << msg;
