@@ -9,18 +9,12 @@
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
-PREFIX="$ROOT/.carry/prefix/usr"
-[ -d "$PREFIX" ] || { echo "error: $PREFIX missing: run scripts/gpu_bundle.sh here and carry .carry" >&2; exit 1; }
-export LD_LIBRARY_PATH="$PREFIX/lib/x86_64-linux-gnu:$PREFIX/lib/coacd:${LD_LIBRARY_PATH:-}"
-export SIMU_SHARED_DIR="${SIMU_SHARED_DIR:-$ROOT/.carry/shared}"
-export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
-PY="${PYTHON:-python3}"
-TORCH_PREFIX="$($PY -c 'import torch.utils; print(torch.utils.cmake_prefix_path)')"
+source "$ROOT/scripts/gpu_env.sh"
 BUILD="${BUILD_DIR:-$ROOT/build-gpu}"
 t0=$(date +%s)
-cmake -S "$ROOT" -B "$BUILD" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TORCH_PREFIX;$PREFIX" \
-  -DSIMU_WITH_OPENCV=OFF -DSIMU_PYTHON="$(command -v $PY)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 ${SIMU_CMAKE_ARGS:-} >"$ROOT/gpu-configure.log" 2>&1 \
-  || { tail -40 "$ROOT/gpu-configure.log"; exit 1; }
+# SIMU_CMAKE_ARGS: extra configure options (word-split on purpose).
+# shellcheck disable=SC2086
+gpu_configure "$BUILD" "$ROOT/gpu-configure.log" ${SIMU_CMAKE_ARGS:-} || exit 1
 grep -E "gloo headers" "$ROOT/gpu-configure.log" || true  # c10d ProcessGroupGloo for CPU ranks (headers from .carry)
 cmake --build "$BUILD" -j"$(nproc)" >"$ROOT/gpu-build.log" 2>&1 || { grep -B2 -A8 -E "error|FAILED" "$ROOT/gpu-build.log" | head -80; exit 1; }
 t1=$(date +%s)

@@ -9,17 +9,10 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 O="${OUT:-$ROOT/bench-out}"
 mkdir -p "$O"
-PREFIX="$ROOT/.carry/prefix/usr"
-[ -d "$PREFIX" ] || { echo "error: $PREFIX missing: carry .carry (scripts/gpu_bundle.sh)" >&2; exit 1; }
-export LD_LIBRARY_PATH="$PREFIX/lib/x86_64-linux-gnu:$PREFIX/lib/coacd:${LD_LIBRARY_PATH:-}"
-export SIMU_SHARED_DIR="${SIMU_SHARED_DIR:-$ROOT/.carry/shared}"
-export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
+source "$ROOT/scripts/gpu_env.sh"
 B="${BUILD_DIR:-$ROOT/../build-gpu-lift}"
-TP="$(python3 -c 'import torch.utils; print(torch.utils.cmake_prefix_path)')"
 t0=$(date +%s)
-cmake -S "$ROOT" -B "$B" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$TP;$PREFIX" -DSIMU_WITH_OPENCV=OFF \
-  -DSIMU_PYTHON="$(command -v python3)" -DSIMU_COACD_DIR="$PREFIX/lib/coacd" -DTORCH_CUDA_ARCH_LIST=9.0 >"$O/build.log" 2>&1 \
-  || { tail -30 "$O/build.log"; exit 1; }
+gpu_configure "$B" "$O/build.log" || exit 1
 cmake --build "$B" -j"$(nproc)" --target bench_lift bench_stage1 bench_mesh test_models_gpu >>"$O/build.log" 2>&1 \
   || { grep -B2 -A12 -E "error|FAILED" "$O/build.log" | head -80; exit 1; }
 echo "[gpu] configure+build: $(( $(date +%s) - t0 )) s on $(nproc) cores"
