@@ -14,7 +14,9 @@
 #   fuzz_pair_cache --long fuzzes the reads behind the HDF5 crash guard (SIMU_HDF5_ISOLATE=0, libFuzzer
 #   fork mode keeps going past libhdf5 1.10's own crashes; set ASAN_OPTIONS=symbolize=0 there: each such
 #   crash is otherwise symbolised) and then replays every crash/hang input with the guard on: only a
-#   failure there counts.
+#   failure there counts. A later --long run continues the same work dir (corpus, crash inputs, and the
+#   execution total in <work>/executions.txt); --no-triage skips the replay (a run split over calls),
+#   --triage-only replays what the runs so far collected. Delete <work> to start afresh.
 # Exit status: 0 clean, 1 a crash / sanitizer report / build failure, 77 clang or libFuzzer missing.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -24,6 +26,7 @@ SECS=0
 JOBS=1
 RUNS=0
 BUILD_TARGETS=1
+TRIAGE=1
 TARGETS=()
 while (($#)); do
   case "$1" in
@@ -34,13 +37,15 @@ while (($#)); do
     --jobs) JOBS="$2"; shift ;;
     --runs) RUNS="$2"; shift ;;
     --no-build) BUILD_TARGETS=0 ;;
-    -h|--help) sed -n 2,18p "$0"; exit 0 ;;
+    --no-triage) TRIAGE=0 ;;
+    --triage-only) MODE=long; TRIAGE=2 ;;
+    -h|--help) sed -n 2,21p "$0"; exit 0 ;;
     fuzz_*) TARGETS+=("$1") ;;
     *) echo "fuzz.sh: unknown argument '$1' (see --help)" >&2; exit 2 ;;
   esac
   shift
 done
-[[ -n $MODE ]] || { sed -n 2,18p "$0"; exit 2; }
+[[ -n $MODE ]] || { sed -n 2,21p "$0"; exit 2; }
 ((${#TARGETS[@]})) || TARGETS=(fuzz_safetensors fuzz_peft fuzz_config fuzz_scene fuzz_pair_cache fuzz_manifest fuzz_depth)
 
 # Prebuilt targets (--no-build, e.g. copied to a many-core machine with the libraries they link): no compiler needed.
@@ -121,27 +126,38 @@ for t in "${TARGETS[@]}"; do
     start=$(date +%s)
     if [[ $t == fuzz_pair_cache ]]; then
       # Behind the guard: libhdf5 1.10's own crashes end a fork-mode child, libFuzzer starts another.
-      rm -f "$work"/crashes/*
-      TIMEFORMAT='%U %S'
-      { time SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork="$JOBS" -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
-        "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt" || true
-      cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
-      execs=$(grep -o '^#[0-9]*' "$work/fuzz.log" | tail -n 1 | tr -d '#')
+      # The work dir carries over between runs: corpus, crash inputs, and one line per run in executions.txt.
+      execs=0 cpu=0
+      if ((TRIAGE < 2)); then
+        TIMEFORMAT='%U %S'
+        { time SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork="$JOBS" -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
+          "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt" || true
+        cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
+        execs=$(grep -o '^#[0-9]*' "$work/fuzz.log" | tail -n 1 | tr -d '#')
+        echo "${execs:-0} $(( $(date +%s) - start )) $cpu" >>"$work/executions.txt"
+      fi
+      total=$(awk '{e += $1; w += $2; c += $3} END {printf "%d executions in %d s (%d s CPU) over %d run(s)", e, w, c, NR}' \
+        "$work/executions.txt" 2>/dev/null || echo "no runs")
+      nart=$(find "$work/crashes" -type f | wc -l)
+      if ((TRIAGE == 0)); then
+        echo "ok: $t: ${execs:-?} executions in $(( $(date +%s) - start )) s ($cpu s CPU) behind the guard, this run;" \
+          "total $total; $nart libhdf5 crash/hang inputs so far, not replayed yet (--triage-only); log $work/fuzz.log"
+        continue
+      fi
       # Triage with the guard on (as users run it): every input must end cleanly, each in its own process
       # (in parallel); the ones that do not are listed in $work/failing.txt, their logs under $work/triage/.
       r=ok
-      nart=$(find "$work/crashes" -type f | wc -l)
       rm -rf "$work/triage" && mkdir -p "$work/triage"
       : >"$work/failing.txt"
       if ((nart)); then
         find "$work/crashes" -type f -print0 |
-          xargs -0 -P "$(nproc)" -I{} sh -c 'timeout 300 "$0" -rss_limit_mb=4096 -timeout=60 "$1" >"$2/$(basename "$1").log" 2>&1 || echo "$1"' \
+          xargs -0 -P "$(nproc)" -I{} sh -c 'timeout 120 "$0" -rss_limit_mb=4096 -timeout=60 "$1" >"$2/$(basename "$1").log" 2>&1 || echo "$1"' \
             "$exe" {} "$work/triage" >>"$work/failing.txt" || true
       fi
       nfail=$(wc -l <"$work/failing.txt")
       ((nfail)) && { r=CRASH; status=1; }
-      echo "$r: $t: ${execs:-?} executions in $(( $(date +%s) - start )) s ($cpu s CPU) behind the guard, $nart libhdf5 crash/hang" \
-        "inputs, $nfail of them failing with the guard on (listed in $work/failing.txt); corpus $(ls "$work/corpus" | wc -l) files," \
+      echo "$r: $t: total $total behind the guard; $nart libhdf5 crash/hang inputs, $nfail of them failing with the" \
+        "guard on (listed in $work/failing.txt); triage $(( $(date +%s) - start )) s; corpus $(ls "$work/corpus" | wc -l) files," \
         "log $work/fuzz.log"
       continue
     fi
