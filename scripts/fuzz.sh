@@ -130,7 +130,9 @@ for t in "${TARGETS[@]}"; do
       execs=0 cpu=0
       if ((TRIAGE < 2)); then
         TIMEFORMAT='%U %S'
-        { time SIMU_HDF5_ISOLATE=0 "$exe" "${args[@]}" -fork="$JOBS" -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
+        # libFuzzer's fork mode lets its last jobs finish past -max_total_time (a job runs up to 300 s):
+        # an interrupt at the deadline ends them (the execution count so far is in the log).
+        { time SIMU_HDF5_ISOLATE=0 timeout -s INT -k 30 $((SECS + 5)) "$exe" "${args[@]}" -fork="$JOBS" -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 -timeout=5 \
           "$work/corpus" "${dirs[@]}" >"$work/fuzz.log" 2>&1; } 2>"$work/cpu.txt" || true
         cpu=$(awk '{printf "%.0f", $1 + $2}' "$work/cpu.txt")
         execs=$(grep -o '^#[0-9]*' "$work/fuzz.log" | tail -n 1 | tr -d '#')
