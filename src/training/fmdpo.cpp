@@ -7,6 +7,7 @@
 
 #include <mutex>
 
+#include "common/config_check.h"
 #include "common/error.h"
 #include "common/random.h"
 
@@ -20,15 +21,11 @@ ObjectiveConfig ObjectiveConfig::from(simu::config::Reader& r) {
   r.field("t_mean", c.t_mean);
   r.field("t_std", c.t_std);
   // Domains: finite values only; beta is the DPO temperature (the paper's range is 10^2..10^4).
-  auto in = [&](double v, double lo, double hi, bool lo_open, const char* key, const char* domain) {
-    if (!std::isfinite(v) || v > hi || (lo_open ? v <= lo : v < lo))
-      fail("{}: key 'objective.{}': expected a finite number in {}, got {}", r.file(), key, domain, v);
-  };
-  in(c.beta, 0, 1e6, true, "beta", "(0, 1e6]");
-  in(c.weight_completion, 0, 1e6, false, "weight_completion", "[0, 1e6]");
-  in(c.weight_preservation, 0, 1e6, false, "weight_preservation", "[0, 1e6]");
-  in(c.t_mean, -100, 100, false, "t_mean", "[-100, 100]");
-  in(c.t_std, 0, 100, true, "t_std", "(0, 100]");
+  simu::config::check_in(r, "beta", c.beta, 0, 1e6, true, "(0, 1e6]");
+  simu::config::check_in(r, "weight_completion", c.weight_completion, 0, 1e6, false, "[0, 1e6]");
+  simu::config::check_in(r, "weight_preservation", c.weight_preservation, 0, 1e6, false, "[0, 1e6]");
+  simu::config::check_in(r, "t_mean", c.t_mean, -100, 100, false, "[-100, 100]");
+  simu::config::check_in(r, "t_std", c.t_std, 0, 100, true, "(0, 100]");
   return c;
 }
 

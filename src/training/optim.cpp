@@ -4,6 +4,7 @@
 
 #include <fmt/ranges.h>
 
+#include "common/config_check.h"
 #include "common/error.h"
 
 namespace simu::training {
@@ -19,22 +20,18 @@ OptimConfig OptimConfig::from(simu::config::Reader& r) {
   r.field("min_lr_ratio", c.min_lr_ratio);
   r.field("clip_grad_norm", c.clip_grad_norm);
   // Domains: finite values only; lr above 1 (or eps above 1e-2) never trains an adapter, it diverges.
-  auto in = [&](double v, double lo, double hi, bool lo_open, const char* key, const char* domain) {
-    if (!std::isfinite(v) || v > hi || (lo_open ? v <= lo : v < lo))
-      fail("{}: key 'optim.{}': expected a finite number in {}, got {}", r.file(), key, domain, v);
-  };
-  in(c.lr, 0, 1, true, "lr", "(0, 1]");
+  simu::config::check_in(r, "lr", c.lr, 0, 1, true, "(0, 1]");
   SIMU_CHECK(c.betas.size() == 2, "{}: key 'optim.betas': expected two numbers in [0, 1), got {} numbers", r.file(),
              c.betas.size());
-  in(c.betas[0], 0, 0.999999, false, "betas", "[0, 1)");
-  in(c.betas[1], 0, 0.999999999, false, "betas", "[0, 1)");
-  in(c.eps, 0, 1e-2, true, "eps", "(0, 0.01]");
-  in(c.weight_decay, 0, 10, false, "weight_decay", "[0, 10]");
+  simu::config::check_in(r, "betas", c.betas[0], 0, 0.999999, false, "[0, 1)");
+  simu::config::check_in(r, "betas", c.betas[1], 0, 0.999999999, false, "[0, 1)");
+  simu::config::check_in(r, "eps", c.eps, 0, 1e-2, true, "(0, 0.01]");
+  simu::config::check_in(r, "weight_decay", c.weight_decay, 0, 10, false, "[0, 10]");
   SIMU_CHECK(c.warmup_steps >= 0, "{}: key 'optim.warmup_steps': expected an integer >= 0, got {}", r.file(),
              c.warmup_steps);
   SIMU_CHECK(c.schedule == "constant" || c.schedule == "cosine",
              "{}: key 'optim.schedule': expected 'constant' or 'cosine', got '{}'", r.file(), c.schedule);
-  in(c.min_lr_ratio, 0, 1, false, "min_lr_ratio", "[0, 1]");
+  simu::config::check_in(r, "min_lr_ratio", c.min_lr_ratio, 0, 1, false, "[0, 1]");
   SIMU_CHECK(std::isfinite(c.clip_grad_norm), "{}: key 'optim.clip_grad_norm': expected a finite number (<= 0: no "
              "clipping), got {}", r.file(), c.clip_grad_norm);
   return c;
