@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <set>
 
 #include "common/error.h"
@@ -363,19 +364,56 @@ std::vector<std::string> CondEmbedderImpl::input_names() const {
   return out;
 }
 
+namespace {
+
+// Input `kwarg` of inputs (for the embedder named `entry`); a missing one is an error naming what was
+// given and what is expected (expected() lists the kwargs, called only then).
+const torch::Tensor& input_of(const std::map<std::string, torch::Tensor>& inputs, const std::string& kwarg,
+                              const std::string& entry, const std::function<std::vector<std::string>()>& expected) {
+  const auto it = inputs.find(kwarg);
+  if (it == inputs.end()) {
+    std::vector<std::string> given;
+    for (const auto& [k, _] : inputs) given.push_back(k);
+    fail("condition embedder: input '{}' (for {}) is missing; given: [{}]; expected: [{}]", kwarg, entry,
+         fmt::join(given, ", "), fmt::join(expected(), ", "));
+  }
+  return it->second;
+}
+
+// Training-time modality dropout: per sample one configuration is drawn (keep all with 1 - dropout_prob,
+// else drop_modalities_weight's entry j with dropout_prob * w_j / sum w) and the tokens of the kwargs
+// (names[k] for tokens[k], each [B, T_k, C]) it lists are multiplied by 0.
+void drop_modalities_per_sample(const CondEmbedderConfig& config, const std::vector<std::string>& names,
+                                std::vector<torch::Tensor>& tokens) {
+  const int64_t B = tokens[0].size(0);
+  double total = 0;
+  for (const auto& [mods, w] : config.drop_modalities_weight) total += w;
+  SIMU_CHECK(total > 0, "condition embedder: drop_modalities_weight must sum to a positive value");
+  std::vector<double> weights = {1.0 - config.dropout_prob};
+  for (const auto& [mods, w] : config.drop_modalities_weight) weights.push_back(config.dropout_prob * w / total);
+  auto dev = tokens[0].device();
+  auto cum = torch::cumsum(torch::tensor(weights, torch::kFloat32).to(dev), 0);
+  auto pick = torch::searchsorted(cum, torch::rand({B}, torch::TensorOptions().device(dev)))
+                  .clamp_max(static_cast<int64_t>(weights.size()) - 1);
+  for (size_t k = 0; k < tokens.size(); ++k) {
+    auto keep = torch::ones({B}, tokens[k].options());
+    for (size_t j = 0; j < config.drop_modalities_weight.size(); ++j) {
+      const auto& mods = config.drop_modalities_weight[j].first;
+      if (std::find(mods.begin(), mods.end(), names[k]) != mods.end())
+        keep = keep.masked_fill(pick == static_cast<int64_t>(j + 1), 0.0);
+    }
+    tokens[k] = tokens[k] * keep.view({B, 1, 1});
+  }
+}
+
+}  // namespace
+
 torch::Tensor CondEmbedderImpl::forward(const std::map<std::string, torch::Tensor>& inputs) {
   std::vector<torch::Tensor> tokens;
   std::vector<std::string> names;
-  // Looks up one input; a missing one is an error naming what was given.
+  // Looks up one input of embedder i; a missing one is an error naming what was given.
   auto input = [&](size_t i, const std::string& kwarg) -> const torch::Tensor& {
-    const auto it = inputs.find(kwarg);
-    if (it == inputs.end()) {
-      std::vector<std::string> given;
-      for (const auto& [k, _] : inputs) given.push_back(k);
-      fail("condition embedder: input '{}' (for {}) is missing; given: [{}]; expected: [{}]", kwarg,
-           config.embedders[i].name, fmt::join(given, ", "), fmt::join(input_names(), ", "));
-    }
-    return it->second;
+    return input_of(inputs, kwarg, config.embedders[i].name, [&] { return input_names(); });
   };
   auto project = [&](size_t i, torch::Tensor t) {
     return config.projection_net_hidden_dim_multiplier > 0 ? projection_nets[i]->as<ProjectionNetImpl>()->forward(t)
@@ -419,27 +457,8 @@ torch::Tensor CondEmbedderImpl::forward(const std::map<std::string, torch::Tenso
       if (drop.count(names[k])) tokens[k] = tokens[k] * 0.0;
   }
   // Training-time modality dropout: one configuration per sample.
-  if (is_training() && config.dropout_prob > 0 && !config.drop_modalities_weight.empty()) {
-    const int64_t B = tokens[0].size(0);
-    double total = 0;
-    for (const auto& [mods, w] : config.drop_modalities_weight) total += w;
-    SIMU_CHECK(total > 0, "condition embedder: drop_modalities_weight must sum to a positive value");
-    std::vector<double> weights = {1.0 - config.dropout_prob};
-    for (const auto& [mods, w] : config.drop_modalities_weight) weights.push_back(config.dropout_prob * w / total);
-    auto dev = tokens[0].device();
-    auto cum = torch::cumsum(torch::tensor(weights, torch::kFloat32).to(dev), 0);
-    auto pick = torch::searchsorted(cum, torch::rand({B}, torch::TensorOptions().device(dev)))
-                    .clamp_max(static_cast<int64_t>(weights.size()) - 1);
-    for (size_t k = 0; k < tokens.size(); ++k) {
-      auto keep = torch::ones({B}, tokens[k].options());
-      for (size_t j = 0; j < config.drop_modalities_weight.size(); ++j) {
-        const auto& mods = config.drop_modalities_weight[j].first;
-        if (std::find(mods.begin(), mods.end(), names[k]) != mods.end())
-          keep = keep.masked_fill(pick == static_cast<int64_t>(j + 1), 0.0);
-      }
-      tokens[k] = tokens[k] * keep.view({B, 1, 1});
-    }
-  }
+  if (is_training() && config.dropout_prob > 0 && !config.drop_modalities_weight.empty())
+    drop_modalities_per_sample(config, names, tokens);
   // Concatenate along tokens, or along channels then compress.
   if (compression_projector) return compression_projector(torch::cat(tokens, -1));
   return torch::cat(tokens, 1);
