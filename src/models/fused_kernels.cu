@@ -123,19 +123,23 @@ __global__ void residual_layer_norm_affine_kernel(const float* __restrict__ x, c
   layer_norm_affine_store<T, VPL>(v, lane, row, w, b, y, rows_per_w, eps);
 }
 
-// The (batch, token, head) item of this warp over B x L x H items (bl = batch * L + token); false past
-// the end.
+// The (batch, token, head) item of this warp over B x L x H items of heads of D channels, and where it
+// lies in a [B, L, 3, H, D] qkv tensor: bl = batch * L + token, hd = H * D (one of q, k, v of a token),
+// off = h * D (the head within it), row = bl * 3 * hd + off (its q in qkv). False past the end.
 struct TokenHead {
   int bi, l, h;
-  int64_t bl;
+  int64_t bl, hd, off, row;
 };
-__device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, TokenHead& th) {
+__device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, int D, TokenHead& th) {
   const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
   if (item >= static_cast<int64_t>(B) * L * H) return false;
   th.h = static_cast<int>(item % H);
   th.bl = item / H;
   th.l = static_cast<int>(th.bl % L);
   th.bi = static_cast<int>(th.bl / L);
+  th.hd = static_cast<int64_t>(H) * D;
+  th.off = static_cast<int64_t>(th.h) * D;
+  th.row = th.bl * 3 * th.hd + th.off;
   return true;
 }
 
@@ -144,15 +148,12 @@ template <typename T, int PPL>
 __global__ void split_qkv_rms_norm_kernel(const T* __restrict__ qkv, const float* __restrict__ gq,
                                           const float* __restrict__ gk, float scale, QkvOut q, QkvOut k, QkvOut v,
                                           int B, int L, int H) {
-  constexpr int D = 64 * PPL;
   const int lane = threadIdx.x & 31;
   TokenHead th;
-  if (!token_head_of_warp(B, L, H, th)) return;
-  const int h = th.h, l = th.l, bi = th.bi;
-  const int64_t bl = th.bl;
-  const int64_t HD = static_cast<int64_t>(H) * D;
-  const typename Half2<T>::T2* src = reinterpret_cast<const typename Half2<T>::T2*>(qkv + bl * 3 * HD + static_cast<int64_t>(h) * D);
-  const int64_t off = static_cast<int64_t>(h) * D;
+  if (!token_head_of_warp(B, L, H, 64 * PPL, th)) return;
+  const int l = th.l, bi = th.bi;
+  const int64_t HD = th.hd, off = th.off;
+  const typename Half2<T>::T2* src = reinterpret_cast<const typename Half2<T>::T2*>(qkv + th.row);
   // q and k: fp32 L2 norm over the head's D channels, then * gamma * scale, rounded once to T.
 #pragma unroll
   for (int part = 0; part < 2; ++part) {
@@ -259,15 +260,13 @@ template <typename T, int PPL>
 __global__ void split_qkv_rms_norm_backward_kernel(const T* __restrict__ qkv, const float* __restrict__ gq,
                                                    const float* __restrict__ gk, float scale, QkvGrad dq, QkvGrad dk,
                                                    QkvGrad dv, T* __restrict__ dqkv, int B, int L, int H) {
-  constexpr int D = 64 * PPL;
   const int lane = threadIdx.x & 31;
   TokenHead th;
-  if (!token_head_of_warp(B, L, H, th)) return;
+  if (!token_head_of_warp(B, L, H, 64 * PPL, th)) return;
   const int h = th.h, l = th.l, bi = th.bi;
-  const int64_t bl = th.bl;
-  const int64_t HD = static_cast<int64_t>(H) * D, off = static_cast<int64_t>(h) * D;
-  const typename Half2<T>::T2* src = reinterpret_cast<const typename Half2<T>::T2*>(qkv + bl * 3 * HD + off);
-  typename Half2<T>::T2* dst = reinterpret_cast<typename Half2<T>::T2*>(dqkv + bl * 3 * HD + off);
+  const int64_t HD = th.hd, off = th.off;
+  const typename Half2<T>::T2* src = reinterpret_cast<const typename Half2<T>::T2*>(qkv + th.row);
+  typename Half2<T>::T2* dst = reinterpret_cast<typename Half2<T>::T2*>(dqkv + th.row);
 #pragma unroll
   for (int part = 0; part < 3; ++part) {
     const QkvGrad& gsrc = part == 0 ? dq : part == 1 ? dk : dv;
