@@ -49,31 +49,29 @@ Mask CameraScene::mask_of_label(int value) const {
 
 namespace {
 
+// An object of the camera scene: its canonical mesh and ground-truth pose (world frame).
+CameraObject camera_object(const std::string& id, const std::string& label, const physics::Mesh& mesh,
+                           const Vec3& scale, const Mat3& R, const Vec3& t) {
+  CameraObject o;
+  o.id = id;
+  o.label = label;
+  o.canonical = mesh.V;
+  o.faces = mesh.F;
+  o.gt_scale = scale;
+  o.gt_R = R;
+  o.gt_t = t;
+  return o;
+}
+
 // The generator's bases (labelled "table") then its objects, with their ground-truth poses (world frame).
 void collect_objects(const physics::SyntheticScene& src, CameraScene& s) {
   for (const auto& b : src.bases) {
-    CameraObject o;
-    o.id = b.id;
-    o.label = "table";
-    o.is_base = true;
-    o.canonical = b.mesh.V;
-    o.faces = b.mesh.F;
-    o.gt_scale = b.scale;
-    o.gt_R = b.R;
-    o.gt_t = b.t;
-    s.objects.push_back(o);
+    s.objects.push_back(camera_object(b.id, "table", b.mesh, b.scale, b.R, b.t));
+    s.objects.back().is_base = true;
   }
   for (const auto& so : src.objects) {
-    CameraObject o;
-    o.id = so.id;
-    o.label = so.label;
-    o.dof = so.dof;
-    o.canonical = so.gt_mesh.V;
-    o.faces = so.gt_mesh.F;
-    o.gt_scale = so.gt_scale;
-    o.gt_R = so.gt_R;
-    o.gt_t = so.gt_t;
-    s.objects.push_back(o);
+    s.objects.push_back(camera_object(so.id, so.label, so.gt_mesh, so.gt_scale, so.gt_R, so.gt_t));
+    s.objects.back().dof = so.dof;
   }
 }
 
