@@ -36,35 +36,33 @@ sm::CondEmbedder small() {
   return sm::load_cond_embedder(fixture("cond_embedder_small.json"), fixture("cond_embedder_small.safetensors"), "");
 }
 
+// One input of the small embedder (index: 0 image, 1 mask, 2 point map; in_key of the fixture) against
+// the fixture's output out_key.
+::testing::AssertionResult embeds_as_fixture(const std::map<std::string, torch::Tensor>& t, int index,
+                                             const std::string& in_key, const std::string& out_key) {
+  torch::NoGradGuard ng;
+  return parity(small()->embed(index, t.at(in_key)), t.at(out_key), out_key);
+}
+
 }  // namespace
 
 // Dino on a 518 input (native grid: stored position embedding).
 TEST(CondEmbedder, DinoImageMatchesFixture) {
-  torch::NoGradGuard ng;
-  auto m = small();
-  auto t = io();
-  auto got = m->embed(0, t.at("in.image"));
-  EXPECT_TRUE(parity(got, t.at("out.dino_image"), "out.dino_image"));
+  EXPECT_TRUE(embeds_as_fixture(io(), 0, "in.image", "out.dino_image"));
 }
 
 // Dino at input_size 70 (5x5 patches): bicubic position-embedding interpolation with offset 0.1.
 TEST(CondEmbedder, DinoMaskMatchesFixtureWithPosEmbedInterpolation) {
-  torch::NoGradGuard ng;
-  auto m = small();
   auto t = io();
   ASSERT_EQ(t.at("in.mask").size(1), 1);  // 1 channel -> repeated to 3
-  auto got = m->embed(1, t.at("in.mask"));
-  EXPECT_TRUE(parity(got, t.at("out.dino_mask"), "out.dino_mask"));
+  EXPECT_TRUE(embeds_as_fixture(t, 1, "in.mask", "out.dino_mask"));
 }
 
 // PointPatchEmbed with NaN (invalid) points.
 TEST(CondEmbedder, PointPatchMatchesFixtureWithNaN) {
-  torch::NoGradGuard ng;
-  auto m = small();
   auto t = io();
   ASSERT_TRUE(torch::isnan(t.at("in.pointmap")).any().item<bool>()) << "fixture should contain invalid points";
-  auto got = m->embed(2, t.at("in.pointmap"));
-  EXPECT_TRUE(parity(got, t.at("out.pointpatch"), "out.pointpatch"));
+  EXPECT_TRUE(embeds_as_fixture(t, 2, "in.pointmap", "out.pointpatch"));
 }
 
 // The whole fuser: 6 inputs, projections, idx_emb, concatenation order.

@@ -7,6 +7,7 @@
 #include <ATen/autocast_mode.h>
 
 #include <cstdio>
+#include <functional>
 
 #include "data/safetensors.h"
 #include "models/cond_embedder.h"
@@ -38,6 +39,27 @@ void report(const char* what, double e32, double e16, double ebf) {
               ebf / std::max(e16, 1e-12));
 }
 
+// Reports the three errors of one computation and checks them: fp32 below max32, fp16 closer than bf16
+// (more mantissa bits), bf16 below maxbf.
+void expect_precision_ladder(const char* what, double e32, double e16, double ebf, double max32, double maxbf) {
+  SCOPED_TRACE(what);
+  report(what, e32, e16, ebf);
+  EXPECT_LT(e32, max32);
+  EXPECT_LT(e16, ebf);
+  EXPECT_LT(ebf, maxbf);
+}
+
+// forward() under autocast in fp32, fp16 and bf16 against want (rel_err in fp32 on the CPU), checked as above.
+void expect_autocast_ladder(const char* what, const std::function<torch::Tensor()>& forward, const torch::Tensor& want,
+                            double max32, double maxbf) {
+  auto run = [&](sm::Precision p) {
+    sm::Autocast ac(p);
+    return simu::testing::rel_err(forward().to(torch::kCPU, torch::kFloat32), want);
+  };
+  const double e32 = run(sm::Precision::kFp32), e16 = run(sm::Precision::kFp16), ebf = run(sm::Precision::kBf16);
+  expect_precision_ladder(what, e32, e16, ebf, max32, maxbf);
+}
+
 }  // namespace
 
 TEST(PrecisionGpu, EmbedderForward) {
@@ -50,16 +72,7 @@ TEST(PrecisionGpu, EmbedderForward) {
   std::map<std::string, torch::Tensor> in;
   for (const auto& [k, v] : io)
     if (k.rfind("in.", 0) == 0) in[k.substr(3)] = v.to(dev);
-  const auto& want = io.at("out.fused");
-  auto run = [&](sm::Precision p) {
-    sm::Autocast ac(p);
-    return simu::testing::rel_err(m->forward(in).to(torch::kCPU, torch::kFloat32), want);
-  };
-  const double e32 = run(sm::Precision::kFp32), e16 = run(sm::Precision::kFp16), ebf = run(sm::Precision::kBf16);
-  report("embedder forward", e32, e16, ebf);
-  EXPECT_LT(e32, 1e-4);
-  EXPECT_LT(e16, ebf);
-  EXPECT_LT(ebf, 1e-1);
+  expect_autocast_ladder("embedder forward", [&] { return m->forward(in); }, io.at("out.fused"), 1e-4, 1e-1);
 }
 
 TEST(PrecisionGpu, FlowForwardAndCfgSample) {
@@ -87,10 +100,7 @@ TEST(PrecisionGpu, FlowForwardAndCfgSample) {
   EXPECT_EQ(sm::fused::launch_count(), launches1) << "a fused kernel ran in fp32";
   const double fbf = fwd(sm::Precision::kBf16);
   if (sm::fused::compiled()) EXPECT_GT(sm::fused::launch_count(), launches1) << "bf16 should take the fused path";
-  report("flow forward", f32, f16, fbf);
-  EXPECT_LT(f32, 1e-4);
-  EXPECT_LT(f16, fbf);
-  EXPECT_LT(fbf, 5e-2);
+  expect_precision_ladder("flow forward", f32, f16, fbf, 1e-4, 5e-2);
 
   // CFG sample with the official inference settings (4 steps as the fixture; CFG 7 amplifies rounding).
   sm::SamplerOverrides u;
@@ -101,10 +111,7 @@ TEST(PrecisionGpu, FlowForwardAndCfgSample) {
     return latents_err(gen->sample(cond, prefixed(io, "in.sample.x0.", dev), o), io, "out.sample_cfg.");
   };
   const double s32 = sample(sm::Precision::kFp32), s16 = sample(sm::Precision::kFp16), sbf = sample(sm::Precision::kBf16);
-  report("CFG sample (4 steps, cfg 7)", s32, s16, sbf);
-  EXPECT_LT(s32, 1e-3);
-  EXPECT_LT(s16, sbf);
-  EXPECT_LT(sbf, 0.15);
+  expect_precision_ladder("CFG sample (4 steps, cfg 7)", s32, s16, sbf, 1e-3, 0.15);
 }
 
 TEST(PrecisionGpu, DecoderForward) {
@@ -115,15 +122,7 @@ TEST(PrecisionGpu, DecoderForward) {
                                  simu::testing::fixture("ss_decoder_small.safetensors"), dev);
   const auto io = simu::data::load_safetensors(simu::testing::fixture("ss_decoder_small.safetensors"));
   const auto in = io.at("io.in").to(dev);
-  auto run = [&](sm::Precision p) {
-    sm::Autocast ac(p);
-    return simu::testing::rel_err(dec->forward(in).to(torch::kCPU, torch::kFloat32), io.at("io.out"));
-  };
-  const double e32 = run(sm::Precision::kFp32), e16 = run(sm::Precision::kFp16), ebf = run(sm::Precision::kBf16);
-  report("decoder forward", e32, e16, ebf);
-  EXPECT_LT(e32, 1e-4);
-  EXPECT_LT(e16, ebf);
-  EXPECT_LT(ebf, 5e-2);
+  expect_autocast_ladder("decoder forward", [&] { return dec->forward(in); }, io.at("io.out"), 1e-4, 5e-2);
 }
 
 // The Autocast guard restores what was there (nested scopes, fp16 inside bf16).

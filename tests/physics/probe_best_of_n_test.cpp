@@ -21,6 +21,14 @@ SceneObject box_object(const std::string& id, const std::string& mesh, const Vec
   return simu::testing::placed_object(id, mesh, size, t);
 }
 
+// An empty scene: floor z = 0, gravity -z.
+Scene floor_scene() {
+  Scene s;
+  s.gravity = Vec3(0, 0, -1);
+  s.floor = Plane{"floor", Vec3::Zero(), Vec3::UnitZ()};
+  return s;
+}
+
 ProbeShapeCandidate candidate(const std::string& label, const Vec3& size, const Mat3& R = Mat3::Identity()) {
   ProbeShapeCandidate c;
   c.label = label;
@@ -42,15 +50,11 @@ ProbeShapeCandidate candidate(const std::string& label, const Vec3& size, const 
 //   3 "huge":   a 2 m cube -> penetration resolution needs > 0.3 m: not ok.
 TEST(ProbeBestOfN, KeepsTheCandidateThatMovesLeast) {
   const auto dir = physics_temp_dir("best_of_n");
-  Scene s;
-  s.gravity = Vec3(0, 0, -1);
-  s.floor = Plane{"floor", Vec3::Zero(), Vec3::UnitZ()};
+  Scene s = floor_scene();
   const auto mesh = write_box(dir, "cube", Vec3::Constant(0.5));
   s.objects.push_back(box_object("slab", mesh, Vec3(0.6, 0.6, 0.1), Vec3(0, 0, 0.05)));
   s.objects.push_back(box_object("box", mesh, Vec3::Constant(0.2), Vec3(0, 0, 0.1 + 0.06 + 0.1)));
-  ProbeConfig cfg;
-  cfg.final_settle_time = 1.0;
-  cfg.collision.use_coacd = false;
+  const ProbeConfig cfg = simu::testing::quick_probe_config();  // 1 s final settle, no CoACD
   const Mat3 tilt = Eigen::AngleAxisd(35.0 * M_PI / 180.0, Vec3::UnitX()).toRotationMatrix();
   int calls = 0;
   ResampleFn fn = [&](const std::vector<ProbeResampleRequest>& reqs) {
@@ -108,14 +112,11 @@ TEST(ProbeBestOfN, KeepsTheCandidateThatMovesLeast) {
 // 2 m cube centred 0.13 m above the floor penetrate it by 1.37 m and 0.87 m.
 TEST(ProbeBestOfN, NoStableCandidateKeepsTheInputShape) {
   const auto dir = physics_temp_dir("best_of_n_fail");
-  Scene s;
-  s.gravity = Vec3(0, 0, -1);
-  s.floor = Plane{"floor", Vec3::Zero(), Vec3::UnitZ()};
+  Scene s = floor_scene();
   const auto mesh = write_box(dir, "cube", Vec3::Constant(0.5));
   s.objects.push_back(box_object("box", mesh, Vec3::Constant(0.2), Vec3(0, 0, 0.16)));
-  ProbeConfig cfg;
+  ProbeConfig cfg = simu::testing::quick_probe_config();
   cfg.final_settle_time = 0.5;
-  cfg.collision.use_coacd = false;
   ResampleFn fn = [&](const std::vector<ProbeResampleRequest>& reqs) {
     std::vector<ProbeResampleResult> out(reqs.size());
     for (auto& o : out) {

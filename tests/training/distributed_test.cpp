@@ -14,6 +14,15 @@ using namespace simu::training;
 
 namespace {
 
+// Rank `rank` of a 2-rank job on loopback `port`: the job's store, connected within 20 s.
+c10::intrusive_ptr<c10d::Store> rank_store(int rank, int port) {
+  DistEnv env;
+  env.rank = rank;
+  env.world_size = 2;
+  env.master_port = port;
+  return connect_store(env, std::chrono::seconds(20));
+}
+
 // Rank 0's side of a lost peer: one all-reduce that rank 1 joins, then one it does not. Returns the
 // second one's error (with " (too late)" when it took 10 s or more), or "no error".
 std::string error_after_peer_left(Communicator& comm) {
@@ -35,12 +44,7 @@ std::string error_after_peer_left(Communicator& comm) {
 TEST(Distributed, StoreAllReduceAveragesAcrossRanks) {
   const int port = free_port();
   auto rank_fn = [port](int rank) {
-    DistEnv env;
-    env.rank = rank;
-    env.world_size = 2;
-    env.master_port = port;
-    auto store = connect_store(env, std::chrono::seconds(20));
-    auto comm = make_store_communicator(store, rank, 2, std::chrono::seconds(20));
+    auto comm = make_store_communicator(rank_store(rank, port), rank, 2, std::chrono::seconds(20));
     std::vector<torch::Tensor> ts{torch::full({3, 2}, 1.0f + rank), torch::full({4}, 10.0f * rank)};
     for (int round = 0; round < 4; ++round) comm->all_reduce_mean(ts);  // idempotent after the first
     auto sums = comm->all_reduce_sum({1.0 + rank, 2.0});
@@ -62,21 +66,11 @@ TEST(Distributed, StoreAllReduceAveragesAcrossRanks) {
 TEST(Distributed, DeadRankIsNamedWithinTimeout) {
   const int port = free_port();
   auto survivor = std::async(std::launch::async, [port] {
-    DistEnv env;
-    env.rank = 0;
-    env.world_size = 2;
-    env.master_port = port;
-    auto store = connect_store(env, std::chrono::seconds(20));
-    auto comm = make_store_communicator(store, 0, 2, std::chrono::milliseconds(1500));
+    auto comm = make_store_communicator(rank_store(0, port), 0, 2, std::chrono::milliseconds(1500));
     return error_after_peer_left(*comm);
   });
   {
-    DistEnv env;
-    env.rank = 1;
-    env.world_size = 2;
-    env.master_port = port;
-    auto store = connect_store(env, std::chrono::seconds(20));
-    auto comm = make_store_communicator(store, 1, 2, std::chrono::seconds(5));
+    auto comm = make_store_communicator(rank_store(1, port), 1, 2, std::chrono::seconds(5));
     std::vector<torch::Tensor> ts{torch::ones({2})};
     comm->all_reduce_mean(ts);
   }  // rank 1 "dies"
@@ -137,11 +131,7 @@ TEST(Distributed, SlurmMasterAddrIsTheFirstNode) {
 namespace {
 // Rank `rank` of a 2-rank CPU job on loopback port: the communicator create() would use on CPU.
 std::unique_ptr<Communicator> cpu_rank(int rank, int port, std::chrono::milliseconds timeout) {
-  DistEnv env;
-  env.rank = rank;
-  env.world_size = 2;
-  env.master_port = port;
-  return make_cpu_communicator(connect_store(env, std::chrono::seconds(20)), rank, 2, timeout);
+  return make_cpu_communicator(rank_store(rank, port), rank, 2, timeout);
 }
 // A barrier expected to fail: its error message ("no error" if it returned) and the seconds it took.
 std::pair<std::string, double> failing_barrier(Communicator& comm) {

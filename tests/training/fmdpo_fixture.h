@@ -1,13 +1,16 @@
 // The FM-DPO fixture (fmdpo_small_io.safetensors, made by the official-style Python reference): its
-// inputs as FmdpoInputs, for the tests that evaluate the objective on it.
+// inputs as FmdpoInputs, for the tests that evaluate the objective on it, and its optimizer step.
 #pragma once
 
 #include <map>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "data/safetensors.h"
 #include "test_util.h"
 #include "training/fmdpo.h"
+#include "training/optim.h"
 
 namespace simu::testing {
 
@@ -27,6 +30,21 @@ inline simu::training::FmdpoInputs fmdpo_fixture_inputs(const std::map<std::stri
   in.eps_pos = io.at("in.eps_pos");
   in.eps_neg = io.at("in.eps_neg");
   return in;
+}
+
+// The fixture's optimizer step on params (gradients set): clip_grad_norm to 1.0, then one AdamW step
+// with its settings (lr 1e-3, betas (0.9, 0.999), eps 1e-8, weight decay 0.01). Returns the gradient
+// norm before clipping (the fixture's out.grad_norm_before_clip); the parameters after it are after_adamw.*.
+inline double fmdpo_fixture_clipped_adamw_step(std::vector<std::pair<std::string, torch::Tensor>> params) {
+  simu::training::OptimConfig c;
+  c.lr = 1e-3;
+  c.betas = {0.9, 0.999};
+  c.eps = 1e-8;
+  c.weight_decay = 0.01;
+  simu::training::AdamW opt(std::move(params), c);
+  const double norm = simu::training::clip_grad_norm(opt.tensors(), 1.0);
+  opt.step(1e-3);
+  return norm;
 }
 
 }  // namespace simu::testing

@@ -3,6 +3,7 @@
 
 #include "data/safetensors.h"
 #include "common/error.h"
+#include "fmdpo_fixture.h"
 #include "test_util.h"
 #include "training/optim.h"
 
@@ -28,7 +29,7 @@ TEST(Schedule, WarmupConstantAndCosine) {
 
 // fmdpo_small_io: grad norm before clipping and parameters after clip_grad_norm(1.0) + one AdamW step.
 TEST(AdamW, MatchesFixtureClippedStep) {
-  auto io = simu::data::load_safetensors(simu::testing::fixture("fmdpo_small_io.safetensors"));
+  auto io = simu::testing::fmdpo_fixture();
   std::vector<std::pair<std::string, torch::Tensor>> params;
   for (auto& [k, v] : io) {
     if (k.rfind("before.", 0) != 0) continue;
@@ -38,16 +39,9 @@ TEST(AdamW, MatchesFixtureClippedStep) {
     params.emplace_back(name, p);
   }
   ASSERT_EQ(params.size(), 20u);
-  OptimConfig c;
-  c.lr = 1e-3;
-  c.betas = {0.9, 0.999};
-  c.eps = 1e-8;
-  c.weight_decay = 0.01;
-  AdamW opt(params, c);
-  const double norm = clip_grad_norm(opt.tensors(), 1.0);
+  const double norm = simu::testing::fmdpo_fixture_clipped_adamw_step(params);
   const double want = io.at("out.grad_norm_before_clip").item<double>();
   EXPECT_LE(std::abs(norm - want) / want, 1e-5) << norm << " vs " << want;
-  opt.step(1e-3);
   double worst = 0;
   for (auto& [name, p] : params) {
     const auto& after = io.at("after_adamw." + name);
