@@ -5,6 +5,9 @@
 #include <unistd.h>
 
 #include <fmt/ranges.h>
+#include <zlib.h>
+
+#include <cstring>
 
 #include "common/error.h"
 
@@ -123,6 +126,103 @@ void read_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf,
     const auto why = h5_error();
     if (count == 1) fail("pair cache '{}': record {}: cannot read dataset '{}': {}", file, start, name, why);
     fail("pair cache '{}': records {}..{}: cannot read dataset '{}': {}", file, start, start + count - 1, name, why);
+  }
+}
+
+namespace {
+RecordPipeline record_pipeline(hid_t dcpl, const std::string& file, const std::string& name) {
+  RecordPipeline p;
+  const int nf = H5Pget_nfilters(dcpl);
+  for (int k = 0; k < nf; ++k) {
+    unsigned flags = 0, cd[8];
+    size_t ncd = 8;
+    const H5Z_filter_t id = H5Pget_filter2(dcpl, k, &flags, &ncd, cd, 0, nullptr, nullptr);
+    if (id == H5Z_FILTER_SHUFFLE && p.shuffle < 0 && p.deflate < 0)
+      p.shuffle = k;
+    else if (id == H5Z_FILTER_DEFLATE && p.deflate < 0)
+      p.deflate = k;
+    else
+      fail_hint("docs/pair_cache.md: per-record datasets use shuffle + gzip",
+                "pair cache '{}': dataset '{}': filter {} (id {}) at position {}, expected shuffle then gzip", file, name,
+                k, static_cast<int>(id), k);
+  }
+  return p;
+}
+
+// Undoes HDF5's shuffle filter: byte b of element i was stored at b * n + i.
+void unshuffle(const uint8_t* in, uint8_t* out, size_t n, size_t elem) {
+  for (size_t i = 0; i < n; ++i)
+    for (size_t b = 0; b < elem; ++b) out[i * elem + b] = in[b * n + i];
+}
+}  // namespace
+
+RecordPipeline check_record_layout(hid_t dset, const std::string& file, const std::string& name) {
+  const auto dims = dataset_dims(dset);
+  H5Id dcpl(H5Dget_create_plist(dset));
+  // Chunks of one record: [1, dims[1], ...].
+  std::vector<hsize_t> chunk(dims.size(), 0);
+  const bool chunked = H5Pget_layout(dcpl.get()) == H5D_CHUNKED &&
+                       H5Pget_chunk(dcpl.get(), static_cast<int>(chunk.size()), chunk.data()) == static_cast<int>(dims.size());
+  std::vector<int64_t> want(dims.begin(), dims.end());
+  if (!want.empty()) want[0] = 1;
+  if (!chunked || std::vector<int64_t>(chunk.begin(), chunk.end()) != want)
+    fail_hint("docs/pair_cache.md: per-record datasets are chunked one record at a time; rewrite the cache",
+              "pair cache '{}': dataset '{}' is stored {}, expected chunks of one record [{}]", file, name,
+              chunked ? fmt::format("in chunks [{}]", fmt::join(chunk, ", ")) : std::string("unchunked"),
+              fmt::join(want, ", "));
+  return record_pipeline(dcpl.get(), file, name);
+}
+
+void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
+                      const std::string& name) {
+  const RecordPipeline pipe = check_record_layout(dset, file, name);
+  const auto dims = dataset_dims(dset);
+  H5Id ftype(H5Dget_type(dset));
+  const size_t fsize = H5Tget_size(ftype.get()), msize = H5Tget_size(mtype);
+  size_t per = 1;  // elements per record
+  for (size_t k = 1; k < dims.size(); ++k) per *= static_cast<size_t>(dims[k]);
+  const size_t chunk_bytes = per * fsize;
+  if (per == 0 || count <= 0) return;
+  std::vector<uint8_t> raw, plain(chunk_bytes), work(per * std::max(fsize, msize));
+  auto* out = static_cast<uint8_t*>(buf);
+  for (int64_t r = start; r < start + count; ++r) {
+    std::vector<hsize_t> off(dims.size(), 0);
+    off[0] = static_cast<hsize_t>(r);
+    // The stored chunk: its size bounded by what one record can take (gzip adds at most ~0.1% + 12 bytes).
+    hsize_t nbytes = 0;
+    if (H5Dget_chunk_storage_size(dset, off.data(), &nbytes) < 0)
+      fail("pair cache '{}': record {}: cannot locate the chunk of dataset '{}': {}", file, r, name, h5_error());
+    const hsize_t limit = pipe.deflate >= 0 ? chunk_bytes + chunk_bytes / 100 + 1024 : chunk_bytes;
+    if (nbytes == 0 || nbytes > limit)
+      fail("pair cache '{}': record {}: dataset '{}' stores a chunk of {} bytes, a record is {} bytes ({})", file, r,
+           name, nbytes, chunk_bytes, nbytes == 0 ? "never written" : "the chunk index is corrupted");
+    raw.resize(nbytes);
+    uint32_t mask = 0;
+    if (H5Dread_chunk(dset, H5P_DEFAULT, off.data(), &mask, raw.data()) < 0)
+      fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}': {}", file, r, name, h5_error());
+    // Filters in reverse: gzip (the last one), then shuffle; each must give exactly one record's bytes.
+    const bool inflate = pipe.deflate >= 0 && !(mask & (1u << pipe.deflate));
+    if (inflate) {
+      uLongf got = static_cast<uLongf>(chunk_bytes);
+      const int z = uncompress(plain.data(), &got, raw.data(), static_cast<uLong>(nbytes));
+      if (z != Z_OK || got != chunk_bytes)
+        fail("pair cache '{}': record {}: dataset '{}': gzip data does not inflate to one record ({} bytes): {}",
+             file, r, name, chunk_bytes, z == Z_OK ? fmt::format("{} bytes", got) : fmt::format("zlib error {}", z));
+    } else if (nbytes != chunk_bytes) {
+      fail("pair cache '{}': record {}: dataset '{}' stores {} bytes uncompressed, a record is {} bytes", file, r,
+           name, nbytes, chunk_bytes);
+    } else {
+      std::memcpy(plain.data(), raw.data(), chunk_bytes);
+    }
+    if (pipe.shuffle >= 0 && !(mask & (1u << pipe.shuffle)) && fsize > 1)
+      unshuffle(plain.data(), work.data(), per, fsize);
+    else
+      std::memcpy(work.data(), plain.data(), chunk_bytes);
+    // Stored type -> memory type, in place (work holds per * max(fsize, msize) bytes).
+    if (H5Tconvert(ftype.get(), mtype, per, work.data(), nullptr, H5P_DEFAULT) < 0)
+      fail("pair cache '{}': record {}: dataset '{}': cannot convert its {} values: {}", file, r, name,
+           type_name(ftype.get()), h5_error());
+    std::memcpy(out + static_cast<size_t>(r - start) * per * msize, work.data(), per * msize);
   }
 }
 

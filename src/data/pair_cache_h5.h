@@ -84,6 +84,20 @@ std::vector<int64_t> dataset_dims(hid_t dset);
 // into buf (memory type mtype). Throws naming file, dataset and the record range.
 void read_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
                const std::string& name);
+// The filter pipeline of a per-record dataset: shuffle and/or gzip, at their pipeline positions.
+struct RecordPipeline {
+  int shuffle = -1, deflate = -1;  // position in the pipeline, -1 when absent
+};
+// Fails unless a per-record dataset is stored as docs/pair_cache.md says (chunks of one record
+// [1, ...], filters shuffle and/or gzip only), naming the file and dataset; returns its pipeline.
+RecordPipeline check_record_layout(hid_t dset, const std::string& file, const std::string& name);
+// Rows [start, start+count) of a per-record dataset (latents, condition, inputs), read chunk by chunk
+// through the raw chunk API with every size checked before it is used (libhdf5 1.10's own read path
+// copies out of bounds on some corrupted chunk indexes). The dataset must be stored as
+// docs/pair_cache.md says: chunks of one record ([1, ...]), filters shuffle and/or gzip only; the
+// stored type is converted to mtype. Throws naming the file, record and dataset.
+void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
+                      const std::string& name);
 // Writes rows [start, start+count) of dimension 0 from buf.
 void write_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, const void* buf, const std::string& file,
                 const std::string& name);

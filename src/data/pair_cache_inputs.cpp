@@ -132,6 +132,7 @@ void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n) {
     if (k == 1) allowed = {info.image_dtype};
     if (k == 5) allowed = {info.pointmap_dtype};
     const auto dt = check_dataset(h.inputs[k].get(), names[k].c_str(), allowed, shape, path);
+    check_record_layout(h.inputs[k].get(), path, names[k]);
     if (k == 0) info.image_dtype = dt;
     if (k == 4) info.pointmap_dtype = dt;
   }
@@ -145,7 +146,7 @@ torch::Tensor read_input_rows(const CacheHandles& h, size_t k, int64_t start, in
   const int64_t side = input_side(k, info);
   auto raw = torch::empty({count, input_channels(k), side, side}, torch::kByte);
   H5Id mt = storage_mem_type(dt);
-  read_rows(h.inputs[k].get(), mt.get(), start, count, raw.data_ptr(), info.path, name);
+  read_record_rows(h.inputs[k].get(), mt.get(), start, count, raw.data_ptr(), info.path, name);
   auto out = torch::empty(raw.sizes(), torch::kFloat32);
   const uint8_t* src = raw.data_ptr<uint8_t>();
   float* dst = out.data_ptr<float>();

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <numeric>
 
 #include "common/error.h"
 
@@ -42,7 +43,28 @@ std::string check_dataset(hid_t dset, const char* name, const std::vector<std::s
   if (got != shape)
     fail("pair cache '{}': dataset '{}' has shape [{}], expected [{}]", path, name, fmt::join(got, ", "),
          fmt::join(shape, ", "));
+  check_storage(dset, name, t.get(), shape, path);
   return dt;
+}
+
+// A compact or contiguous dataset's stored bytes must hold its shape x dtype, checked before any row
+// is read: libhdf5 1.10 copies a row selection out of a compact dataset's buffer without checking it
+// against the buffer's size. (Chunked per-record datasets are read through read_record_rows, which
+// checks each chunk.) A contiguous dataset with no storage yet (never written) reads as fill values.
+void check_storage(hid_t dset, const char* name, hid_t type, const std::vector<int64_t>& shape,
+                   const std::string& path) {
+  H5Id dcpl(H5Dget_create_plist(dset));
+  const H5D_layout_t layout = H5Pget_layout(dcpl.get());
+  if (layout != H5D_COMPACT && layout != H5D_CONTIGUOUS) return;
+  // Needed bytes, saturating (the shape was checked against the record count, itself bounded by the file).
+  const double needed = std::accumulate(shape.begin(), shape.end(), static_cast<double>(H5Tget_size(type)),
+                                        [](double a, int64_t d) { return a * static_cast<double>(d); });
+  const double stored = static_cast<double>(H5Dget_storage_size(dset));
+  if (layout == H5D_CONTIGUOUS && stored == 0) return;
+  if (stored < needed)
+    fail_hint("the file is truncated or corrupted; rewrite it (build_pairs, pairs make)",
+              "pair cache '{}': dataset '{}' stores {:.0f} bytes ({} layout), its shape [{}] and dtype need {:.0f}",
+              path, name, stored, layout == H5D_COMPACT ? "compact" : "contiguous", fmt::join(shape, ", "), needed);
 }
 
 namespace {
@@ -129,9 +151,12 @@ void check_datasets(CacheHandles& h, const std::string& path, int64_t n) {
   const std::vector<int64_t> cnd{n, info.cond_shape[0], info.cond_shape[1]};
   info.latent_dtype = check_dataset(h.latent_pos.get(), "latent_pos", {"float16", "float32"}, lat, path);
   const auto neg_dt = check_dataset(h.latent_neg.get(), "latent_neg", {info.latent_dtype}, lat, path);
+  check_record_layout(h.latent_pos.get(), path, "latent_pos");
+  check_record_layout(h.latent_neg.get(), path, "latent_neg");
   (void)neg_dt;
   if (!info.inputs_mode()) {
     info.cond_dtype = check_dataset(h.cond.get(), "cond", {"float16", "float32"}, cnd, path);
+    check_record_layout(h.cond.get(), path, "cond");
     check_dataset(h.cond_len.get(), "cond_len", {"int32"}, {n}, path);
   }
   check_dataset(h.kind.get(), "kind", {"uint8"}, {n}, path);
@@ -143,6 +168,8 @@ void check_datasets(CacheHandles& h, const std::string& path, int64_t n) {
     const auto got = dataset_dims(h.id.get());
     if (got != std::vector<int64_t>{n})
       fail("pair cache '{}': dataset 'id' has shape [{}], expected [{}]", path, fmt::join(got, ", "), n);
+    // Fixed-length ids: stored bytes as for the others (variable-length ids are first read by the guard).
+    if (H5Tis_variable_str(t.get()) <= 0) check_storage(h.id.get(), "id", t.get(), got, path);
   }
   h.half = info.latent_dtype == "float16";
   // Counts per kind.
@@ -230,7 +257,7 @@ torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t star
   dims[0] = count;
   auto t = torch::empty(dims, torch::TensorOptions().dtype(torch_type(dtype)));
   H5Id mt = float_mem_type(dtype);
-  read_rows(dset, mt.get(), start, count, t.data_ptr(), path, name);
+  read_record_rows(dset, mt.get(), start, count, t.data_ptr(), path, name);
   return dtype == "float16" ? half_to_float(t) : t;
 }
 

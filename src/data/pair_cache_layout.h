@@ -70,6 +70,10 @@ h5::H5Id storage_mem_type(const std::string& dtype);
 // Checks a dataset's dtype name (one of dtypes) and shape; returns the dtype name.
 std::string check_dataset(hid_t dset, const char* name, const std::vector<std::string>& dtypes,
                           const std::vector<int64_t>& shape, const std::string& path);
+// Fails unless a compact or contiguous dataset's stored bytes hold its shape x dtype (check_dataset
+// calls it; chunked datasets pass).
+void check_storage(hid_t dset, const char* name, hid_t type, const std::vector<int64_t>& shape,
+                   const std::string& path);
 // Opens a dataset that must exist, naming the file if it does not.
 h5::H5Id open_dataset(hid_t file, const char* name, const std::string& path);
 

@@ -249,7 +249,12 @@ with h5py.File(sys.argv[1], "w") as f:
     f.attrs["cond_shape"] = np.array([L, Cc], np.int64)
     f.attrs["created_by"] = "h5py test"
     kw = dict(compression="gzip", shuffle=True)
-    f.create_dataset("latent_pos", data=pos, chunks=(1, T, C), maxshape=(None, T, C), **kw)
+    if len(sys.argv) > 2 and sys.argv[2] == "lzf-latent-pos":  # a filter the layout does not allow
+        f.create_dataset("latent_pos", data=pos, chunks=(1, T, C), compression="lzf")
+    elif len(sys.argv) > 2 and sys.argv[2] == "unchunked-latent-pos":  # h5py's default: contiguous
+        f.create_dataset("latent_pos", data=pos)
+    else:
+        f.create_dataset("latent_pos", data=pos, chunks=(1, T, C), maxshape=(None, T, C), **kw)
     f.create_dataset("latent_neg", data=-pos, chunks=(1, T, C), maxshape=(None, T, C), **kw)
     cond = np.zeros((n, L, Cc), np.float32)
     for k in range(n):
@@ -277,6 +282,16 @@ with h5py.File(sys.argv[1], "w") as f:
   }
   EXPECT_FLOAT_EQ(reader.read(2).weight, 0.5f);
   EXPECT_EQ(validate_cache(path).size, 3);
+  // Per-record datasets stored otherwise than docs/pair_cache.md says are refused at open, named.
+  for (const std::string variant : {"unchunked-latent-pos", "lzf-latent-pos"}) {
+    const auto bad = dir + "/" + variant + ".h5";
+    ASSERT_EQ(run_python(dir, script, bad + " " + variant), 0) << variant;
+    const auto msg = error_of([&] { PairCacheReader::open(bad); });
+    EXPECT_NE(msg.find(bad), std::string::npos) << msg;
+    EXPECT_NE(msg.find("dataset 'latent_pos'"), std::string::npos) << msg;
+    EXPECT_NE(msg.find(variant[0] == 'u' ? "is stored unchunked, expected chunks of one record [1, 6, 2]"
+                                         : "expected shuffle then gzip"), std::string::npos) << msg;
+  }
 }
 
 TEST(PairCache, EpochPermutationIsAPermutationSeededByEpoch) {
@@ -563,6 +578,28 @@ TEST_F(DamagedCache, CorruptGlobalHeapSizeIsANamedErrorNotACrash) {
     EXPECT_NE(error_of([&] { PairCacheReader::open(reg); }), "");
   }
   EXPECT_GT(regressions, 0);
+  ::unsetenv("SIMU_HDF5_TIMEOUT_S");
+}
+
+// libhdf5 1.10 reads out of bounds (heap overflow, SEGV; found by fuzz_pair_cache behind the crash
+// guard) when a per-record dataset's chunk layout or chunk index is corrupted: its own row reads
+// trust them. Records are read chunk by chunk with every size checked (read_record_rows), and the
+// layout is checked at open, so the committed inputs end in a named error in this process.
+TEST_F(DamagedCache, CorruptChunkLayoutIsANamedErrorNotACrash) {
+  ::setenv("SIMU_HDF5_TIMEOUT_S", "3", 1);
+  int regressions = 0;
+  for (const auto& e : stdfs::directory_iterator(simu::testing::source_dir() + "/fuzz/regressions/fuzz_pair_cache")) {
+    const std::string reg = e.path().string();
+    if (reg.find("hdf5_chunk_key") == std::string::npos) continue;
+    ++regressions;
+    const auto msg = error_of([&] {
+      const auto r = PairCacheReader::open(reg);
+      for (int64_t i = 0; i < r.size(); ++i) r.read(i);
+    });
+    EXPECT_NE(msg.find(reg), std::string::npos) << msg;
+    EXPECT_NE(error_of([&] { validate_cache(reg); }), "") << reg;
+  }
+  EXPECT_EQ(regressions, 3);
   ::unsetenv("SIMU_HDF5_TIMEOUT_S");
 }
 
