@@ -7,6 +7,7 @@
 #include <fmt/ranges.h>
 #include <zlib.h>
 
+#include <cerrno>
 #include <cstring>
 
 #include "common/error.h"
@@ -173,6 +174,55 @@ RecordPipeline check_record_layout(hid_t dset, const std::string& file, const st
   return record_pipeline(dcpl.get(), file, name);
 }
 
+namespace {
+// The file a dataset's raw chunks are read from, with our own descriptor: offsets and lengths are
+// checked against the file's length here (libhdf5 1.10's H5Dread_chunk trusts its index for the
+// length it writes into the caller's buffer; it wrote past one found by fuzz_pair_cache).
+struct ChunkFile {
+  int fd = -1;
+  uint64_t length = 0, base = 0;  // file length; base address (user block) of HDF5 addresses
+  ChunkFile(hid_t dset, const std::string& file) {
+    fd = ::open(file.c_str(), O_RDONLY | O_CLOEXEC);
+    if (fd < 0) fail("pair cache '{}': cannot open for reading: {}", file, std::strerror(errno));
+    const off_t end = ::lseek(fd, 0, SEEK_END);
+    length = end > 0 ? static_cast<uint64_t>(end) : 0;
+    H5Id fid(H5Iget_file_id(dset));
+    H5Id fcpl(H5Fget_create_plist(fid.get()));
+    hsize_t ub = 0;
+    if (fcpl.valid() && H5Pget_userblock(fcpl.get(), &ub) >= 0) base = ub;
+  }
+  ~ChunkFile() {
+    if (fd >= 0) ::close(fd);
+  }
+  ChunkFile(const ChunkFile&) = delete;
+  ChunkFile& operator=(const ChunkFile&) = delete;
+};
+
+// The stored (filtered) bytes of the chunk at `off` (record r) into raw, and its filter mask.
+uint32_t read_stored_chunk(hid_t dset, const ChunkFile& cf, const std::vector<hsize_t>& off, uint64_t limit, int64_t r,
+                           std::vector<uint8_t>& raw, const std::string& file, const std::string& name) {
+  unsigned mask = 0;
+  haddr_t addr = HADDR_UNDEF;
+  hsize_t nbytes = 0;
+  if (H5Dget_chunk_info_by_coord(dset, off.data(), &mask, &addr, &nbytes) < 0)
+    fail("pair cache '{}': record {}: cannot locate the chunk of dataset '{}': {}", file, r, name, h5_error());
+  // Its size bounded by what one record can take (gzip adds at most ~0.1% + 12 bytes), inside the file.
+  if (addr == HADDR_UNDEF || nbytes == 0)
+    fail("pair cache '{}': record {}: dataset '{}' has no stored chunk (never written)", file, r, name);
+  if (nbytes > limit || addr > cf.length || cf.base + addr > cf.length || nbytes > cf.length - cf.base - addr)
+    fail("pair cache '{}': record {}: dataset '{}' indexes a chunk of {} bytes at offset {} (a record takes at most "
+         "{}; the file has {}): the chunk index is corrupted",
+         file, r, name, nbytes, addr, limit, cf.length);
+  raw.resize(nbytes);
+  for (size_t got = 0; got < nbytes;) {
+    const ssize_t n = ::pread(cf.fd, raw.data() + got, nbytes - got, static_cast<off_t>(cf.base + addr + got));
+    if (n <= 0) fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}'", file, r, name);
+    got += static_cast<size_t>(n);
+  }
+  return mask;
+}
+}  // namespace
+
 void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
                       const std::string& name) {
   const RecordPipeline pipe = check_record_layout(dset, file, name);
@@ -183,34 +233,24 @@ void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, voi
   for (size_t k = 1; k < dims.size(); ++k) per *= static_cast<size_t>(dims[k]);
   const size_t chunk_bytes = per * fsize;
   if (per == 0 || count <= 0) return;
+  const ChunkFile cf(dset, file);
+  const uint64_t limit = pipe.deflate >= 0 ? chunk_bytes + chunk_bytes / 100 + 1024 : chunk_bytes;
   std::vector<uint8_t> raw, plain(chunk_bytes), work(per * std::max(fsize, msize));
   auto* out = static_cast<uint8_t*>(buf);
   for (int64_t r = start; r < start + count; ++r) {
     std::vector<hsize_t> off(dims.size(), 0);
     off[0] = static_cast<hsize_t>(r);
-    // The stored chunk: its size bounded by what one record can take (gzip adds at most ~0.1% + 12 bytes).
-    hsize_t nbytes = 0;
-    if (H5Dget_chunk_storage_size(dset, off.data(), &nbytes) < 0)
-      fail("pair cache '{}': record {}: cannot locate the chunk of dataset '{}': {}", file, r, name, h5_error());
-    const hsize_t limit = pipe.deflate >= 0 ? chunk_bytes + chunk_bytes / 100 + 1024 : chunk_bytes;
-    if (nbytes == 0 || nbytes > limit)
-      fail("pair cache '{}': record {}: dataset '{}' stores a chunk of {} bytes, a record is {} bytes ({})", file, r,
-           name, nbytes, chunk_bytes, nbytes == 0 ? "never written" : "the chunk index is corrupted");
-    raw.resize(nbytes);
-    uint32_t mask = 0;
-    if (H5Dread_chunk(dset, H5P_DEFAULT, off.data(), &mask, raw.data()) < 0)
-      fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}': {}", file, r, name, h5_error());
+    const uint32_t mask = read_stored_chunk(dset, cf, off, limit, r, raw, file, name);
     // Filters in reverse: gzip (the last one), then shuffle; each must give exactly one record's bytes.
-    const bool inflate = pipe.deflate >= 0 && !(mask & (1u << pipe.deflate));
-    if (inflate) {
+    if (pipe.deflate >= 0 && !(mask & (1u << pipe.deflate))) {
       uLongf got = static_cast<uLongf>(chunk_bytes);
-      const int z = uncompress(plain.data(), &got, raw.data(), static_cast<uLong>(nbytes));
+      const int z = uncompress(plain.data(), &got, raw.data(), static_cast<uLong>(raw.size()));
       if (z != Z_OK || got != chunk_bytes)
         fail("pair cache '{}': record {}: dataset '{}': gzip data does not inflate to one record ({} bytes): {}",
              file, r, name, chunk_bytes, z == Z_OK ? fmt::format("{} bytes", got) : fmt::format("zlib error {}", z));
-    } else if (nbytes != chunk_bytes) {
+    } else if (raw.size() != chunk_bytes) {
       fail("pair cache '{}': record {}: dataset '{}' stores {} bytes uncompressed, a record is {} bytes", file, r,
-           name, nbytes, chunk_bytes);
+           name, raw.size(), chunk_bytes);
     } else {
       std::memcpy(plain.data(), raw.data(), chunk_bytes);
     }
