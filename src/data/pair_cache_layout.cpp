@@ -261,12 +261,29 @@ torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t star
   return dtype == "float16" ? half_to_float(t) : t;
 }
 
+PairColumns read_pair_columns(const CacheHandles& h, const std::string& path) {
+  const int64_t n = h.info.size;
+  PairColumns c;
+  H5Lock lock;
+  c.ids = read_strings(h.id.get(), 0, n, path, "id");
+  c.kinds.resize(static_cast<size_t>(n));
+  c.weights.resize(static_cast<size_t>(n));
+  if (n > 0) {
+    read_rows(h.kind.get(), H5T_NATIVE_UINT8, 0, n, c.kinds.data(), path, "kind");
+    read_rows(h.weight.get(), H5T_NATIVE_FLOAT, 0, n, c.weights.data(), path, "weight");
+  }
+  if (!h.info.inputs_mode()) {
+    c.cond_len.resize(static_cast<size_t>(n));
+    if (n > 0) read_rows(h.cond_len.get(), H5T_NATIVE_INT32, 0, n, c.cond_len.data(), path, "cond_len");
+  }
+  return c;
+}
+
 void preflight(const std::string& path) {
-  isolated(path, "structure and ids", [&](const std::function<void(int64_t, int64_t)>&) {
+  isolated(path, "structure and per-pair datasets", [&](const std::function<void(int64_t, int64_t)>&) {
     CacheHandles h;
     open_cache(h, path, /*writable=*/false);
-    H5Lock lock;
-    (void)read_strings(h.id.get(), 0, h.info.size, path, "id");
+    (void)read_pair_columns(h, path);
   });
 }
 

@@ -85,7 +85,17 @@ h5::H5Id reader_fapl();
 // Opens a file (read-only or read-write) and checks attributes and every dataset.
 void open_cache(CacheHandles& h, const std::string& path, bool writable);
 
-// The structure checks of open_cache plus every id, in a child process (h5::isolated()).
+// The small per-pair datasets, read whole (as the guarded first reads of preflight do): the reader
+// serves records from these, so libhdf5 reads them only in that one way, which the guard has seen end.
+struct PairColumns {
+  std::vector<std::string> ids;
+  std::vector<uint8_t> kinds;
+  std::vector<float> weights;
+  std::vector<int32_t> cond_len;  // tokens mode only
+};
+PairColumns read_pair_columns(const CacheHandles& h, const std::string& path);
+// The structure checks of open_cache plus the per-pair datasets (read_pair_columns), in a child
+// process (h5::isolated()).
 void preflight(const std::string& path);
 
 // Memory type for reading a float16/float32 dataset without conversion.

@@ -16,6 +16,7 @@ using namespace layout;
 
 struct PairCacheReader::Impl {
   CacheHandles h;
+  PairColumns columns;  // ids, kinds, weights, cond_len: read whole at open
   ~Impl() { h.close(); }
 };
 
@@ -25,6 +26,7 @@ PairCacheReader PairCacheReader::open(const std::string& path) {
   if (!stdfs::exists(path)) fail("pair cache '{}' does not exist", path);
   preflight(path);
   open_cache(r.impl_->h, path, /*writable=*/false);
+  r.impl_->columns = read_pair_columns(r.impl_->h, path);
   return r;
 }
 
@@ -34,6 +36,7 @@ const std::string& PairCacheReader::path() const { return impl_->h.info.path; }
 
 PairRecord PairCacheReader::read(int64_t i) const {
   const auto& h = impl_->h;
+  const auto& c = impl_->columns;  // the small per-pair datasets, read at open
   const auto& path = h.info.path;
   if (i < 0 || i >= h.info.size) fail("pair cache '{}': record {} out of range (size {})", path, i, h.info.size);
   PairRecord r;
@@ -46,18 +49,16 @@ PairRecord PairCacheReader::read(int64_t i) const {
     for (size_t k = 0; k < names.size(); ++k) r.inputs[names[k]] = read_input_rows(h, k, i, 1)[0];  // [ch, s, s]
   } else {
     auto cond = read_float_rows(h.cond.get(), h.info.cond_dtype, i, 1, path, "cond")[0];
-    int32_t len = 0;
-    read_rows(h.cond_len.get(), H5T_NATIVE_INT32, i, 1, &len, path, "cond_len");
+    const int32_t len = c.cond_len[static_cast<size_t>(i)];
     if (len < 1 || len > h.info.cond_shape[0])
       fail("pair cache '{}': record {}: dataset 'cond_len' holds {}, expected 1..{}", path, i, len, h.info.cond_shape[0]);
     r.cond = cond.narrow(0, 0, len);
   }
-  uint8_t kind = 0;
-  read_rows(h.kind.get(), H5T_NATIVE_UINT8, i, 1, &kind, path, "kind");
+  const uint8_t kind = c.kinds[static_cast<size_t>(i)];
   if (kind > 1) fail("pair cache '{}': record {}: dataset 'kind' holds {}, expected 0 or 1", path, i, kind);
   r.kind = static_cast<PairKind>(kind);
-  read_rows(h.weight.get(), H5T_NATIVE_FLOAT, i, 1, &r.weight, path, "weight");
-  r.id = read_strings(h.id.get(), i, 1, path, "id")[0];
+  r.weight = c.weights[static_cast<size_t>(i)];
+  r.id = c.ids[static_cast<size_t>(i)];
   // Non-finite values would poison training: refuse them here, naming the record.
   const std::pair<const torch::Tensor*, const char*> checks[] = {
       {&r.latent_pos, "latent_pos"}, {&r.latent_neg, "latent_neg"}, {&r.cond, "cond"}};
@@ -73,23 +74,16 @@ PairRecord PairCacheReader::read(int64_t i) const {
   return r;
 }
 
-std::vector<std::string> PairCacheReader::ids() const {
-  H5Lock lock;
-  return read_strings(impl_->h.id.get(), 0, size(), path(), "id");
-}
+std::vector<std::string> PairCacheReader::ids() const { return impl_->columns.ids; }
 
 torch::Tensor PairCacheReader::kinds() const {
-  auto t = torch::empty({size()}, torch::kUInt8);
-  H5Lock lock;
-  if (size() > 0) read_rows(impl_->h.kind.get(), H5T_NATIVE_UINT8, 0, size(), t.data_ptr(), path(), "kind");
-  return t;
+  const auto& k = impl_->columns.kinds;
+  return torch::from_blob(const_cast<uint8_t*>(k.data()), {size()}, torch::kUInt8).clone();
 }
 
 torch::Tensor PairCacheReader::weights() const {
-  auto t = torch::empty({size()}, torch::kFloat32);
-  H5Lock lock;
-  if (size() > 0) read_rows(impl_->h.weight.get(), H5T_NATIVE_FLOAT, 0, size(), t.data_ptr(), path(), "weight");
-  return t;
+  const auto& w = impl_->columns.weights;
+  return torch::from_blob(const_cast<float*>(w.data()), {size()}, torch::kFloat32).clone();
 }
 
 // ---------------------------------------------------------------------------------------------
