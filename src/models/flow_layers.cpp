@@ -115,8 +115,23 @@ torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Te
   return to_out->forward(h);
 }
 
+torch::Tensor CrossAttentionImpl::attend_shared(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
+  const int64_t B = x.size(0), L = x.size(1), Bc = k.size(0);
+  SIMU_CHECK(Bc > 0 && B % Bc == 0, "cross attention: {} token rows cannot share {} condition rows (need a multiple)", B,
+             Bc);
+  const int64_t G = B / Bc;
+  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [G*Bc, L, H, D]
+  if (q_rms_norm) q = q_rms_norm->forward(q);
+  // Row g*Bc + b attends over condition b: the G query sets of one condition in one sequence.
+  q = q.reshape({G, Bc, L, num_heads, -1}).transpose(0, 1).reshape({Bc, G * L, num_heads, -1});  // [Bc, G*L, H, D]
+  auto h = attention(q, k, v);                                                                     // [Bc, G*L, H, D]
+  h = h.reshape({Bc, G, L, -1}).transpose(0, 1).reshape({B, L, -1});                               // [B, L, C]
+  return to_out->forward(h);
+}
+
 torch::Tensor CrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& context) {
   const auto [k, v] = context_kv(context);
+  if (context.size(0) != x.size(0)) return attend_shared(x, k, v);
   return attend(x, k, v);
 }
 

@@ -261,6 +261,7 @@ torch::Tensor LatentMappingImpl::to_output(const torch::Tensor& h) {
 SparseStructureFlowTdfyWrapperImpl::SparseStructureFlowTdfyWrapperImpl(FlowModelConfig c) : config_(std::move(c)) {
   config_.validate();
   streams_ = config_.stream_names();
+  streams_run_ = streams_.size();
   const int64_t C = config_.model_channels;
   if (config_.is_shortcut_model) d_embedder = register_module("d_embedder", TimestepEmbedder(C));
   t_embedder = register_module("t_embedder", TimestepEmbedder(C));
@@ -303,6 +304,24 @@ void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap(bool on) {
   for (auto& block : block_list_) block->stream_overlap = on;
 }
 
+void SparseStructureFlowTdfyWrapperImpl::set_output_latents(const std::vector<std::string>& names) {
+  // The stream holding each named latent (its own, or the share group it is merged into).
+  size_t last = 0;
+  for (const auto& n : names) {
+    (void)config_.latent(n);  // throws for an unknown name
+    std::string stream = n;
+    for (const auto& [group, members] : config_.share_groups)
+      if (std::find(members.begin(), members.end(), n) != members.end()) stream = group;
+    const auto it = std::find(streams_.begin(), streams_.end(), stream);
+    last = std::max(last, static_cast<size_t>(it - streams_.begin()) + 1);
+  }
+  // Only leading protected streams may run alone (they attend to themselves only).
+  bool alone = !names.empty();
+  for (size_t i = 0; i < last; ++i) alone = alone && !block_list_.empty() && block_list_.front()->self_attn->is_protected[i];
+  output_latents_ = names;
+  streams_run_ = alone ? last : streams_.size();
+}
+
 ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::Tensor& cond, int64_t zero_from) {
   SIMU_CHECK(zero_from < 0 || (zero_from > 0 && zero_from <= cond.size(0)),
              "condition_cache: zero_from {} must be in [1, {}] (or negative: none)", zero_from, cond.size(0));
@@ -343,6 +362,10 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   const auto& c = config_;
   SIMU_CHECK(cond.dim() == 3 && cond.size(2) == c.cond_channels, "flow model: cond must be [B, L, {}], got [{}]",
              c.cond_channels, fmt::join(cond.sizes(), ", "));
+  const int64_t B = x.empty() ? 0 : x.begin()->second.size(0);
+  SIMU_CHECK(cond.size(0) > 0 && B % cond.size(0) == 0 && (!cache || cond.size(0) == B),
+             "flow model: cond has {} rows for {} latent rows (need the same, or a divisor shared by the rows "
+             "g*Bc + b, without a condition cache)", cond.size(0), B);
   // Timestep embedding (+ shortcut step embedding), then the shared modulation when share_mod.
   auto t_emb = t_embedder->forward(t);  // [B, C]
   if (d.has_value()) {
@@ -356,6 +379,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   // Input projection per latent, merged into the transformer streams (float32).
   at::ScalarType input_dtype;
   auto h = input_streams(x, input_dtype);
+  h.resize(streams_run_);  // set_output_latents: only the leading protected streams
   // The condition once in the dtype its projections use: bf16 / fp16 under CUDA autocast in that dtype
   // (the cast every to_kv would otherwise repeat, same values), else fp32.
   const bool low_autocast = cond.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
@@ -419,7 +443,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::output_latents(const std::vector<tor
   const auto& c = config_;
   // Split streams back into latents and project out.
   std::map<std::string, torch::Tensor> split;
-  for (size_t i = 0; i < streams_.size(); ++i) {
+  for (size_t i = 0; i < h.size(); ++i) {
     const auto g = std::find_if(c.share_groups.begin(), c.share_groups.end(), [&](const auto& p) { return p.first == streams_[i]; });
     if (g == c.share_groups.end()) {
       split[streams_[i]] = h[i];
@@ -433,7 +457,11 @@ Latents SparseStructureFlowTdfyWrapperImpl::output_latents(const std::vector<tor
     }
   }
   Latents out;
-  for (const auto& s : c.latents) out[s.name] = latent_mapping.at(s.name)->to_output(split.at(s.name));
+  for (const auto& s : c.latents) {
+    if (!output_latents_.empty() && std::find(output_latents_.begin(), output_latents_.end(), s.name) == output_latents_.end())
+      continue;
+    out[s.name] = latent_mapping.at(s.name)->to_output(split.at(s.name));
+  }
   return out;
 }
 

@@ -138,7 +138,8 @@ TORCH_MODULE(FeedForwardNet);
 class CrossAttentionImpl : public torch::nn::Module {
  public:
   CrossAttentionImpl(int64_t channels, int64_t ctx_channels, int64_t num_heads, bool qk_rms_norm);
-  // x: [B, L, C], context: [B, Lc, Cc] -> [B, L, C]
+  // x: [B, L, C], context: [B, Lc, Cc] -> [B, L, C]. A context of fewer rows Bc (B = G * Bc) is shared:
+  // row g*Bc + b attends over context row b (attend_shared).
   torch::Tensor forward(const torch::Tensor& x, const torch::Tensor& context);
   // Keys (RMS-normed when enabled) and values of the context: [B, Lc, H, D] each.
   std::pair<torch::Tensor, torch::Tensor> context_kv(const torch::Tensor& context);
@@ -146,6 +147,12 @@ class CrossAttentionImpl : public torch::nn::Module {
   // k, v may hold fewer batch rows than x: the rows past them have an all-zero condition
   // (ConditionCache::zero_from) and get to_out(value bias), what attention over identical keys gives.
   torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
+  // Attention of x ([G*Bc, L, C]) over keys/values of Bc condition rows ([Bc, Lc, H, D]), row g*Bc + b over
+  // row b: the G query sets of a condition run as one [Bc, G*L] query sequence, so the condition's
+  // projection (to_kv) runs once per condition row, not once per token row (FM-DPO's x+ and x- share
+  // their pair's condition). Same values as attend() over the keys/values repeated G times, up to the
+  // attention kernel's rounding. -> [G*Bc, L, C]
+  torch::Tensor attend_shared(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
   Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
   int64_t num_heads;
@@ -261,8 +268,10 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   explicit SparseStructureFlowTdfyWrapperImpl(FlowModelConfig config);
 
   // x: one tensor per latent of the config [B, tokens, in_ch]; t: [B] (or [1]) in time_scale units
-  // (t*1000); cond: [B, L, cond_channels]; d: [B] shortcut step in time_scale units, only for shortcut
-  // models (when given, its embedding is added, also for d = 0). Returns the velocity per latent.
+  // (t*1000); cond: [B, L, cond_channels], or [Bc, L, cond_channels] with B = G * Bc shared by the rows
+  // g*Bc + b (CrossAttentionImpl::attend_shared; without a cache); d: [B] shortcut step in time_scale
+  // units, only for shortcut models (when given, its embedding is added, also for d = 0). Returns the
+  // velocity per latent.
   // cache: condition keys/values from condition_cache(cond) for this same cond (skips the to_kv
   // projections); null computes them.
   Latents forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
@@ -291,6 +300,12 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   bool training_kernels() const { return training_kernels_; }
   // On the fused path, run the non-protected stream on a second CUDA stream (MOTBlockImpl::stream_overlap).
   void set_stream_overlap(bool on);
+  // Latents later forwards must return (empty: all, the default). When they all live in leading
+  // protected streams (shape: protected streams attend only to themselves, so they never read the
+  // others), forward runs only those streams and returns only their latents; FM-DPO scores the shape
+  // latent alone and so skips the pose stream (its blocks and its condition projections). Otherwise
+  // every stream runs and forward returns the named latents. Unknown names throw.
+  void set_output_latents(const std::vector<std::string>& names);
 
   TimestepEmbedder t_embedder{nullptr}, d_embedder{nullptr};
   torch::nn::Sequential adaLN_modulation{nullptr};  // share_mod only
@@ -305,6 +320,8 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   Latents output_latents(const std::vector<torch::Tensor>& h);
   FlowModelConfig config_;
   std::vector<std::string> streams_;
+  std::vector<std::string> output_latents_;  // set_output_latents (empty: all)
+  size_t streams_run_ = 0;                   // leading streams forward runs (set_output_latents)
   std::vector<MOTBlock> block_list_;
   BlockWrapper block_wrapper_;
   bool fused_kernels_ = true;

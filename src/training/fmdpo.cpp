@@ -255,7 +255,8 @@ FmdpoTerms fmdpo_terms(PolicyModel& model, const FmdpoInputs& in, double beta, b
   auto xt = torch::cat({(1 - t) * in.eps_pos + t * in.x_pos, (1 - t) * in.eps_neg + t * in.x_neg});
   auto target = torch::cat({in.x_pos - in.eps_pos, in.x_neg - in.eps_neg});
   auto t_scaled = torch::cat({in.t, in.t}).to(torch::kFloat32) * 1000.0;  // [2B]
-  auto cond = torch::cat({in.cond, in.cond});                            // [2B, L, Cc]
+  // Both members share the pair's condition: [B, L, Cc] once where the model accepts it, else [2B, L, Cc].
+  auto cond = model.shares_condition() ? in.cond : torch::cat({in.cond, in.cond});
   auto d = torch::zeros({2 * B}, t_scaled.options());                   // no shortcut
 
   FmdpoTerms out;

@@ -32,6 +32,10 @@ class PolicyModel {
   // (t * 1000); cond: [B, L, Cc] condition tokens; d: [B] (0 = no shortcut). -> [B, T, C].
   virtual torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled,
                                       const torch::Tensor& cond, const torch::Tensor& d) = 0;
+  // True when predict_shape accepts cond with fewer rows than x_shape: cond [B, L, Cc] for x_shape
+  // [G*B, T, C], row g*B + b conditioned on cond[b]. fmdpo_terms then passes each pair's condition once
+  // for both members (its projections run once, not twice); false (default): cond repeated per row.
+  virtual bool shares_condition() const { return false; }
   // Adapters on (policy) or off (reference).
   virtual void set_adapters_enabled(bool enabled) = 0;
   // Trainable adapter parameters under their PEFT names (base_model.model.<path>.lora_A.weight).

@@ -20,6 +20,9 @@ class GeneratorPolicy : public PolicyModel {
     // fused kernels that have a backward, in both (on CUDA under bf16 autocast; CPU runs the reference ops).
     gen_->backbone()->set_fused_kernels(true);
     gen_->backbone()->set_training_kernels(true);
+    // Only the shape latent is scored: the protected shape stream runs alone (the pose stream, which the
+    // shape stream never reads, is skipped with its condition projections).
+    gen_->backbone()->set_output_latents({"shape"});
   }
 
   torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled, const torch::Tensor& cond,
@@ -36,6 +39,8 @@ class GeneratorPolicy : public PolicyModel {
     auto out = backbone->forward(latents, t_scaled, cond, c.is_shortcut_model ? c10::optional<torch::Tensor>(d) : c10::nullopt);
     return out.at("shape");
   }
+  // Cross attention shares a condition row among the token rows g*B + b (CrossAttentionImpl::attend_shared).
+  bool shares_condition() const override { return true; }
   void set_adapters_enabled(bool enabled) override { simu::lora::set_lora_enabled(*gen_, enabled); }
   std::vector<std::pair<std::string, torch::Tensor>> adapter_parameters() override {
     std::vector<std::pair<std::string, torch::Tensor>> out;

@@ -169,6 +169,76 @@ TEST(FlowModel, ShapeOutputIndependentOfPose) {
   }
 }
 
+// FM-DPO's two members share their pair's condition: a condition of B rows for 2B token rows (row
+// g*B + b over condition b) gives the forward of the condition repeated, outputs and to_kv gradients.
+TEST(FlowModel, SharedConditionEqualsRepeatedCondition) {
+  for (const char* name : {"ss_generator_small", "ss_generator_variant"}) {
+    auto f = load(name);
+    auto bb = f.gen->backbone();
+    const bool with_d = f.gen->config().backbone.is_shortcut_model;
+    auto x = with_prefix(f.io, "in.latent.");
+    for (auto& [k, v] : x) v = torch::cat({v, torch::randn_like(v)});  // [2B, T, C]: a second member per row
+    const auto cond = f.io.at("in.cond");                             // [B, L, Cc]
+    auto t = torch::cat({f.io.at("in.t"), f.io.at("in.t")}) * 1000;
+    c10::optional<torch::Tensor> d;
+    if (with_d) d = torch::cat({f.io.at("in.d"), f.io.at("in.d")}) * 1000;
+    auto& to_kv = bb->blocks->ptr<simu::models::MOTBlockImpl>(0)->cross_attn[0]->to_kv->weight;
+    to_kv.set_requires_grad(true);
+    // One pass per layout: outputs, then the gradient of the shape output's sum.
+    auto run = [&](const torch::Tensor& c) {
+      to_kv.mutable_grad() = torch::Tensor();
+      auto y = bb->forward(x, t, c, d);
+      y.at("shape").sum().backward();
+      return std::make_pair(y, to_kv.grad().clone());
+    };
+    auto [shared, g_shared] = run(cond);
+    auto [repeated, g_repeated] = run(torch::cat({cond, cond}));
+    to_kv.set_requires_grad(false);
+    ASSERT_EQ(shared.size(), repeated.size());
+    for (const auto& [k, v] : repeated)
+      EXPECT_TRUE(simu::testing::close(shared.at(k).detach(), v.detach(), 1e-6, std::string(name) + "." + k));
+    EXPECT_TRUE(simu::testing::close(g_shared, g_repeated, 1e-6, std::string(name) + ".to_kv.grad"));
+    EXPECT_GT(g_shared.abs().max().item<double>(), 0) << name;
+    // Rows that are not a multiple of the condition's are refused, naming both counts.
+    auto x3 = x;
+    for (auto& [k, v] : x3) v = v.narrow(0, 0, 3);
+    if (cond.size(0) == 2)
+      EXPECT_THROW(bb->forward(x3, t.narrow(0, 0, 3), cond, with_d ? c10::optional<torch::Tensor>(d->narrow(0, 0, 3)) : d),
+                   simu::Error);
+  }
+}
+
+// Asking for the shape latent alone runs only the protected shape stream: the same shape output as
+// the full forward (it never reads the pose stream), only that latent returned; a pose latent needs
+// every stream; unknown names are refused.
+TEST(FlowModel, OutputLatentsRunOnlyTheStreamsTheyNeed) {
+  for (const char* name : {"ss_generator_small", "ss_generator_variant"}) {
+    auto f = load(name);
+    const bool with_d = f.gen->config().backbone.is_shortcut_model;
+    auto full = forward_fixture(f, with_d);
+    auto bb = f.gen->backbone();
+    bb->set_output_latents({"shape"});
+    auto shape_only = forward_fixture(f, with_d);
+    ASSERT_EQ(shape_only.size(), 1u) << name;
+    EXPECT_TRUE(torch::equal(shape_only.at("shape"), full.at("shape"))) << name;
+    expect_close({{"shape", shape_only.at("shape")}}, {{"out.forward.shape", f.io.at("out.forward.shape")}},
+                 "out.forward.", std::string(name) + ".shape_only");
+    // A pose latent (in the unprotected stream): everything runs, the one latent comes back.
+    const std::string pose = [&] {
+      for (const auto& [k, v] : full)
+        if (k != "shape") return k;
+      return std::string();
+    }();
+    bb->set_output_latents({pose});
+    auto pose_only = forward_fixture(f, with_d);
+    ASSERT_EQ(pose_only.size(), 1u) << name;
+    EXPECT_TRUE(torch::equal(pose_only.at(pose), full.at(pose))) << name;
+    EXPECT_THROW(bb->set_output_latents({"no_such_latent"}), simu::Error);
+    bb->set_output_latents({});
+    EXPECT_EQ(forward_fixture(f, with_d).size(), full.size()) << name;
+  }
+}
+
 TEST(FlowModel, StrictLoadingListsMismatches) {
   auto cfg = simu::models::GeneratorConfig::from_official_file(simu::testing::fixture("ss_generator_small.json"));
   cfg.backbone.num_blocks = 3;          // one block too many -> missing keys
