@@ -194,6 +194,23 @@ void set_lora_enabled(torch::nn::Module& root, bool enabled) {
   }
 }
 
+int set_fp8_base(torch::nn::Module& root, bool enabled, models::Fp8Backward backward) {
+  auto layers = lora_layers(root);
+  SIMU_CHECK(!layers.empty(), "set_fp8_base: the model has no LoRA-wrapped layers (the FP8 base covers those)");
+  for (auto& [path, linear] : layers) {
+    if (!enabled) {
+      linear->set_fp8_weight(nullptr);
+      continue;
+    }
+    SIMU_CHECK(!lora_adapter(*linear)->merged, "set_fp8_base: the adapter of '{}' is merged into its weight; unmerge first",
+               path);
+    linear->set_fp8_weight(models::make_fp8_weight(linear->weight, linear->bias, backward));
+  }
+  log::info("lora: FP8 frozen base {} for {} LoRA-wrapped layers{}", enabled ? "on" : "off", layers.size(),
+            enabled ? fmt::format(" (input gradients in {})", models::fp8_backward_name(backward)) : "");
+  return static_cast<int>(layers.size());
+}
+
 std::vector<std::pair<std::string, torch::Tensor>> lora_parameters(torch::nn::Module& root) {
   std::vector<std::pair<std::string, torch::Tensor>> out;
   for (auto& [path, linear] : lora_layers(root)) {
@@ -209,6 +226,7 @@ void merge_lora(torch::nn::Module& root) {
   for (auto& [path, linear] : lora_layers(root)) {
     auto adapter = lora_adapter(*linear);
     if (adapter->merged) continue;
+    SIMU_CHECK(!linear->fp8_weight(), "merge_lora: '{}' computes with an FP8 copy of its weight; set_fp8_base off first", path);
     SIMU_CHECK(adapter->enabled, "merge_lora: the adapter of '{}' is disabled; enable adapters before merging", path);
     // W [out, in] += scale * B @ A, summed in fp32 then rounded to W's dtype.
     auto merged = (linear->weight.to(torch::kFloat32) + adapter->delta_weight()).to(linear->weight.scalar_type());

@@ -15,7 +15,7 @@ LinearImpl::LinearImpl(int64_t in, int64_t out, bool with_bias) : in_features(in
 }
 
 torch::Tensor LinearImpl::forward(const torch::Tensor& x) {
-  auto y = torch::linear(x, weight, bias);
+  auto y = fp8_ ? fp8_linear(x, *fp8_) : torch::linear(x, weight, bias);
   if (adapter_ && adapter_enabled_) y = adapter_->add_to(y, x);
   return y;
 }

@@ -3,11 +3,15 @@
 // Official checkpoints name the parameters `<path>.weight` / `<path>.bias`, exactly like
 // torch.nn.Linear, so state dicts line up. An adapter adds a term to the output:
 //   y = x W^T + b + adapter(x)   (when an adapter is set and enabled)
+// Opt-in: an FP8 copy of the frozen weight (fp8_linear.h) computes x W^T + b instead of torch::linear
+// when one is set (set_fp8_weight); without one the layer is exactly torch::linear.
 #pragma once
 
 #include <torch/torch.h>
 
 #include <memory>
+
+#include "models/fp8_linear.h"
 
 namespace simu::models {
 
@@ -33,6 +37,10 @@ class LinearImpl : public torch::nn::Module {
   // Switches the adapter term on or off without removing it (reference model = adapters off).
   void set_adapter_enabled(bool enabled) { adapter_enabled_ = enabled; }
   bool adapter_enabled() const { return adapter_enabled_; }
+  // Installs (or, with nullptr, frees) the FP8 copy of weight/bias used by forward. The copy is not
+  // updated when weight changes: the caller sets it for a frozen weight (lora::set_fp8_base).
+  void set_fp8_weight(std::shared_ptr<const Fp8Weight> w) { fp8_ = std::move(w); }
+  const std::shared_ptr<const Fp8Weight>& fp8_weight() const { return fp8_; }
 
   int64_t in_features, out_features;
   torch::Tensor weight;  // [out, in]
@@ -41,6 +49,7 @@ class LinearImpl : public torch::nn::Module {
  private:
   std::shared_ptr<LinearAdapter> adapter_;
   bool adapter_enabled_ = true;
+  std::shared_ptr<const Fp8Weight> fp8_;
 };
 TORCH_MODULE(Linear);
 

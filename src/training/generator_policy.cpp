@@ -67,6 +67,7 @@ class GeneratorPolicy : public PolicyModel {
     });
     return true;
   }
+  simu::models::Generator& generator() { return gen_; }
 
  private:
   simu::models::Generator gen_;
@@ -106,7 +107,20 @@ std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch
   // train.seed fixes the random parts of the model (the LoRA A init, and the base when no weights are
   // given), identically on every rank and for every world size.
   torch::manual_seed(cfg.train.seed);
-  return make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device, cfg.file);
+  auto policy = make_generator_policy(cfg.model.config, cfg.model.weights, cfg.lora, "", device, cfg.file);
+  if (cfg.train.fp8_base)
+    set_policy_fp8_base(*policy, true,
+                        simu::models::parse_fp8_backward(cfg.train.fp8_base_backward, cfg.file + ": train.fp8_base_backward"),
+                        cfg.file + ": train.fp8_base");
+  return policy;
+}
+
+void set_policy_fp8_base(PolicyModel& policy, bool enabled, simu::models::Fp8Backward backward, const std::string& what) {
+  auto* gp = dynamic_cast<GeneratorPolicy*>(&policy);
+  SIMU_CHECK(gp != nullptr, "{}: the FP8 frozen base needs the Stage-1 generator policy (make_generator_policy)", what);
+  auto& gen = gp->generator();
+  if (enabled) simu::models::require_fp8_device(gen->parameters().front().device(), what);
+  simu::lora::set_fp8_base(*gen, enabled, backward);
 }
 
 }  // namespace simu::training

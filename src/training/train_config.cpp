@@ -78,8 +78,17 @@ LoopConfig LoopConfig::from(simu::config::Reader& r) {
   int_field(r, "steps", c.steps, 1);
   choice_field(r, "precision", c.precision, {"bf16", "fp32"});
   r.field("activation_checkpointing", c.activation_checkpointing);
+  r.field("fp8_base", c.fp8_base);
+  choice_field(r, "fp8_base_backward", c.fp8_base_backward, {"fp8", "bf16"});
   r.field("seed", c.seed);
   choice_field(r, "device", c.device, {"cuda", "cpu"});
+  // The FP8 base runs on FP8 tensor cores inside bf16 autocast (the GPU's capability is checked when
+  // the model is made: make_generator_policy).
+  if (c.fp8_base)
+    SIMU_CHECK(c.device == "cuda" && c.precision == "bf16",
+               "{}: key '{}': the FP8 frozen base needs train.device cuda and train.precision bf16 (got {} and {}); "
+               "set it to false for this run",
+               r.file(), r.full("fp8_base"), c.device, c.precision);
   return c;
 }
 

@@ -40,6 +40,12 @@ struct LoopConfig {
   int64_t steps = 1500;
   std::string precision = "bf16";         // "bf16" (CUDA autocast; adapters stay fp32) or "fp32"
   bool activation_checkpointing = false;  // recompute each transformer block in backward (per-block checkpointing)
+  // Opt-in FP8 frozen base (models/fp8_linear.h): the LoRA-wrapped base projections run as e4m3 GEMMs
+  // (weights quantised once after loading, inputs per call; adapters, loss and optimizer unchanged).
+  // Faster, costs fidelity (README "FP8 frozen base" has the measured figures). Needs device cuda with
+  // compute capability >= 8.9 and precision bf16.
+  bool fp8_base = false;
+  std::string fp8_base_backward = "fp8";  // the base's input gradients: "fp8" (e4m3) or "bf16"
   uint64_t seed = 0;                      // noise and t seed
   std::string device = "cuda";            // "cuda" (rank's local GPU) or "cpu"
   static LoopConfig from(simu::config::Reader& r);

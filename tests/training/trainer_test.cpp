@@ -364,6 +364,10 @@ TEST(TrainConfig, BadConfigsAreClearErrors) {
   expect_error("model: {config: x}\noptim: {lr: fast}\n", "optim.lr");
   expect_error("optim: {lr: 1}\n", "missing required key 'model.config'");
   expect_error("model: {config: x}\ntrain: {precision: fp8}\n", "train.precision");
+  // The FP8 frozen base: CUDA and bf16 only; its backward is fp8 or bf16.
+  expect_error("model: {config: x}\ntrain: {fp8_base: true, device: cpu}\n", "key 'train.fp8_base'");
+  expect_error("model: {config: x}\ntrain: {fp8_base: true, precision: fp32}\n", "key 'train.fp8_base'");
+  expect_error("model: {config: x}\ntrain: {fp8_base_backward: e5m2}\n", "train.fp8_base_backward");
   expect_error("model: {config: x}\noptim: {schedule: linear}\n", "optim.schedule");
   // Batch split checked against the world size when the trainer starts.
   auto cfg = toy_config(simu::testing::temp_dir("badsplit"), 1, 6, 4);
