@@ -67,6 +67,8 @@ struct Bench {
   bool profile;
   std::vector<std::string> captures;
   std::vector<Row> rows;
+  std::vector<int> cache_intervals;         // --step-cache: cached sampling rows, one per interval
+  simu::models::StepCacheOptions cache_opts;  // their other settings
 };
 
 // Plain bf16 matmul rate of this device (TFLOP/s).
@@ -126,6 +128,59 @@ void time_forward(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generato
   }
 }
 
+// Matrix-product FLOPs of a sampling: one forward per full step (batch 2 where guided), the condition
+// keys/values once per batch size (ConditionCache), nothing for the cheap steps of step caching.
+double sampling_flops(const simu::models::FlowModelConfig& mc, int64_t L, const std::vector<bool>& guided,
+                      const std::vector<bool>& full) {
+  double flops = 0;
+  bool any_guided = false, any_plain = false;
+  for (size_t i = 0; i < guided.size(); ++i) {
+    if (!full[i]) continue;
+    const int64_t b = guided[i] ? 2 : 1;
+    flops += simu::models::flow_forward_flops(mc, b, L) - simu::models::flow_condition_kv_flops(mc, b, L);
+    (guided[i] ? any_guided : any_plain) = true;
+  }
+  if (any_guided) flops += simu::models::flow_condition_kv_flops(mc, 2, L);
+  if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
+  return flops;
+}
+
+// Step-cached sampling (--step-cache k...), eager and with persistent CUDA graphs, after the full
+// sampling rows: the speed-up predicted from the FLOPs of the full evaluations it skips, and measured.
+void time_cached_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, const simu::models::Latents& x0,
+                          simu::models::SampleOptions o, double full_flops) {
+  auto& gen = bn.gen;
+  const auto& dev = bn.dev;
+  // The full sampling's medians (eager, graphs) measured just before, for the ratios.
+  double full_eager = 0, full_graph = 0;
+  for (const auto& r : bn.rows)
+    if (r.cond_len == L && r.what.rfind("sample", 0) == 0 && r.what.find("first call") == std::string::npos)
+      (r.what.find("eager") != std::string::npos ? full_eager : full_graph) = r.ms;
+  for (const int k : bn.cache_intervals) {
+    o.step_cache = bn.cache_opts;
+    o.step_cache.enabled = true;
+    o.step_cache.interval = k;
+    auto run = [&] { auto y = gen->sample(cond1, x0, o); };
+    for (const bool graphs : {false, true}) {
+      if (graphs && !dev.is_cuda()) continue;
+      o.cuda_graphs = graphs;
+      reset_peak(dev);
+      const double ms = time_ms(dev, 1, bn.sample_iters, run);
+      const auto& st = gen->step_cache_stats();
+      const double flops = sampling_flops(gen->config().backbone, L, st.guided, st.full);
+      const double base = graphs ? full_graph : full_eager;
+      bn.rows.push_back({L,
+                         fmt::format("sample {} steps CFG {}, step cache k={} ({} of {} full; predicted x{:.2f}, "
+                                     "measured x{:.2f}), {}",
+                                     o.steps, bn.cfg, k, st.full_steps(), o.steps, full_flops / flops,
+                                     base > 0 ? base / ms : 0.0, graphs ? "persistent CUDA graphs" : "eager"),
+                         ms, flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
+      simu::log::info("cond {}: step-cached sampling k={} ({}) {:.1f} ms", L, k, graphs ? "graphs" : "eager", ms);
+    }
+    gen->reverse_fn->clear_graphs();
+  }
+}
+
 // Full 25-step CFG sampling: eager, then each graph capture scheme (first call and persistent replays).
 void time_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generator& rng) {
   auto& gen = bn.gen;
@@ -141,18 +196,10 @@ void time_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generat
     auto run = [&] { auto y = gen->sample(cond1, x0, o); };
     // FLOPs: one forward per step, batch 2 where CFG is active.
     const auto grid = gen->time_grid(o.steps, o.rescale_t, o.reversed_timestamp);
-    // The condition keys/values are computed once per batch size (ConditionCache), not per step.
-    double flops = 0;
-    bool any_guided = false, any_plain = false;
-    for (int i = 0; i < o.steps; ++i) {
-      const double ts = static_cast<float>(grid[i] * gen->config().time_scale);
-      const bool guided = o.cfg_strength > 0 && o.cfg_interval.first <= ts && ts <= o.cfg_interval.second;
-      const int64_t b = guided ? 2 : 1;
-      flops += simu::models::flow_forward_flops(mc, b, L) - simu::models::flow_condition_kv_flops(mc, b, L);
-      (guided ? any_guided : any_plain) = true;
-    }
-    if (any_guided) flops += simu::models::flow_condition_kv_flops(mc, 2, L);
-    if (any_plain) flops += simu::models::flow_condition_kv_flops(mc, 1, L);
+    std::vector<bool> guided(o.steps);
+    for (int i = 0; i < o.steps; ++i)
+      guided[i] = simu::models::guidance_active(grid[i] * gen->config().time_scale, o.cfg_strength, o.cfg_interval);
+    const double flops = sampling_flops(mc, L, guided, std::vector<bool>(o.steps, true));
     // Eager launches and persistent CUDA graphs (captured in the first call, replayed by every later
     // one: the timed calls; the first call's time is its own row).
     // Graph captures: "overlap" (the default: the first evaluation eager, the capture recorded while
@@ -180,6 +227,7 @@ void time_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generat
     }
     simu::models::GraphedForward::set_overlapped_capture(true);
     gen->reverse_fn->clear_graphs();  // the next condition length starts without them
+    if (!bn.cache_intervals.empty()) time_cached_sampling(bn, L, cond1, x0, o, flops);
   }
 }
 
@@ -195,6 +243,8 @@ int main(int argc, char** argv) {
   bool small = false, fp32 = false, profile = false, one_stream = false;
   std::string sdp = "default";
   std::vector<std::string> captures = {"overlap"};
+  std::vector<int> cache_intervals;
+  simu::models::StepCacheOptions cache_opts;
   app.add_option("--config", config, "generator config (official or project layout)")->capture_default_str();
   app.add_option("--cond-lens", cond_lens, "condition lengths")->capture_default_str();
   app.add_option("--steps", steps, "sampling steps")->capture_default_str();
@@ -213,6 +263,14 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
   app.add_option("--captures", captures, "graph capture schemes timed after eager sampling: overlap (default) | sync")
       ->check(CLI::IsMember({"overlap", "sync"}))->capture_default_str();
+  app.add_option("--step-cache", cache_intervals,
+                 "also time step-cached sampling (models/step_cache.h), one row pair (eager, graphs) per full-evaluation "
+                 "interval k given, e.g. --step-cache 2 3")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--step-cache-order", cache_opts.order, "step caching: shape extrapolation order 0 | 1 | 2")
+      ->capture_default_str();
+  app.add_option("--step-cache-momentum", cache_opts.pose_momentum, "step caching: pose momentum in [0, 1]")
+      ->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
@@ -251,7 +309,8 @@ int main(int argc, char** argv) {
                "  + cross q 2TC^2 + kv 4*Lc*Cc*C + out 2TC^2 + attention 4*T*Lc*C + MLP 4*T*C*(ratio*C); + adaLN, latent io\n");
 
     const double mm_tflops = dev.is_cuda() ? matmul_ceiling(dev) : 0;
-    Bench bn{gen, dev, prec, warmup, iters, sample_iters, steps, cfg, profile, captures, {}};
+    cache_opts.validate("step caching (--step-cache-*): ");
+    Bench bn{gen, dev, prec, warmup, iters, sample_iters, steps, cfg, profile, captures, {}, cache_intervals, cache_opts};
     auto rng = at::make_generator<at::CPUGeneratorImpl>(0);
     for (const int64_t L : cond_lens) {
       auto cond1 = torch::randn({1, L, mc.cond_channels}, rng).to(dev);

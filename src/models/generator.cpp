@@ -184,6 +184,12 @@ PreparedCondition ClassifierFreeGuidanceImpl::prepare(const torch::Tensor& cond,
   return pc;
 }
 
+bool guidance_active(double t_scaled, double strength, std::pair<double, double> interval) {
+  // The official compares the float32 time tensor with the interval bounds.
+  const double tf = static_cast<float>(t_scaled);
+  return strength > 0.0 && interval.first <= tf && tf <= interval.second;
+}
+
 Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, const torch::Tensor& cond,
                                             c10::optional<double> d_scaled, double strength,
                                             std::pair<double, double> interval) {
@@ -197,9 +203,7 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
   const auto& cond = pc.cond;
   const int64_t B = cond.size(0);
   const auto opts = torch::TensorOptions().dtype(torch::kFloat32).device(cond.device());
-  // The official compares the float32 time tensor with the interval bounds.
-  const double tf = static_cast<float>(t_scaled);
-  const bool guided = strength > 0.0 && interval.first <= tf && tf <= interval.second;
+  const bool guided = guidance_active(t_scaled, strength, interval);
   // t (and d) as one value for the whole batch ([1], like the official ShortCut): the modulation is
   // then computed once and broadcast, which lets the blocks fuse it into the LayerNorms.
   // Backbone forward: through a persistent CUDA graph when enabled, else eager (with the condition's
@@ -316,9 +320,20 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
   auto velocity = [&](const Latents& xt, double t) {
     return reverse_fn->forward(xt, tp(t * c.time_scale), pc, d, o.cfg_strength, o.cfg_interval);
   };
+  auto cache = make_step_cache(o);
   for (int i = 0; i < o.steps; ++i) {
     const double t0 = grid[i], dt = tp(grid[i + 1] - grid[i]);
-    if (o.solver == "euler") {
+    if (cache) {
+      // Step caching: a full evaluation (recorded) or the cache's prediction.
+      Latents v;
+      if (cache->need_full(i, guidance_active(tp(t0 * c.time_scale), o.cfg_strength, o.cfg_interval))) {
+        v = velocity(x, t0);
+        cache->record(i, t0, v);
+      } else {
+        v = cache->predict(t0);
+      }
+      x = step(x, v, dt);
+    } else if (o.solver == "euler") {
       x = step(x, velocity(x, t0), dt);
     } else if (o.solver == "midpoint") {
       const double half = tp(0.5 * dt);
@@ -336,8 +351,26 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
     }
     if (o.on_step) o.on_step(i + 1, o.steps);
   }
+  step_cache_stats_ = cache ? cache->stats() : StepCacheStats{};
   for (auto& [k, v] : x) v = v.to(torch::kFloat32);
   return x;
+}
+
+std::unique_ptr<StepCache> GeneratorImpl::make_step_cache(const SampleOptions& o) const {
+  if (!o.step_cache.enabled) return nullptr;
+  o.step_cache.validate();
+  SIMU_CHECK(o.solver == "euler", "sampling: step_cache needs the euler solver, got solver '{}'", o.solver);
+  // The protected streams' latents (shape) are extrapolated; the others (pose) are momentum-anchored.
+  const auto& b = config_.backbone;
+  std::set<std::string> extrapolated;
+  for (const auto& s : b.latents) {
+    std::string stream = s.name;
+    for (const auto& [group, members] : b.share_groups)
+      if (std::find(members.begin(), members.end(), s.name) != members.end()) stream = group;
+    if (std::find(b.protected_modalities.begin(), b.protected_modalities.end(), stream) != b.protected_modalities.end())
+      extrapolated.insert(s.name);
+  }
+  return std::make_unique<StepCache>(o.step_cache, o.steps, std::move(extrapolated));
 }
 
 Latents GeneratorImpl::noise(int64_t batch, torch::Generator& gen, torch::Device device) const {

@@ -21,12 +21,14 @@
 #include <torch/torch.h>
 
 #include <functional>
+#include <memory>
 #include <optional>
 #include <string>
 #include <utility>
 
 #include "models/flow_model.h"
 #include "models/precision.h"
+#include "models/step_cache.h"
 
 namespace simu::models {
 
@@ -88,6 +90,11 @@ struct SampleOptions {
   std::string unconditional_handling;
   // Called after each solver step with (step index from 1, steps).
   std::function<void(int, int)> on_step;
+  // Opt-in step caching (models/step_cache.h; euler only): full flow-model evaluations on some steps,
+  // the shape velocity extrapolated in t and the pose velocity momentum-anchored on the others. Faster
+  // by about the fraction of skipped full evaluations, at a measured cost in fidelity (README "Stage-1
+  // step caching"). Default off: the sampler is then exactly the full one.
+  StepCacheOptions step_cache;
 
   // Defaults from the config (inference_steps, CFG strength/interval, rescale_t, !no_shortcut, solver):
   // the TRAINING-time values of a released ss_generator.yaml (2 steps, rescale_t 1, CFG 2, shortcut).
@@ -121,6 +128,10 @@ SampleOptions official_inference_options(const GeneratorConfig& c, const Sampler
 // rescale_t 3 (official inference), cfg 7 on t*1000 in [0, 500] (official inference), unconditional
 // add_flag, d = 0 (no_shortcut), solver euler (config)"; values the user set are marked "(user)".
 std::string describe_sampler(const SampleOptions& o, const GeneratorConfig& c, const SamplerOverrides& user = {});
+
+// Whether CFG runs at time t_scaled (time_scale units): strength > 0 and t inside the interval, compared
+// in float32 as the official compares its float32 time tensor.
+bool guidance_active(double t_scaled, double strength, std::pair<double, double> interval);
 
 // A condition prepared for repeated guided evaluations: the conditional/unconditional pair built once,
 // and (when `cache`) the cross-attention keys/values of both computed on first use and reused.
@@ -230,11 +241,17 @@ class GeneratorImpl : public torch::nn::Module {
   // Gaussian noise x0 per latent ([batch, T, ch], float32), drawn in latent_mapping order from `gen`
   // (on the generator's device), then moved to `device`. Same generator state -> same noise.
   Latents noise(int64_t batch, torch::Generator& gen, torch::Device device) const;
+  // The last sample() call's step-caching schedule (which steps were full, which guided); empty
+  // vectors after a call without step caching.
+  const StepCacheStats& step_cache_stats() const { return step_cache_stats_; }
 
   ClassifierFreeGuidance reverse_fn{nullptr};
 
  private:
+  // The step cache of a sample() call (null when options.step_cache is off); validates the options.
+  std::unique_ptr<StepCache> make_step_cache(const SampleOptions& o) const;
   GeneratorConfig config_;
+  StepCacheStats step_cache_stats_;
 };
 TORCH_MODULE(Generator);
 

@@ -2,6 +2,8 @@
 
 #include "resample/lift.h"
 
+#include <algorithm>
+
 namespace simu::resample {
 
 ModelOptions::ModelOptions() {
@@ -35,11 +37,29 @@ void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& f
         ->check(CLI::PositiveNumber)
         ->group(group);
   if (flags.seed) app.add_option("--seed", o.seed, "sampling seed")->capture_default_str()->group(group);
+  // Opt-in step caching of the Stage-1 sampling (models/step_cache.h).
+  auto& sc = c.step_cache;
+  app.add_option("--step-cache", o.step_cache_interval,
+                 "opt-in step caching: a full Stage-1 evaluation at least every K steps, the shape velocity extrapolated "
+                 "and the pose velocity momentum-anchored in between (faster, at a measured cost in fidelity; README "
+                 "\"Stage-1 step caching\"). 0 = off")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber)
+      ->group(group);
+  app.add_option("--step-cache-order", sc.order, "step caching: shape extrapolation order 0 | 1 | 2")
+      ->capture_default_str()
+      ->group(group);
+  app.add_option("--step-cache-momentum", sc.pose_momentum, "step caching: pose momentum in [0, 1]")
+      ->capture_default_str()
+      ->group(group);
 }
 
 std::string finish_model_options(ModelOptions& o) {
   const std::string banner = check_lift_weights(o.config, o.random_weights);
   apply_precision(o.config, o.precision);
+  o.config.step_cache.enabled = o.step_cache_interval > 0;
+  o.config.step_cache.interval = std::max(o.step_cache_interval, 1);
+  o.config.step_cache.validate("--step-cache options: ");
   o.config.random_weights = o.random_weights;
   return banner;
 }

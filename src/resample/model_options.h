@@ -4,7 +4,8 @@
 //
 //   flags   --generator-config, --generator-weights, --decoder-config, --decoder-weights,
 //           --embedder-config, --embedder-weights, --adapter, --random-weights, --device, --precision,
-//           --steps, --samples, --seed (each optional: ModelOptionFlags picks which a program has)
+//           --steps, --samples, --seed (each optional: ModelOptionFlags picks which a program has),
+//           --step-cache, --step-cache-order, --step-cache-momentum (opt-in step caching, off by default)
 #pragma once
 
 #include "resample/resampler.h"
@@ -21,6 +22,7 @@ struct ModelOptions {
   std::string precision = "auto";  // auto | fp16 | bf16 | fp32 (apply_precision)
   bool random_weights = false;     // allow missing weight files (random init: smoke runs, benchmarks)
   uint64_t seed = 0;               // sampling seed
+  int step_cache_interval = 0;     // --step-cache K: step caching every K steps (0 = off), into config.step_cache
   ModelOptions();
 };
 

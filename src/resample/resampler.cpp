@@ -58,6 +58,14 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
     c.precision = r.require<bool>("bf16") ? "bf16" : "fp32";
   }
   r.field("cuda_graphs", c.cuda_graphs);
+  if (r.has("step_cache")) {
+    auto sc = r.child("step_cache");
+    auto& o = c.step_cache;
+    sc.field("enabled", o.enabled), sc.field("interval", o.interval), sc.field("order", o.order);
+    sc.field("warmup", o.warmup), sc.field("tail", o.tail), sc.field("pose_momentum", o.pose_momentum);
+    sc.field("tolerance", o.tolerance);
+    o.validate(r.file() + ": step_cache.");
+  }
   r.field("num_samples", c.num_samples);
   r.field("decode_batch", c.decode_batch);
   r.field("pose_convention", c.pose_convention);
@@ -124,8 +132,9 @@ Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
   simu::log::info("resampler ready on {} in {} (generator {}, decoder {}{})", device_.str(),
                   models::precision_name(precision_), config_.generator_config, config_.decoder_config,
                   has_adapter_ ? ", adapter " + config_.adapter_dir : "");
-  simu::log::info("resampler sampler: {}",
-                  models::describe_sampler(sample_options(), generator_->config(), sampler_overrides()));
+  simu::log::info("resampler sampler: {}; step caching {}",
+                  models::describe_sampler(sample_options(), generator_->config(), sampler_overrides()),
+                  config_.step_cache.describe());
 }
 
 models::SamplerOverrides Resampler::sampler_overrides() const {
@@ -148,6 +157,7 @@ models::SampleOptions Resampler::sample_options() const {
   o.cfg_strength = config_.cfg_strength;
   o.precision = precision_;
   o.cuda_graphs = config_.cuda_graphs;
+  o.step_cache = config_.step_cache;
   return o;
 }
 
