@@ -13,6 +13,10 @@
 // the machine's measured bf16 matmul rate instead).
 // With --nproc-per-node 2 every rank first measures alone (world 1, no all-reduce), then all ranks
 // train together; scaling efficiency = pairs/s together / sum of pairs/s alone.
+// --cond-len takes several lengths (default 7528,2800: the released embedder's 7,528 tokens first, the
+// headline, then 2,800); --fp8-base off,on adds rows with the opt-in FP8 frozen base (train.fp8_base:
+// e4m3 GEMMs for the LoRA-wrapped base projections, models/fp8_linear.h) on the same policy and
+// adapters; MFU and "needed" of those rows stay against the bf16 peak (the same FLOPs, done faster).
 // --cond-mode inputs (or tokens,inputs for both in one run): the pairs carry the condition
 // embedder's inputs at the released sizes (images and masks 518 px, point maps 518 px) and the
 // released embedder (CondEmbedderConfig::sam3d_stage1, random weights) makes the tokens inside the
@@ -44,6 +48,8 @@ namespace {
 
 struct Row {
   std::string mode = "tokens";
+  int64_t cond_len = 0;
+  std::string base = "bf16";  // the frozen base's GEMMs: bf16 or fp8
   int64_t micro = 0;
   int world = 1;
   double step_s = 0, pairs_s = 0, mfu = 0, needed_util = 0, peak_gib = 0, embed_share = 0;
@@ -129,7 +135,7 @@ std::vector<double> alone_rates(const std::vector<Row>& rows) {
 
 void print_header(const std::string& generator, const simu::models::FlowModelConfig& fc, int64_t T, int64_t L,
                   const std::string& mode, bool checkpointing, double fwd_flops, double needed_flops, double peak_tflops) {
-  fmt::print("bench_fmdpo: {} ({} blocks, {} ch, {} shape tokens), cond {} tokens ({}), LoRA r64 shape branch, bf16{}\n",
+  fmt::print("bench_fmdpo: {} ({} blocks, {} ch, {} shape tokens), cond {} tokens ({}), LoRA r64 shape branch, bf16 autocast{}\n",
              generator, fc.num_blocks, fc.model_channels, T, L,
              mode == "inputs" ? "made in the step by the released condition embedder, random weights" : "in the pairs",
              checkpointing ? ", activation checkpointing" : "");
@@ -143,15 +149,15 @@ void print_header(const std::string& generator, const simu::models::FlowModelCon
 // The table (rank 0); alone[i] = the summed world-1 rate of the setting before row i.
 void print_rows(const std::vector<Row>& rows, const std::vector<double>& alone, int rank) {
   if (rank != 0) return;
-  fmt::print("{:>6} {:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8} {:>7}\n", "mode", "micro", "world", "step [ms]",
-             "pairs/s", "MFU", "needed", "peak GiB", "scaling", "embed");
+  fmt::print("{:>6} {:>5} {:>4} {:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8} {:>7}\n", "mode", "cond", "base", "micro",
+             "world", "step [ms]", "pairs/s", "MFU", "needed", "peak GiB", "scaling", "embed");
   for (size_t i = 0; i < rows.size(); ++i) {
     const auto& r = rows[i];
     std::string scaling = "-";
     if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
     const std::string embed = r.embed_share >= 0 ? fmt::format("{:.1f}%", 100.0 * r.embed_share) : "-";
-    fmt::print("{:>6} {:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8} {:>7}\n", r.mode, r.micro, r.world,
-               r.step_s * 1e3, r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling, embed);
+    fmt::print("{:>6} {:>5} {:>4} {:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8} {:>7}\n", r.mode,
+               r.cond_len, r.base, r.micro, r.world, r.step_s * 1e3, r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling, embed);
   }
 }
 
@@ -160,7 +166,9 @@ struct Options {
   std::string generator = "configs/stage1_real.yaml";
   std::vector<int64_t> micros = {1, 2, 4};
   int steps = 10, warmup = 3, nproc = 0;
-  int64_t cond_len = 7528;  // the released embedder's tokens per object (4 x 1,370 + 2 x 1,024)
+  // The released embedder's tokens per object (4 x 1,370 + 2 x 1,024) first, then 2,800.
+  std::vector<int64_t> cond_lens = {7528, 2800};
+  std::vector<std::string> fp8_base = {"off"};  // off and/or on: rows without / with the FP8 frozen base
   double peak_tflops = 989.4;
   bool checkpointing = false, profile = false, embed_timing = true;
   std::vector<std::string> modes = {"tokens"};
@@ -179,7 +187,7 @@ struct Bench {
 
 // One setting (mode, micro-batch, communicator): warm-up, timed steps, the row. fwd/needed: FLOPs per pair.
 Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& comm, const std::string& mode, int64_t m,
-                    double fwd_flops, double needed_flops) {
+                    double fwd_flops, double needed_flops, int64_t cond_len, bool fp8) {
   const auto& o = b.o;
   TrainConfig cfg;
   cfg.model.config = o.generator;
@@ -214,6 +222,8 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   const auto stats = c10::cuda::CUDACachingAllocator::getDeviceStats(b.env.local_rank);
   Row r;
   r.mode = mode;
+  r.cond_len = cond_len;
+  r.base = fp8 ? "fp8" : "bf16";
   r.micro = m;
   r.world = comm.world_size();
   r.step_s = secs;
@@ -231,15 +241,16 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   return r;
 }
 
-// Every micro-batch size of one condition mode, alone and (with several ranks) together.
-void measure_mode(Bench& b, const std::string& mode, std::vector<Row>& rows) {
+// Every base (bf16, fp8) and micro-batch size of one condition mode and length, alone and (with several
+// ranks) together. L: condition tokens per pair (tokens mode).
+void measure_mode(Bench& b, const std::string& mode, int64_t cond_len, std::vector<Row>& rows) {
   const auto gcfg = simu::models::GeneratorConfig::from_official_file(b.o.generator);
   const auto& fc = gcfg.backbone;
   int64_t T = 0;
   for (const auto& s : fc.latents)
     if (s.name == "shape") T = s.tokens();
   const bool inputs = mode == "inputs";
-  const int64_t L = inputs ? b.timed.embedder->num_tokens() : b.o.cond_len;
+  const int64_t L = inputs ? b.timed.embedder->num_tokens() : cond_len;
   // Synthetic pairs: enough for every setting.
   const int64_t n_pairs = 4 * 8 * std::max<int>(b.o.nproc, b.env.world_size);
   auto pairs = synthetic_pairs(n_pairs, T, fc.in_channels, L, fc.cond_channels, inputs);
@@ -250,11 +261,16 @@ void measure_mode(Bench& b, const std::string& mode, std::vector<Row>& rows) {
   const double needed_flops = needed_pair_flops(fc, static_cast<double>(T), static_cast<double>(L), 64, fwd_flops);
   if (b.env.rank == 0)
     print_header(b.o.generator, fc, T, L, mode, b.o.checkpointing, fwd_flops, needed_flops, b.o.peak_tflops);
-  for (int64_t m : b.o.micros)
-    for (Communicator* comm : {b.solo.get(), b.together.get()}) {
-      if (comm == b.together.get() && b.env.world_size == 1) continue;
-      rows.push_back(measure_setting(b, source, *comm, mode, m, fwd_flops, needed_flops));
-    }
+  for (const auto& base : b.o.fp8_base) {
+    const bool fp8 = base == "on";
+    set_policy_fp8_base(*b.policy, fp8, simu::models::Fp8Backward::kFp8, "bench_fmdpo --fp8-base");
+    for (int64_t m : b.o.micros)
+      for (Communicator* comm : {b.solo.get(), b.together.get()}) {
+        if (comm == b.together.get() && b.env.world_size == 1) continue;
+        rows.push_back(measure_setting(b, source, *comm, mode, m, fwd_flops, needed_flops, L, fp8));
+      }
+  }
+  set_policy_fp8_base(*b.policy, false, simu::models::Fp8Backward::kFp8, "bench_fmdpo");
 }
 
 // One rank's benchmark: the real-size policy (random base weights, LoRA r 64 / alpha 128 on the
@@ -284,7 +300,11 @@ void run_rank(const Options& o) {
   b.solo = Communicator::create(DistEnv{}, b.device, std::chrono::minutes(10));
   b.together = Communicator::create(b.env, b.device, std::chrono::minutes(10));
   std::vector<Row> rows;
-  for (const auto& mode : o.modes) measure_mode(b, mode, rows);
+  for (const auto& mode : o.modes) {
+    if (mode == "inputs") measure_mode(b, mode, 0, rows);  // the embedder's own length
+    else
+      for (int64_t L : o.cond_lens) measure_mode(b, mode, L, rows);
+  }
   print_rows(rows, b.together->all_reduce_sum(alone_rates(rows)), b.env.rank);
 }
 
@@ -293,14 +313,25 @@ void run_rank(const Options& o) {
 int main(int argc, char** argv) {
   CLI::App app{"FM-DPO training-step benchmark (GPU, real-size generator with random weights)"};
   Options o;
-  app.add_option("--generator", o.generator, "generator config (official layout)");
-  app.add_option("--micro", o.micros, "micro-batch sizes")->delimiter(',');
-  app.add_option("--steps", o.steps, "timed steps per setting");
-  app.add_option("--warmup", o.warmup, "untimed steps per setting");
-  app.add_option("--cond-len", o.cond_len, "condition tokens per pair (1024 channels) in tokens mode");
-  app.add_option("--peak-tflops", o.peak_tflops, "device peak dense bf16 TFLOP/s for MFU");
+  app.add_option("--generator", o.generator, "generator config (official layout)")->capture_default_str();
+  app.add_option("--micro", o.micros, "micro-batch sizes")->delimiter(',')->capture_default_str();
+  app.add_option("--steps", o.steps, "timed steps per setting")->capture_default_str();
+  app.add_option("--warmup", o.warmup, "untimed steps per setting")->capture_default_str();
+  app.add_option("--cond-len", o.cond_lens,
+                 "condition tokens per pair (1024 channels) in tokens mode, one table block each (7528: the released "
+                 "embedder's)")
+      ->delimiter(',')
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  app.add_option("--fp8-base", o.fp8_base,
+                 "off and/or on: rows with the bf16 frozen base and/or the opt-in FP8 frozen base (train.fp8_base; "
+                 "needs compute capability >= 8.9), e.g. off,on")
+      ->delimiter(',')
+      ->check(CLI::IsMember({"off", "on"}))
+      ->capture_default_str();
+  app.add_option("--peak-tflops", o.peak_tflops, "device peak dense bf16 TFLOP/s for MFU")->capture_default_str();
   app.add_flag("--activation-checkpointing", o.checkpointing, "recompute the policy forward in backward");
-  app.add_option("--nproc-per-node", o.nproc, "ranks (GPUs) to start");
+  app.add_option("--nproc-per-node", o.nproc, "ranks (GPUs) to start (0: this process alone)")->capture_default_str();
   app.add_option("--embed-timing", o.embed_timing,
                  "time the embedder of inputs mode (a device synchronisation before and after it; off: no syncs, no embed column)")
       ->capture_default_str();
@@ -309,11 +340,13 @@ int main(int argc, char** argv) {
                  "tokens (condition tokens in the pairs, --cond-len of them) and/or inputs (the released embedder's "
                  "inputs; its random-weight embedder runs in the step), e.g. tokens,inputs")
       ->delimiter(',')
-      ->check(CLI::IsMember({"tokens", "inputs"}));
+      ->check(CLI::IsMember({"tokens", "inputs"}))
+      ->capture_default_str();
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&]() -> int {
     simu::cli::apply_common_options(common);
+    SIMU_CHECK(common.sets.empty(), "bench_fmdpo: --set has no config to apply to (got --set {})", common.sets.front());
     if (!torch::cuda::is_available()) {
       fmt::print("bench_fmdpo: skipped: needs a CUDA device (none here)\n");
       return 0;
