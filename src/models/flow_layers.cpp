@@ -152,6 +152,22 @@ MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, cons
   register_dict(*this, "to_out", names, to_out);
 }
 
+bool few_query_flash(const torch::Tensor& q, const torch::Tensor& k) {
+  const auto dt = q.scalar_type();
+  const int64_t D = q.size(3);
+  return q.is_cuda() && !at::GradMode::is_enabled() && (dt == at::kHalf || dt == at::kBFloat16) &&
+         k.scalar_type() == dt && q.size(1) <= 16 && k.size(1) >= 256 && D <= 256 && D % 8 == 0;
+}
+
+torch::Tensor sdpa_blhd(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
+  auto qh = q.permute({0, 2, 1, 3}), kh = k.permute({0, 2, 1, 3}), vh = v.permute({0, 2, 1, 3});  // [B, H, L, D]
+  // The flash kernel wants each head's rows contiguous in D (views of a projection are).
+  if (few_query_flash(q, k) && v.scalar_type() == q.scalar_type() && q.stride(3) == 1 && k.stride(3) == 1 &&
+      v.stride(3) == 1)
+    return std::get<0>(at::_scaled_dot_product_flash_attention(qh, kh, vh)).permute({0, 2, 1, 3});
+  return at::scaled_dot_product_attention(qh, kh, vh).permute({0, 2, 1, 3});  // [B, L, H, D]
+}
+
 bool fused_path(const torch::Tensor& x) {
   return fused::compiled() && x.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
          fused::is_low_precision(at::autocast::get_autocast_dtype(at::kCUDA));

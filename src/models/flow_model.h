@@ -333,6 +333,17 @@ TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 // in, x is on CUDA and CUDA autocast runs in bf16 or fp16. (The inference-only ones also need grad mode off.)
 bool fused_path(const torch::Tensor& x);
 
+// Scaled dot-product attention on [B, L, H, D] tensors (the official "sdpa" backend) -> [B, L, H, D].
+// Few queries over many keys without a graph (few_query_flash: the pose stream's 4 tokens over the
+// condition or all shape tokens, in sampling) run FlashAttention's kernel, which splits the keys over
+// thread blocks; PyTorch's first choice there (cuDNN) runs one thread block per head (H100, fp16,
+// 4 queries over 7,528 keys, 16 heads: 77 us cuDNN, 18 us flash; bench/few_query_attention.py).
+// Everything else takes PyTorch's choice. Same attention, another kernel's rounding.
+torch::Tensor sdpa_blhd(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v);
+// Whether sdpa_blhd takes the flash kernel for these inputs: CUDA, fp16 or bf16, no grad mode, at most
+// 16 queries over at least 256 keys, head dim <= 256 and a multiple of 8.
+bool few_query_flash(const torch::Tensor& q, const torch::Tensor& k);
+
 // Matrix-product FLOPs of one forward (2 per multiply-add), counted analytically for the benchmark:
 // per block and per stream of T tokens: self qkv 2*T*C*3C + out 2*T*C*C; self attention QK^T and PV
 // 2*2*T*Tk*C (Tk = keys seen); cross q 2*T*C*C + kv 2*Lc*Cc*2C + out 2*T*C*C; cross attention

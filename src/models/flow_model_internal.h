@@ -6,6 +6,8 @@
 #include <string>
 #include <vector>
 
+#include "models/flow_model.h"
+
 namespace simu::models::detail {
 
 // Registers `modules` under one ModuleDict named `name` (keys = stream names) so state-dict keys read
@@ -22,11 +24,9 @@ void register_dict(torch::nn::Module& owner, const std::string& name, const std:
 // where allowed (not in training mode) and when no graph is recorded.
 inline bool inference_only_ok(bool inference_kernels) { return inference_kernels && !at::GradMode::is_enabled(); }
 
-// SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend).
+// SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend; sdpa_blhd).
 inline torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
-  auto out = at::scaled_dot_product_attention(q.permute({0, 2, 1, 3}), k.permute({0, 2, 1, 3}),
-                                              v.permute({0, 2, 1, 3}));  // [B, H, L, D]
-  return out.permute({0, 2, 1, 3});                                       // [B, L, H, D]
+  return sdpa_blhd(q, k, v);
 }
 
 }  // namespace simu::models::detail

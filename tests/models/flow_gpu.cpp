@@ -167,3 +167,34 @@ TEST(FlowModelGpu, CudaGraphsPersistAcrossSampleCalls) {
   EXPECT_LE(gen->reverse_fn->graph_cache.graphs.size(), gen->reverse_fn->graph_cache.max_graphs);
   gen->reverse_fn->clear_graphs();
 }
+
+// Few queries over many keys (the pose stream's 4 tokens in sampling) take FlashAttention's kernel;
+// its result is the attention of the same fp16 values computed in fp32 by PyTorch's math backend.
+// With grad mode on, or many queries, PyTorch's own choice runs instead.
+TEST(FlowModelGpu, FewQueryAttentionTakesFlashAndMatchesMath) {
+  SIMU_REQUIRE_CUDA();
+  const auto f16 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat16);
+  torch::manual_seed(5);
+  for (int64_t Lk : {7528, 2800}) {
+    for (int64_t B : {1, 2}) {
+      // Keys/values as views of one projection, like the condition cache: [B, Lk, 2, H, D].
+      auto kv = torch::randn({B, Lk, 2, 16, 64}, f16);
+      auto k = kv.select(2, 0), v = kv.select(2, 1);  // [B, Lk, H, D]
+      auto q = torch::randn({B, 4, 16, 64}, f16);      // [B, 4, H, D]
+      torch::NoGradGuard ng;
+      ASSERT_TRUE(simu::models::few_query_flash(q, k)) << Lk << " " << B;
+      auto got = simu::models::sdpa_blhd(q, k, v).to(torch::kFloat32);
+      auto want = at::_scaled_dot_product_attention_math(q.permute({0, 2, 1, 3}).to(torch::kFloat32),
+                                                        k.permute({0, 2, 1, 3}).to(torch::kFloat32),
+                                                        v.permute({0, 2, 1, 3}).to(torch::kFloat32));
+      EXPECT_TRUE(simu::testing::close(got, std::get<0>(want).permute({0, 2, 1, 3}), 3e-3, "few-query flash"));
+    }
+  }
+  // Not taken: a graph is recorded, or many queries (PyTorch's choice runs).
+  auto k = torch::randn({1, 512, 16, 64}, f16);
+  EXPECT_FALSE(simu::models::few_query_flash(torch::randn({1, 4096, 16, 64}, f16), k));
+  {
+    torch::AutoGradMode on(true);
+    EXPECT_FALSE(simu::models::few_query_flash(torch::randn({1, 4, 16, 64}, f16), k));
+  }
+}
