@@ -31,6 +31,21 @@ torch::Tensor read_condition(const std::string& path, const std::string& key) {
   return c;
 }
 
+// --step-cache K (0 = off) and its settings (models/step_cache.h).
+void add_step_cache_options(CLI::App& app, int& interval, simu::models::StepCacheOptions& o) {
+  app.add_option("--step-cache", interval,
+                 "opt-in step caching (README \"Stage-1 step caching\"): a full model evaluation at least every K steps, "
+                 "the shape velocity extrapolated and the pose velocity momentum-anchored in between; faster, at a "
+                 "measured cost in fidelity. 0 = off (full sampling)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--step-cache-order", o.order, "step caching: shape extrapolation order 0 | 1 | 2")->capture_default_str();
+  app.add_option("--step-cache-momentum", o.pose_momentum, "step caching: pose momentum in [0, 1]")->capture_default_str();
+  app.add_option("--step-cache-tolerance", o.tolerance,
+                 "step caching: one more full step after a prediction error above this (0 = off)")
+      ->capture_default_str();
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -71,17 +86,7 @@ int main(int argc, char** argv) {
                  "fp16 | bf16 | fp32 | auto (fp16 on CUDA as the released pipeline, fp32 on CPU)")
       ->capture_default_str();
   app.add_flag("--fp32", fp32, "same as --precision fp32");
-  app.add_option("--step-cache", step_cache,
-                 "opt-in step caching (README \"Stage-1 step caching\"): a full model evaluation at least every K steps, "
-                 "the shape velocity extrapolated and the pose velocity momentum-anchored in between; faster, at a "
-                 "measured cost in fidelity. 0 = off (full sampling)")
-      ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
-  app.add_option("--step-cache-order", cache.order, "step caching: shape extrapolation order 0 | 1 | 2")->capture_default_str();
-  app.add_option("--step-cache-momentum", cache.pose_momentum, "step caching: pose momentum in [0, 1]")->capture_default_str();
-  app.add_option("--step-cache-tolerance", cache.tolerance,
-                 "step caching: one more full step after a prediction error above this (0 = off)")
-      ->capture_default_str();
+  add_step_cache_options(app, step_cache, cache);
   app.add_option("--device", device, "cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--out", out, "output safetensors file (latent.<name> tensors)")->capture_default_str();
   simu::cli::CommonOptions common;

@@ -231,6 +231,16 @@ void time_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generat
   }
 }
 
+// --step-cache K... and the settings of those rows.
+void add_step_cache_options(CLI::App& app, std::vector<int>& intervals, simu::models::StepCacheOptions& o) {
+  app.add_option("--step-cache", intervals,
+                 "also time step-cached sampling (models/step_cache.h), one row pair (eager, graphs) per full-evaluation "
+                 "interval k given, e.g. --step-cache 2 3")
+      ->check(CLI::PositiveNumber);
+  app.add_option("--step-cache-order", o.order, "step caching: shape extrapolation order 0 | 1 | 2")->capture_default_str();
+  app.add_option("--step-cache-momentum", o.pose_momentum, "step caching: pose momentum in [0, 1]")->capture_default_str();
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -263,14 +273,7 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
   app.add_option("--captures", captures, "graph capture schemes timed after eager sampling: overlap (default) | sync")
       ->check(CLI::IsMember({"overlap", "sync"}))->capture_default_str();
-  app.add_option("--step-cache", cache_intervals,
-                 "also time step-cached sampling (models/step_cache.h), one row pair (eager, graphs) per full-evaluation "
-                 "interval k given, e.g. --step-cache 2 3")
-      ->check(CLI::PositiveNumber);
-  app.add_option("--step-cache-order", cache_opts.order, "step caching: shape extrapolation order 0 | 1 | 2")
-      ->capture_default_str();
-  app.add_option("--step-cache-momentum", cache_opts.pose_momentum, "step caching: pose momentum in [0, 1]")
-      ->capture_default_str();
+  add_step_cache_options(app, cache_intervals, cache_opts);
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {

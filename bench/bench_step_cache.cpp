@@ -47,6 +47,11 @@ torch::Tensor occupancy(sm::SparseStructureDecoder& dec, const torch::Tensor& sh
 }
 
 Diff compare(sm::SparseStructureDecoder& dec, const sm::Latents& got, const sm::Latents& ref) {
+  // A non-finite sample would decode to an empty grid and compare as equal: refuse it instead.
+  for (const auto* l : {&got, &ref})
+    for (const auto& [k, v] : *l)
+      SIMU_CHECK(torch::isfinite(v).all().item<bool>(), "sampled latent '{}' holds non-finite values (try --precision fp32)",
+                 k);
   Diff d;
   const auto oa = occupancy(dec, got.at("shape")), ob = occupancy(dec, ref.at("shape"));
   const double inter = (oa & ob).sum().item<double>(), uni = (oa | ob).sum().item<double>();
