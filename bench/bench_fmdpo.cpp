@@ -14,9 +14,10 @@
 // With --nproc-per-node 2 every rank first measures alone (world 1, no all-reduce), then all ranks
 // train together; scaling efficiency = pairs/s together / sum of pairs/s alone.
 // --cond-len takes several lengths (default 7528,2800: the released embedder's 7,528 tokens first, the
-// headline, then 2,800); --fp8-base off,on adds rows with the opt-in FP8 frozen base (train.fp8_base:
-// e4m3 GEMMs for the LoRA-wrapped base projections, models/fp8_linear.h) on the same policy and
-// adapters; MFU and "needed" of those rows stay against the bf16 peak (the same FLOPs, done faster).
+// headline, then 2,800); --fp8-base off,on,all adds rows with the opt-in FP8 frozen base (train.fp8_base:
+// e4m3 GEMMs for the frozen base products, models/fp8_linear.h; on = the LoRA-wrapped projections
+// (base fp8), all = every frozen Linear, MLPs included (base fp8all)) on the same policy and adapters;
+// MFU and "needed" of those rows stay against the bf16 peak (the same FLOPs, done faster).
 // --cond-mode inputs (or tokens,inputs for both in one run): the pairs carry the condition
 // embedder's inputs at the released sizes (images and masks 518 px, point maps 518 px) and the
 // released embedder (CondEmbedderConfig::sam3d_stage1, random weights) makes the tokens inside the
@@ -49,7 +50,7 @@ namespace {
 struct Row {
   std::string mode = "tokens";
   int64_t cond_len = 0;
-  std::string base = "bf16";  // the frozen base's GEMMs: bf16 or fp8
+  std::string base = "bf16";  // the frozen base's GEMMs: bf16, fp8 (LoRA-wrapped layers) or fp8all
   int64_t micro = 0;
   int world = 1;
   double step_s = 0, pairs_s = 0, mfu = 0, needed_util = 0, peak_gib = 0, embed_share = 0;
@@ -149,14 +150,14 @@ void print_header(const std::string& generator, const simu::models::FlowModelCon
 // The table (rank 0); alone[i] = the summed world-1 rate of the setting before row i.
 void print_rows(const std::vector<Row>& rows, const std::vector<double>& alone, int rank) {
   if (rank != 0) return;
-  fmt::print("{:>6} {:>5} {:>4} {:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8} {:>7}\n", "mode", "cond", "base", "micro",
+  fmt::print("{:>6} {:>5} {:>6} {:>5} {:>5} {:>10} {:>9} {:>7} {:>8} {:>10} {:>8} {:>7}\n", "mode", "cond", "base", "micro",
              "world", "step [ms]", "pairs/s", "MFU", "needed", "peak GiB", "scaling", "embed");
   for (size_t i = 0; i < rows.size(); ++i) {
     const auto& r = rows[i];
     std::string scaling = "-";
     if (r.world > 1 && i > 0) scaling = fmt::format("{:.1f}%", 100.0 * r.pairs_s / alone[i - 1]);
     const std::string embed = r.embed_share >= 0 ? fmt::format("{:.1f}%", 100.0 * r.embed_share) : "-";
-    fmt::print("{:>6} {:>5} {:>4} {:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8} {:>7}\n", r.mode,
+    fmt::print("{:>6} {:>5} {:>6} {:>5} {:>5} {:>10.1f} {:>9.2f} {:>6.1f}% {:>7.1f}% {:>10.2f} {:>8} {:>7}\n", r.mode,
                r.cond_len, r.base, r.micro, r.world, r.step_s * 1e3, r.pairs_s, 100 * r.mfu, 100 * r.needed_util, r.peak_gib, scaling, embed);
   }
 }
@@ -168,7 +169,7 @@ struct Options {
   int steps = 10, warmup = 3, nproc = 0;
   // The released embedder's tokens per object (4 x 1,370 + 2 x 1,024) first, then 2,800.
   std::vector<int64_t> cond_lens = {7528, 2800};
-  std::vector<std::string> fp8_base = {"off"};  // off and/or on: rows without / with the FP8 frozen base
+  std::vector<std::string> fp8_base = {"off"};  // off / on / all: rows without / with the FP8 frozen base
   double peak_tflops = 989.4;
   bool checkpointing = false, profile = false, embed_timing = true;
   std::vector<std::string> modes = {"tokens"};
@@ -187,7 +188,7 @@ struct Bench {
 
 // One setting (mode, micro-batch, communicator): warm-up, timed steps, the row. fwd/needed: FLOPs per pair.
 Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& comm, const std::string& mode, int64_t m,
-                    double fwd_flops, double needed_flops, int64_t cond_len, bool fp8) {
+                    double fwd_flops, double needed_flops, int64_t cond_len, const std::string& base) {
   const auto& o = b.o;
   TrainConfig cfg;
   cfg.model.config = o.generator;
@@ -223,7 +224,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   Row r;
   r.mode = mode;
   r.cond_len = cond_len;
-  r.base = fp8 ? "fp8" : "bf16";
+  r.base = base;
   r.micro = m;
   r.world = comm.world_size();
   r.step_s = secs;
@@ -261,13 +262,17 @@ void measure_mode(Bench& b, const std::string& mode, int64_t cond_len, std::vect
   const double needed_flops = needed_pair_flops(fc, static_cast<double>(T), static_cast<double>(L), 64, fwd_flops);
   if (b.env.rank == 0)
     print_header(b.o.generator, fc, T, L, mode, b.o.checkpointing, fwd_flops, needed_flops, b.o.peak_tflops);
-  for (const auto& base : b.o.fp8_base) {
-    const bool fp8 = base == "on";
-    set_policy_fp8_base(*b.policy, fp8, simu::models::Fp8Backward::kFp8, "bench_fmdpo --fp8-base");
+  for (const auto& fp8 : b.o.fp8_base) {
+    // Switched off first: "all" after "on" re-quantises every layer of its scope.
+    set_policy_fp8_base(*b.policy, false, simu::models::Fp8Backward::kFp8, "bench_fmdpo");
+    if (fp8 != "off")
+      set_policy_fp8_base(*b.policy, true, simu::models::Fp8Backward::kFp8, "bench_fmdpo --fp8-base",
+                          fp8 == "all" ? simu::lora::Fp8Scope::kAll : simu::lora::Fp8Scope::kAdapted);
+    const std::string base = fp8 == "off" ? "bf16" : fp8 == "on" ? "fp8" : "fp8all";
     for (int64_t m : b.o.micros)
       for (Communicator* comm : {b.solo.get(), b.together.get()}) {
         if (comm == b.together.get() && b.env.world_size == 1) continue;
-        rows.push_back(measure_setting(b, source, *comm, mode, m, fwd_flops, needed_flops, L, fp8));
+        rows.push_back(measure_setting(b, source, *comm, mode, m, fwd_flops, needed_flops, L, base));
       }
   }
   set_policy_fp8_base(*b.policy, false, simu::models::Fp8Backward::kFp8, "bench_fmdpo");
@@ -324,10 +329,10 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   app.add_option("--fp8-base", o.fp8_base,
-                 "off and/or on: rows with the bf16 frozen base and/or the opt-in FP8 frozen base (train.fp8_base; "
-                 "needs compute capability >= 8.9), e.g. off,on")
+                 "off, on, all: rows with the bf16 frozen base, the opt-in FP8 frozen base on the LoRA-wrapped layers "
+                 "(train.fp8_base), on every frozen Linear (fp8_base_layers all); needs compute capability >= 8.9")
       ->delimiter(',')
-      ->check(CLI::IsMember({"off", "on"}))
+      ->check(CLI::IsMember({"off", "on", "all"}))
       ->capture_default_str();
   app.add_option("--peak-tflops", o.peak_tflops, "device peak dense bf16 TFLOP/s for MFU")->capture_default_str();
   app.add_flag("--activation-checkpointing", o.checkpointing, "recompute the policy forward in backward");

@@ -6,9 +6,9 @@
 // = 0 and no gradient into A). --pairs synthetic pairs (random latents, noise, t logit-normal, weights
 // 1.0 / 0.1 alternating, --cond-len condition tokens) in micro-batches of --micro, the gradient
 // accumulated over all of them as the trainer does (sum of w * loss / pairs). Variants on the same
-// inputs: bf16 (the reference: bf16 autocast, bf16 base), fp8 (FP8 base, FP8 input gradients: the
-// default of train.fp8_base), fp8/bf16-bwd (FP8 forward, bf16 input gradients: train.fp8_base_backward
-// bf16), and with --fp32 the IEEE fp32 step (no autocast, no TF32), to show how far bf16 itself is from fp32.
+// inputs: bf16 (the reference: bf16 autocast, bf16 base), fp8 (FP8 base on the LoRA-wrapped layers,
+// FP8 input gradients: the default of train.fp8_base), fp8/bf16-bwd (FP8 forward, bf16 input gradients:
+// train.fp8_base_backward bf16), fp8 all (every frozen Linear, MLPs included: fp8_base_layers all), and with --fp32 the IEEE fp32 step (no autocast, no TF32), to show how far bf16 itself is from fp32.
 // Printed per variant against bf16: the adapters' gradient (all 240 tensors flattened) cosine and
 // relative L2 error, the minimum and median per-tensor cosine (and which tensor is lowest), and per pair
 // d_theta - d_ref (max abs difference, its scale, Pearson correlation, sign agreement) and the loss.
@@ -16,6 +16,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include <algorithm>
+#include <tuple>
 #include <fstream>
 #include <sstream>
 
@@ -151,10 +152,13 @@ void run(const Options& o) {
   csv << "tensor,variant,cosine,rel_l2\n";
   fmt::print("{:<14} {:>10} {:>9} {:>10} {:>10} {:>12} {:>12} {:>8} {:>7} {:>10}   {}\n", "variant", "grad cos", "grad err",
              "min cos", "median cos", "dd max diff", "dd max |ref|", "dd corr", "sign", "loss diff", "lowest tensor");
-  for (auto backward : {sm::Fp8Backward::kFp8, sm::Fp8Backward::kBf16}) {
-    set_policy_fp8_base(*policy, true, backward, "fp8_fidelity");
-    const auto got = run_step(*policy, inputs, o.pairs, sm::Precision::kBf16);
-    compare(backward == sm::Fp8Backward::kFp8 ? "fp8" : "fp8/bf16-bwd", got, ref, csv);
+  using simu::lora::Fp8Scope;
+  for (auto [backward, scope, name] : {std::tuple{sm::Fp8Backward::kFp8, Fp8Scope::kAdapted, "fp8"},
+                                       std::tuple{sm::Fp8Backward::kBf16, Fp8Scope::kAdapted, "fp8/bf16-bwd"},
+                                       std::tuple{sm::Fp8Backward::kFp8, Fp8Scope::kAll, "fp8 all"}}) {
+    set_policy_fp8_base(*policy, false, backward, "fp8_fidelity");
+    set_policy_fp8_base(*policy, true, backward, "fp8_fidelity", scope);
+    compare(name, run_step(*policy, inputs, o.pairs, sm::Precision::kBf16), ref, csv);
   }
   set_policy_fp8_base(*policy, false, sm::Fp8Backward::kFp8, "fp8_fidelity");
   compare("bf16 again", run_step(*policy, inputs, o.pairs, sm::Precision::kBf16), ref, csv);

@@ -3,8 +3,9 @@
 # has built build-gpu/ (targets fp8_fidelity, bench_fmdpo, pairs, train_fmdpo). Tables go to $OUT (or
 # ./bench-out). Each part takes a few minutes at most on one H100/H200:
 #   bash scripts/gpu_fp8.sh fidelity   # fp8_fidelity at 2,800 (with fp32) and 7,528 tokens, two lora_B scales
-#   bash scripts/gpu_fp8.sh speed      # bench_fmdpo --fp8-base off,on at 7,528 and 2,800, micro 4 (PEAK: TFLOP/s)
+#   bash scripts/gpu_fp8.sh speed      # bench_fmdpo --fp8-base off,on,all at 7,528 and 2,800, micro 4 (PEAK: TFLOP/s)
 #   bash scripts/gpu_fp8.sh curves     # two 300-step runs (bf16 base, FP8 base) on one cache -> curves.csv
+#                                      # (LAYERS=all: the FP8 run with train.fp8_base_layers all)
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 B="${BUILD_DIR:-$ROOT/build-gpu}"
@@ -20,7 +21,7 @@ case "${1:-}" in
     run fp8_fidelity_c7528 "$B/fp8_fidelity" --cond-len 7528 --pairs 8 --micro 2
     run fp8_fidelity_c2800_b1e-2 "$B/fp8_fidelity" --cond-len 2800 --pairs 8 --micro 2 --lora-b-std 1e-2 ;;
   speed)
-    run fmdpo_fp8 "$B/bench_fmdpo" --micro "${MICRO:-4}" --fp8-base off,on --peak-tflops "${PEAK:-989.4}" ;;
+    run fmdpo_fp8 "$B/bench_fmdpo" --micro "${MICRO:-4}" --fp8-base off,on,all --peak-tflops "${PEAK:-989.4}" ;;
   curves)
     W="${WORK:-/tmp/fp8_curves}"
     mkdir -p "$W" "$O/fp8_curves"
@@ -28,7 +29,7 @@ case "${1:-}" in
     for base in bf16 fp8; do
       flag=false; [ "$base" = fp8 ] && flag=true
       run "fp8_curves_$base" "$B/train_fmdpo" --config configs/fp8_curves.yaml --overwrite --set data.cache="$W/pairs.h5" \
-        --set train.fp8_base=$flag --set run.out_dir="$W/$base"
+        --set train.fp8_base=$flag --set train.fp8_base_layers="${LAYERS:-adapted}" --set run.out_dir="$W/$base"
       cp "$W/$base/metrics.jsonl" "$O/fp8_curves/$base.jsonl"
     done
     run fp8_curves_summary python3 scripts/fp8_curves.py --bf16 "$O/fp8_curves/bf16.jsonl" --fp8 "$O/fp8_curves/fp8.jsonl" \

@@ -194,21 +194,43 @@ void set_lora_enabled(torch::nn::Module& root, bool enabled) {
   }
 }
 
-int set_fp8_base(torch::nn::Module& root, bool enabled, models::Fp8Backward backward) {
-  auto layers = lora_layers(root);
-  SIMU_CHECK(!layers.empty(), "set_fp8_base: the model has no LoRA-wrapped layers (the FP8 base covers those)");
-  for (auto& [path, linear] : layers) {
+Fp8Scope parse_fp8_scope(const std::string& name, const std::string& what) {
+  if (name == "adapted") return Fp8Scope::kAdapted;
+  if (name == "all") return Fp8Scope::kAll;
+  fail("{}: expected 'adapted' or 'all', got '{}'", what, name);
+}
+
+std::string fp8_scope_name(Fp8Scope s) { return s == Fp8Scope::kAdapted ? "adapted" : "all"; }
+
+int set_fp8_base(torch::nn::Module& root, bool enabled, models::Fp8Backward backward, Fp8Scope scope) {
+  SIMU_CHECK(!lora_layers(root).empty(), "set_fp8_base: the model has no LoRA-wrapped layers (the FP8 base is for LoRA training)");
+  int switched = 0;
+  for (const auto& item : root.named_modules("", /*include_self=*/true)) {
+    auto linear = std::dynamic_pointer_cast<models::LinearImpl>(item.value());
+    if (!linear) continue;
     if (!enabled) {
+      switched += linear->fp8_weight() != nullptr;
       linear->set_fp8_weight(nullptr);
       continue;
     }
-    SIMU_CHECK(!lora_adapter(*linear)->merged, "set_fp8_base: the adapter of '{}' is merged into its weight; unmerge first",
-               path);
+    auto adapter = lora_adapter(*linear);
+    if (adapter) {
+      SIMU_CHECK(!adapter->merged, "set_fp8_base: the adapter of '{}' is merged into its weight; unmerge first", item.key());
+      SIMU_CHECK(linear->in_features % 16 == 0 && linear->out_features % 16 == 0,
+                 "set_fp8_base: '{}' is [{} -> {}]; FP8 GEMMs need sizes that are multiples of 16", item.key(),
+                 linear->in_features, linear->out_features);
+    } else {
+      // Scope all: every other frozen Linear whose sizes FP8 GEMMs take (multiples of 16).
+      const bool frozen = !linear->weight.requires_grad() && !(linear->bias.defined() && linear->bias.requires_grad());
+      if (scope == Fp8Scope::kAdapted || !frozen || linear->in_features % 16 != 0 || linear->out_features % 16 != 0) continue;
+    }
     linear->set_fp8_weight(models::make_fp8_weight(linear->weight, linear->bias, backward));
+    ++switched;
   }
-  log::info("lora: FP8 frozen base {} for {} LoRA-wrapped layers{}", enabled ? "on" : "off", layers.size(),
-            enabled ? fmt::format(" (input gradients in {})", models::fp8_backward_name(backward)) : "");
-  return static_cast<int>(layers.size());
+  log::info("lora: FP8 frozen base {} for {} Linear layers{}", enabled ? "on" : "off", switched,
+            enabled ? fmt::format(" (scope {}, input gradients in {})", fp8_scope_name(scope), models::fp8_backward_name(backward))
+                    : "");
+  return switched;
 }
 
 std::vector<std::pair<std::string, torch::Tensor>> lora_parameters(torch::nn::Module& root) {

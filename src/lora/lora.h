@@ -93,15 +93,23 @@ void remove_lora(torch::nn::Module& root);
 // model is unmerged first, as PEFT does).
 void set_lora_enabled(torch::nn::Module& root, bool enabled);
 
-// Opt-in FP8 frozen base (models/fp8_linear.h): enabled -> every LoRA-wrapped Linear under root
-// computes its frozen x W^T + b with e4m3 GEMMs (W quantised now, once, per output channel; inputs per
-// row at each call; bf16 out), its input gradient as `backward` says; the adapters, the loss and the
-// optimizer are untouched. disabled -> the FP8 copies are freed and the layers are bit-identical to
-// before. Costs fidelity (measured by bench/fp8_fidelity, README "FP8 frozen base"). Re-enabling
-// re-quantises (after the base weights changed). Errors: merged adapters (merge changes W), no
-// adapters. Device checks are the caller's (models::require_fp8_device); on CPU the products run
-// through the reference emulation (tests). Returns the layers switched.
-int set_fp8_base(torch::nn::Module& root, bool enabled, models::Fp8Backward backward = models::Fp8Backward::kFp8);
+// Which Linear layers the FP8 frozen base covers: the LoRA-wrapped ones (kAdapted), or those and
+// every other frozen Linear whose in/out sizes are multiples of 16 (kAll: also the MLPs, the
+// modulation and timestep layers). "adapted" / "all" <-> enum; parse throws naming `what`.
+enum class Fp8Scope { kAdapted, kAll };
+Fp8Scope parse_fp8_scope(const std::string& name, const std::string& what);
+std::string fp8_scope_name(Fp8Scope s);
+
+// Opt-in FP8 frozen base (models/fp8_linear.h): enabled -> the Linear layers of `scope` under root
+// compute their frozen x W^T + b with e4m3 GEMMs (W quantised now, once, per output channel; inputs
+// per row at each call; bf16 out), their input gradient as `backward` says; the adapters, the loss and
+// the optimizer are untouched. disabled -> every FP8 copy under root is freed and the layers are
+// bit-identical to before. Costs fidelity (measured by bench/fp8_fidelity, README "FP8 frozen base").
+// Re-enabling re-quantises (after the base weights changed). Errors: merged adapters (merge changes
+// W), no adapters at all. Device checks are the caller's (models::require_fp8_device); on CPU the
+// products run through the reference emulation (tests). Returns the layers switched.
+int set_fp8_base(torch::nn::Module& root, bool enabled, models::Fp8Backward backward = models::Fp8Backward::kFp8,
+                 Fp8Scope scope = Fp8Scope::kAdapted);
 
 // The adapter parameters by model name `<path>.lora_A.weight` / `<path>.lora_B.weight` (A then B
 // per layer, in module order). The tensors are the live parameters (not copies).

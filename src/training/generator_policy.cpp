@@ -111,16 +111,18 @@ std::unique_ptr<PolicyModel> make_generator_policy(const TrainConfig& cfg, torch
   if (cfg.train.fp8_base)
     set_policy_fp8_base(*policy, true,
                         simu::models::parse_fp8_backward(cfg.train.fp8_base_backward, cfg.file + ": train.fp8_base_backward"),
-                        cfg.file + ": train.fp8_base");
+                        cfg.file + ": train.fp8_base",
+                        simu::lora::parse_fp8_scope(cfg.train.fp8_base_layers, cfg.file + ": train.fp8_base_layers"));
   return policy;
 }
 
-void set_policy_fp8_base(PolicyModel& policy, bool enabled, simu::models::Fp8Backward backward, const std::string& what) {
+void set_policy_fp8_base(PolicyModel& policy, bool enabled, simu::models::Fp8Backward backward, const std::string& what,
+                         simu::lora::Fp8Scope scope) {
   auto* gp = dynamic_cast<GeneratorPolicy*>(&policy);
   SIMU_CHECK(gp != nullptr, "{}: the FP8 frozen base needs the Stage-1 generator policy (make_generator_policy)", what);
   auto& gen = gp->generator();
   if (enabled) simu::models::require_fp8_device(gen->parameters().front().device(), what);
-  simu::lora::set_fp8_base(*gen, enabled, backward);
+  simu::lora::set_fp8_base(*gen, enabled, backward, scope);
 }
 
 }  // namespace simu::training

@@ -5,6 +5,7 @@
 #include <memory>
 #include <string>
 
+#include "lora/lora.h"
 #include "models/fp8_linear.h"
 #include "training/fmdpo.h"
 #include "training/pair_source.h"
@@ -24,11 +25,12 @@ std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_
                                                    const YAML::Node& lora, const std::string& lora_dir,
                                                    torch::Device device, const std::string& lora_file = "");
 
-// Switches the opt-in FP8 frozen base (lora::set_fp8_base over the LoRA-wrapped projections) of a
+// Switches the opt-in FP8 frozen base (lora::set_fp8_base over the layers of `scope`) of a
 // policy made by make_generator_policy. On: the model's device must have FP8 tensor cores
 // (models::require_fp8_device; errors name `what`, e.g. "<config>: train.fp8_base"); the weights are
 // quantised now (call it after they are loaded). Off: the FP8 copies are freed.
-void set_policy_fp8_base(PolicyModel& policy, bool enabled, simu::models::Fp8Backward backward, const std::string& what);
+void set_policy_fp8_base(PolicyModel& policy, bool enabled, simu::models::Fp8Backward backward, const std::string& what,
+                         simu::lora::Fp8Scope scope = simu::lora::Fp8Scope::kAdapted);
 
 
 }  // namespace simu::training

@@ -80,6 +80,7 @@ LoopConfig LoopConfig::from(simu::config::Reader& r) {
   r.field("activation_checkpointing", c.activation_checkpointing);
   r.field("fp8_base", c.fp8_base);
   choice_field(r, "fp8_base_backward", c.fp8_base_backward, {"fp8", "bf16"});
+  choice_field(r, "fp8_base_layers", c.fp8_base_layers, {"adapted", "all"});
   r.field("seed", c.seed);
   choice_field(r, "device", c.device, {"cuda", "cpu"});
   // The FP8 base runs on FP8 tensor cores inside bf16 autocast (the GPU's capability is checked when

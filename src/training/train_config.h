@@ -46,6 +46,9 @@ struct LoopConfig {
   // compute capability >= 8.9 and precision bf16.
   bool fp8_base = false;
   std::string fp8_base_backward = "fp8";  // the base's input gradients: "fp8" (e4m3) or "bf16"
+  // Its layers: "adapted" (the LoRA-wrapped projections) or "all" (also every other frozen Linear
+  // with sizes that are multiples of 16: the MLPs, modulation and timestep layers).
+  std::string fp8_base_layers = "adapted";
   uint64_t seed = 0;                      // noise and t seed
   std::string device = "cuda";            // "cuda" (rank's local GPU) or "cpu"
   static LoopConfig from(simu::config::Reader& r);

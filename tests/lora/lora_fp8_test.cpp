@@ -1,8 +1,8 @@
 // lora.h's set_fp8_base (the opt-in FP8 frozen base) on the CPU, where the FP8 products run through
-// the reference emulation: only LoRA-wrapped layers switch, their output is the FP8 base product plus
-// the unchanged adapter term, the adapters still get gradients, switching off restores the layers
-// bit for bit and frees the copies, and merging and FP8 exclude each other. (lora_test.cpp holds the
-// rest of lora.h's tests.)
+// the reference emulation: with scope adapted only LoRA-wrapped layers switch (scope all: every frozen
+// Linear too), their output is the FP8 base product plus the unchanged adapter term, the adapters still
+// get gradients, switching off restores the layers bit for bit and frees the copies, and merging and
+// FP8 exclude each other. (lora_test.cpp holds the rest of lora.h's tests.)
 #include "lora/lora.h"
 #include "models/fp8_linear.h"
 #include "models/linear.h"
@@ -53,6 +53,23 @@ TEST(LoraFp8, WrappedLayersOnlyAdaptersTrain) {
   EXPECT_GT(adapter->A->weight.grad().abs().max().item<double>(), 0);
   EXPECT_GT(adapter->B->weight.grad().abs().max().item<double>(), 0);
   EXPECT_FALSE(t.a->weight.grad().defined());
+}
+
+// Scope all: the frozen Linear without an adapter switches too (sizes multiples of 16); off frees both.
+TEST(LoraFp8, ScopeAllCoversEveryFrozenLinear) {
+  torch::manual_seed(3);
+  Tree t;
+  auto x = torch::randn({4, 32});
+  auto b_before = t.b->forward(x);
+  EXPECT_EQ(simu::lora::set_fp8_base(*t.root, true, simu::models::Fp8Backward::kFp8, simu::lora::Fp8Scope::kAll), 2);
+  ASSERT_TRUE(t.b->fp8_weight());
+  EXPECT_TRUE(torch::equal(t.b->forward(x), simu::models::fp8_linear(x, *t.b->fp8_weight())));
+  EXPECT_EQ(simu::lora::set_fp8_base(*t.root, false), 2);
+  EXPECT_FALSE(t.a->fp8_weight());
+  EXPECT_TRUE(torch::equal(t.b->forward(x), b_before));
+  EXPECT_EQ(simu::lora::parse_fp8_scope("all", "k"), simu::lora::Fp8Scope::kAll);
+  EXPECT_EQ(simu::lora::fp8_scope_name(simu::lora::parse_fp8_scope("adapted", "k")), "adapted");
+  EXPECT_THROW(simu::lora::parse_fp8_scope("mlp", "k"), simu::Error);
 }
 
 // Off: the FP8 copies are freed and outputs are the bf16/fp32 path's bit for bit.

@@ -1,5 +1,6 @@
 // The generator policy's opt-in FP8 frozen base (set_policy_fp8_base) on CUDA: one FM-DPO evaluation
-// of a mid-size model with random adapters, FP8 base against the bf16 base on the same inputs: the
+// of a mid-size model with random adapters, FP8 base (LoRA-wrapped layers with FP8 or bf16 input
+// gradients; every frozen Linear) against the bf16 base on the same inputs: the
 // adapters' gradient cosine and the d_theta - d_ref terms (printed for the record, asserted loosely:
 // the real-size figures are bench/fp8_fidelity's), and switching off gives the bf16 loss back
 // exactly. Skips without a GPU that has FP8 (cc >= 8.9).
@@ -59,19 +60,23 @@ TEST(GeneratorPolicyGpu, Fp8BaseCloseToBf16AndOffRestores) {
   in.t = torch::tensor({0.2f, 0.4f, 0.6f, 0.8f}).to(dev);
   in.w = torch::tensor({1.0f, 0.1f, 1.0f, 0.1f}).to(dev);
   auto [bf16, g_bf16] = evaluate(*policy, in);
-  for (auto mode : {simu::models::Fp8Backward::kFp8, simu::models::Fp8Backward::kBf16}) {
-    st::set_policy_fp8_base(*policy, true, mode, "test");
+  using simu::lora::Fp8Scope;
+  using simu::models::Fp8Backward;
+  for (auto [mode, scope] : {std::pair{Fp8Backward::kFp8, Fp8Scope::kAdapted}, std::pair{Fp8Backward::kBf16, Fp8Scope::kAdapted},
+                             std::pair{Fp8Backward::kFp8, Fp8Scope::kAll}}) {
+    st::set_policy_fp8_base(*policy, false, mode, "test");
+    st::set_policy_fp8_base(*policy, true, mode, "test", scope);
     auto [fp8, g_fp8] = evaluate(*policy, in);
     const double cos = (g_fp8.dot(g_bf16) / (g_fp8.norm() * g_bf16.norm())).item<double>();
     const auto dd_bf16 = (bf16.d_theta - bf16.d_ref).to(torch::kFloat64).cpu();
     const auto dd_fp8 = (fp8.d_theta - fp8.d_ref).to(torch::kFloat64).cpu();
     const double dd_err = (dd_fp8 - dd_bf16).abs().max().item<double>() / dd_bf16.abs().max().item<double>();
-    std::printf("FP8 base (%s backward) vs bf16, mid-size model: gradient cosine %.5f, d_theta - d_ref max rel %.3g\n",
-                simu::models::fp8_backward_name(mode).c_str(), cos, dd_err);
+    std::printf("FP8 base (%s layers, %s backward) vs bf16, mid-size model: gradient cosine %.5f, d_theta - d_ref max rel %.3g\n",
+                simu::lora::fp8_scope_name(scope).c_str(), simu::models::fp8_backward_name(mode).c_str(), cos, dd_err);
     EXPECT_GT(cos, 0.95);
     EXPECT_LT(dd_err, 0.25);
   }
-  st::set_policy_fp8_base(*policy, false, simu::models::Fp8Backward::kFp8, "test");
+  st::set_policy_fp8_base(*policy, false, Fp8Backward::kFp8, "test");
   auto [again, g_again] = evaluate(*policy, in);
   EXPECT_TRUE(torch::equal(again.loss, bf16.loss));
   // (Attention backward kernels may accumulate in a varying order: the gradients agree to rounding.)

@@ -368,6 +368,7 @@ TEST(TrainConfig, BadConfigsAreClearErrors) {
   expect_error("model: {config: x}\ntrain: {fp8_base: true, device: cpu}\n", "key 'train.fp8_base'");
   expect_error("model: {config: x}\ntrain: {fp8_base: true, precision: fp32}\n", "key 'train.fp8_base'");
   expect_error("model: {config: x}\ntrain: {fp8_base_backward: e5m2}\n", "train.fp8_base_backward");
+  expect_error("model: {config: x}\ntrain: {fp8_base_layers: mlp}\n", "train.fp8_base_layers");
   expect_error("model: {config: x}\noptim: {schedule: linear}\n", "optim.schedule");
   // Batch split checked against the world size when the trainer starts.
   auto cfg = toy_config(simu::testing::temp_dir("badsplit"), 1, 6, 4);
