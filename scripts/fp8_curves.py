@@ -81,8 +81,8 @@ def plot(png, steps, runs, window):
     for ax, key in zip(axes, ("loss", "accuracy")):
         for name, m in runs.items():
             v = [m[s][key] for s in steps]
-            ax.plot(steps, v, alpha=0.25)
-            ax.plot(steps, running_mean(v, window), label=f"{name} (running mean {window})")
+            (line,) = ax.plot(steps, running_mean(v, window), label=f"{name} (running mean {window})")
+            ax.plot(steps, v, alpha=0.2, color=line.get_color())
         ax.set_xlabel("step")
         ax.set_ylabel(key)
         ax.legend()
