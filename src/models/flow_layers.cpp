@@ -111,7 +111,7 @@ torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Te
   }
   auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
-  auto h = attention(q, k, v).reshape({B, L, -1});  // [B, L, C]
+  auto h = attention(q, k, v, inference_kernels).reshape({B, L, -1});  // [B, L, C]
   return to_out->forward(h);
 }
 
@@ -124,7 +124,7 @@ torch::Tensor CrossAttentionImpl::attend_shared(const torch::Tensor& x, const to
   if (q_rms_norm) q = q_rms_norm->forward(q);
   // Row g*Bc + b attends over condition b: the G query sets of one condition in one sequence.
   q = q.reshape({G, Bc, L, num_heads, -1}).transpose(0, 1).reshape({Bc, G * L, num_heads, -1});  // [Bc, G*L, H, D]
-  auto h = attention(q, k, v);                                                                     // [Bc, G*L, H, D]
+  auto h = attention(q, k, v, inference_kernels);                                                  // [Bc, G*L, H, D]
   h = h.reshape({Bc, G, L, -1}).transpose(0, 1).reshape({B, L, -1});                               // [B, L, C]
   return to_out->forward(h);
 }
@@ -159,10 +159,10 @@ bool few_query_flash(const torch::Tensor& q, const torch::Tensor& k) {
          k.scalar_type() == dt && q.size(1) <= 16 && k.size(1) >= 256 && D <= 256 && D % 8 == 0;
 }
 
-torch::Tensor sdpa_blhd(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
+torch::Tensor sdpa_blhd(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v, bool few_query_ok) {
   auto qh = q.permute({0, 2, 1, 3}), kh = k.permute({0, 2, 1, 3}), vh = v.permute({0, 2, 1, 3});  // [B, H, L, D]
   // The flash kernel wants each head's rows contiguous in D (views of a projection are).
-  if (few_query_flash(q, k) && v.scalar_type() == q.scalar_type() && q.stride(3) == 1 && k.stride(3) == 1 &&
+  if (few_query_ok && few_query_flash(q, k) && v.scalar_type() == q.scalar_type() && q.stride(3) == 1 && k.stride(3) == 1 &&
       v.stride(3) == 1)
     return std::get<0>(at::_scaled_dot_product_flash_attention(qh, kh, vh)).permute({0, 2, 1, 3});
   return at::scaled_dot_product_attention(qh, kh, vh).permute({0, 2, 1, 3});  // [B, L, H, D]
@@ -210,14 +210,14 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward_fused(const std::vector
   std::vector<size_t> others;
   for (size_t i = 0; i < S; ++i) {
     if (is_protected[i]) {
-      h[i] = attention(q[i], k[i], v[i]);
+      h[i] = attention(q[i], k[i], v[i], inference_kernels);
     } else {
       others.push_back(i);
       oq.push_back(q[i]);
     }
   }
   if (!others.empty()) {
-    auto ho = attention(oq.size() == 1 ? oq[0] : torch::cat(oq, 1), k_all, v_all);  // [B, L_others, H, D]
+    auto ho = attention(oq.size() == 1 ? oq[0] : torch::cat(oq, 1), k_all, v_all, inference_kernels);  // [B, L_others, H, D]
     int64_t start = 0;
     for (size_t i : others) {
       h[i] = ho.narrow(1, start, x[i].size(1));
@@ -255,7 +255,7 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch
   std::vector<size_t> others;
   for (size_t i = 0; i < S; ++i) {
     if (is_protected[i]) {
-      h[i] = attention(q[i], k[i], v[i]);
+      h[i] = attention(q[i], k[i], v[i], inference_kernels);
       pk.push_back(k[i].detach());
       pv.push_back(v[i].detach());
     } else {
@@ -270,7 +270,7 @@ std::vector<torch::Tensor> MOTSelfAttentionImpl::forward(const std::vector<torch
     auto keys = ok, values = ov;
     keys.insert(keys.end(), pk.begin(), pk.end());
     values.insert(values.end(), pv.begin(), pv.end());
-    auto ho = attention(torch::cat(oq, 1), torch::cat(keys, 1), torch::cat(values, 1));  // [B, sum L, H, D]
+    auto ho = attention(torch::cat(oq, 1), torch::cat(keys, 1), torch::cat(values, 1), inference_kernels);  // [B, sum L, H, D]
     int64_t start = 0;
     for (size_t i : others) {
       const int64_t L = x[i].size(1);

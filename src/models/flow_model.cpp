@@ -163,12 +163,12 @@ std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::
     torch::Tensor qo;
     sa->project_qkv_fused(o, n1o, qo, k_all.narrow(1, 0, Lo), v_all.narrow(1, 0, Lo));
     shape_kv_ready.block(side);
-    auto ho = sa->to_out[o]->forward(attention(qo, k_all, v_all).reshape({B, Lo, -1}));
+    auto ho = sa->to_out[o]->forward(attention(qo, k_all, v_all, true).reshape({B, Lo, -1}));
     xo_out = fb.rest_of(o, xo, ho);
     other_done.record(side);
   }
   // Protected stream attends to itself only.
-  auto hp = sa->to_out[p]->forward(attention(qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp)).reshape({B, Lp, -1}));
+  auto hp = sa->to_out[p]->forward(attention(qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp), true).reshape({B, Lp, -1}));
   x[p] = fb.rest_of(p, xp, hp);
   x[o] = xo_out;
   // Join. Tensors the side stream used stay referenced until here, so their memory is not reused
@@ -296,6 +296,7 @@ void SparseStructureFlowTdfyWrapperImpl::set_training_kernels(bool on) {
   for (auto& block : block_list_) {
     block->inference_kernels = !on;
     block->self_attn->inference_kernels = !on;
+    for (auto& ca : block->cross_attn) ca->inference_kernels = !on;
     for (auto& m : block->mlp) m->inference_kernels = !on;
   }
 }

@@ -156,6 +156,7 @@ class CrossAttentionImpl : public torch::nn::Module {
   Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
   int64_t num_heads;
+  bool inference_kernels = true;  // the few-query flash kernel allowed (sdpa_blhd); see set_training_kernels
 };
 TORCH_MODULE(CrossAttention);
 
@@ -339,7 +340,8 @@ bool fused_path(const torch::Tensor& x);
 // thread blocks; PyTorch's first choice there (cuDNN) runs one thread block per head (H100, fp16,
 // 4 queries over 7,528 keys, 16 heads: 77 us cuDNN, 18 us flash; bench/few_query_attention.py).
 // Everything else takes PyTorch's choice. Same attention, another kernel's rounding.
-torch::Tensor sdpa_blhd(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v);
+// few_query_ok = false (training mode, see set_training_kernels) always takes PyTorch's choice.
+torch::Tensor sdpa_blhd(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v, bool few_query_ok = true);
 // Whether sdpa_blhd takes the flash kernel for these inputs: CUDA, fp16 or bf16, no grad mode, at most
 // 16 queries over at least 256 keys, head dim <= 256 and a multiple of 8.
 bool few_query_flash(const torch::Tensor& q, const torch::Tensor& k);

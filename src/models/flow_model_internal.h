@@ -25,8 +25,11 @@ void register_dict(torch::nn::Module& owner, const std::string& name, const std:
 inline bool inference_only_ok(bool inference_kernels) { return inference_kernels && !at::GradMode::is_enabled(); }
 
 // SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend; sdpa_blhd).
-inline torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v) {
-  return sdpa_blhd(q, k, v);
+// inference_kernels: the caller's permission for the few-query flash kernel (off in training mode, so
+// that a no-grad forward computes what the graph forward computes).
+inline torch::Tensor attention(const torch::Tensor& q, const torch::Tensor& k, const torch::Tensor& v,
+                               bool inference_kernels) {
+  return sdpa_blhd(q, k, v, inference_kernels);
 }
 
 }  // namespace simu::models::detail
