@@ -26,7 +26,9 @@ Fp8Rows quantize_rows(const torch::Tensor& v) {
   // amax per row in fp32 (one reduction pass; NaN propagates, Inf gives an Inf scale).
   auto amax = torch::linalg_vector_norm(v, std::numeric_limits<double>::infinity(), {-1}, /*keepdim=*/true,
                                         torch::kFloat32);  // [rows, 1]
-  auto scale = (amax / kE4m3Max).masked_fill_(amax == 0, 1.0);  // [rows, 1]
+  // amax / 448 as amax * (1/448): CUDA divides by a scalar that way, so both devices compute it alike
+  // (within one rounding of the quotient; the row's amax still lands on 448).
+  auto scale = (amax * (1.0 / kE4m3Max)).masked_fill_(amax == 0, 1.0);  // [rows, 1]
   // q = e4m3(v / scale): the divide writes e4m3 directly (computed in fp32, rounded to nearest even).
   auto q = torch::empty(v.sizes(), v.options().dtype(torch::kFloat8_e4m3fn));  // [rows, cols]
   at::div_out(q, v, scale);

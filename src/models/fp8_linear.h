@@ -46,7 +46,7 @@ std::string fp8_backward_name(Fp8Backward b);
 // A matrix quantised per row: v[i, k] ~= q[i, k] * scale[i].
 struct Fp8Rows {
   torch::Tensor q;      // [rows, cols] e4m3fn
-  torch::Tensor scale;  // [rows, 1] float32 (amax of the row / 448; 1 for an all-zero row)
+  torch::Tensor scale;  // [rows, 1] float32 (amax of the row * (1/448); 1 for an all-zero row)
 };
 
 // Quantises v [rows, cols] (any float dtype, any device) per row. One reduction and one fused

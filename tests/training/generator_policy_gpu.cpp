@@ -74,7 +74,9 @@ TEST(GeneratorPolicyGpu, Fp8BaseCloseToBf16AndOffRestores) {
     std::printf("FP8 base (%s layers, %s backward) vs bf16, mid-size model: gradient cosine %.5f, d_theta - d_ref max rel %.3g\n",
                 simu::lora::fp8_scope_name(scope).c_str(), simu::models::fp8_backward_name(mode).c_str(), cos, dd_err);
     EXPECT_GT(cos, 0.95);
-    EXPECT_LT(dd_err, 0.25);
+    // Loose: policy and reference activations are rounded to the e4m3 grid independently, which puts
+    // noise of the order of sqrt(step x adapter effect) on their difference (docs/training.md).
+    EXPECT_LT(dd_err, 0.5);
   }
   st::set_policy_fp8_base(*policy, false, Fp8Backward::kFp8, "test");
   auto [again, g_again] = evaluate(*policy, in);
