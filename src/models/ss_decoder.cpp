@@ -169,10 +169,12 @@ torch::Tensor SparseStructureDecoderImpl::forward(const torch::Tensor& input) {
 SparseStructureDecoder load_ss_decoder(const std::string& config_path, const std::string& weights_path,
                                        torch::Device device) {
   SparseStructureDecoder decoder(SSDecoderConfig::load(config_path));
-  LoadOptions options;
-  options.ignore_prefixes = {"io."};
-  options.source = weights_path;
-  load_safetensors_into(*decoder, weights_path, options);
+  if (!weights_path.empty()) {
+    LoadOptions options;
+    options.ignore_prefixes = {"io."};
+    options.source = weights_path;
+    load_safetensors_into(*decoder, weights_path, options);
+  }
   decoder->to(device);
   decoder->eval();
   return decoder;

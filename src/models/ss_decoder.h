@@ -108,7 +108,8 @@ class SparseStructureDecoderImpl : public torch::nn::Module {
 TORCH_MODULE(SparseStructureDecoder);
 
 // Builds a decoder from a config file and loads its safetensors strictly (keys as the official module;
-// keys under "io." are ignored so fixture files load too). device/dtype: where the parameters live.
+// keys under "io." are ignored so fixture files load too; "" = keep the random init, as load_generator).
+// device/dtype: where the parameters live.
 SparseStructureDecoder load_ss_decoder(const std::string& config_path, const std::string& weights_path,
                                        torch::Device device = torch::kCPU);
 

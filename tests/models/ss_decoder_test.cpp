@@ -32,6 +32,25 @@ TEST(SSDecoder, MatchesOfficialFixture) {
 
 // The module tree names match the fixture exactly (strict load would throw otherwise) and a wrong
 // config is reported with the offending keys.
+// No weights file ("") keeps the random init: the same parameters as the module built from the config
+// under the same seed, and different from the fixture's loaded weights.
+TEST(SSDecoder, EmptyWeightsPathKeepsTheRandomInit) {
+  const auto cfg = simu::testing::fixture("ss_decoder_small.json");
+  torch::manual_seed(11);
+  auto random = load_ss_decoder(cfg, "");
+  torch::manual_seed(11);
+  SparseStructureDecoder built(SSDecoderConfig::load(cfg));
+  auto loaded = small_decoder();
+  const auto a = random->named_parameters(), b = built->named_parameters(), c = loaded->named_parameters();
+  ASSERT_EQ(a.size(), b.size());
+  bool differs_from_fixture = false;
+  for (const auto& item : a) {
+    EXPECT_TRUE(torch::equal(item.value(), b[item.key()])) << item.key();
+    differs_from_fixture = differs_from_fixture || !torch::equal(item.value(), c[item.key()]);
+  }
+  EXPECT_TRUE(differs_from_fixture);
+}
+
 TEST(SSDecoder, StrictLoadReportsMismatch) {
   SSDecoderConfig cfg = SSDecoderConfig::load(simu::testing::fixture("ss_decoder_small.json"));
   cfg.channels = {32, 8};  // blocks.1.conv and later levels no longer fit
