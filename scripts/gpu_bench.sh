@@ -8,9 +8,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 B="${BUILD_DIR:-$ROOT/build-gpu}"
 O="${OUT:-$ROOT/bench-out}"
 mkdir -p "$O"
-PREFIX="$ROOT/.carry/prefix/usr"
-export LD_LIBRARY_PATH="$PREFIX/lib/x86_64-linux-gnu:$PREFIX/lib/coacd:${LD_LIBRARY_PATH:-}"
-export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
+source "$ROOT/scripts/gpu_env.sh"  # .carry's libraries, SIMU_SHARED_DIR, NCCL settings
 what="${1:-all}"
 peak="$(python3 - <<'PY'
 import torch

@@ -11,8 +11,7 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 B="${BUILD_DIR:-$ROOT/build-gpu}"
 O="${OUT:-$ROOT/bench-out}"
 mkdir -p "$O"
-PREFIX="$ROOT/.carry/prefix/usr"
-export LD_LIBRARY_PATH="$PREFIX/lib/x86_64-linux-gnu:$PREFIX/lib/coacd:${LD_LIBRARY_PATH:-}"
+source "$ROOT/scripts/gpu_env.sh"  # .carry's libraries, SIMU_SHARED_DIR, NCCL settings
 cd "$ROOT"
 run() { local name="$1"; shift; echo "== $name: $*"; "$@" 2>&1 | tee "$O/$name.txt" | tail -30; }
 case "${1:-}" in
