@@ -33,6 +33,17 @@ std::vector<std::string> FlowModelConfig::stream_names() const {
   return out;
 }
 
+std::string FlowModelConfig::stream_of(const std::string& latent_name) const {
+  (void)latent(latent_name);  // throws for an unknown name
+  for (const auto& [group, members] : share_groups)
+    if (std::find(members.begin(), members.end(), latent_name) != members.end()) return group;
+  return latent_name;
+}
+
+bool FlowModelConfig::is_protected(const std::string& stream) const {
+  return std::find(protected_modalities.begin(), protected_modalities.end(), stream) != protected_modalities.end();
+}
+
 const LatentSpec& FlowModelConfig::latent(const std::string& name) const {
   for (const auto& l : latents)
     if (l.name == name) return l;

@@ -309,16 +309,12 @@ void SparseStructureFlowTdfyWrapperImpl::set_output_latents(const std::vector<st
   // The stream holding each named latent (its own, or the share group it is merged into).
   size_t last = 0;
   for (const auto& n : names) {
-    (void)config_.latent(n);  // throws for an unknown name
-    std::string stream = n;
-    for (const auto& [group, members] : config_.share_groups)
-      if (std::find(members.begin(), members.end(), n) != members.end()) stream = group;
-    const auto it = std::find(streams_.begin(), streams_.end(), stream);
+    const auto it = std::find(streams_.begin(), streams_.end(), config_.stream_of(n));  // throws for unknown n
     last = std::max(last, static_cast<size_t>(it - streams_.begin()) + 1);
   }
   // Only leading protected streams may run alone (they attend to themselves only).
   bool alone = !names.empty();
-  for (size_t i = 0; i < last; ++i) alone = alone && !block_list_.empty() && block_list_.front()->self_attn->is_protected[i];
+  for (size_t i = 0; i < last; ++i) alone = alone && config_.is_protected(streams_[i]);
   output_latents_ = names;
   streams_run_ = alone ? last : streams_.size();
 }

@@ -79,6 +79,11 @@ struct FlowModelConfig {
   // Transformer stream names (official `latent_names`): latents not merged, then merged stream names.
   std::vector<std::string> stream_names() const;
   const LatentSpec& latent(const std::string& name) const;
+  // The transformer stream a latent runs in: its own, or the share group it is merged into (throws for
+  // an unknown latent).
+  std::string stream_of(const std::string& latent_name) const;
+  // Whether a stream is protected (attends only to itself, so never reads the other streams).
+  bool is_protected(const std::string& stream) const;
   int64_t head_dim() const { return model_channels / num_heads; }
   // Throws simu::Error on an inconsistent config (heads not dividing channels, unknown merged names...).
   void validate(const std::string& where = "") const;

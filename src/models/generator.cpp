@@ -363,13 +363,8 @@ std::unique_ptr<StepCache> GeneratorImpl::make_step_cache(const SampleOptions& o
   // The protected streams' latents (shape) are extrapolated; the others (pose) are momentum-anchored.
   const auto& b = config_.backbone;
   std::set<std::string> extrapolated;
-  for (const auto& s : b.latents) {
-    std::string stream = s.name;
-    for (const auto& [group, members] : b.share_groups)
-      if (std::find(members.begin(), members.end(), s.name) != members.end()) stream = group;
-    if (std::find(b.protected_modalities.begin(), b.protected_modalities.end(), stream) != b.protected_modalities.end())
-      extrapolated.insert(s.name);
-  }
+  for (const auto& s : b.latents)
+    if (b.is_protected(b.stream_of(s.name))) extrapolated.insert(s.name);
   return std::make_unique<StepCache>(o.step_cache, o.steps, std::move(extrapolated));
 }
 
