@@ -3,8 +3,11 @@
 //
 // For each micro-batch m (accumulation 1): step time, pairs/s, MFU, peak memory.
 // MFU = model FLOPs per step / (step time x world x peak FLOP/s), model FLOPs per pair =
-//   policy forward+backward on both members (3 x F each) + reference forward on both (1 x F each)
-//   = 8 F, with F = models::flow_forward_flops(config, 1, cond_len) (matrix products, 2 per MAC).
+//   policy forward+backward (3 x G) + reference forward (1 x G) = 4 G, with G the forward the step
+//   runs for one pair (step_pair_forward_flops: both members' shape stream, the shared condition's
+//   key/value projections once; matrix products, 2 per MAC). The header also prints the full model's
+//   forward per member F = models::flow_forward_flops(config, 1, cond_len) (pose stream included),
+//   which the step no longer runs.
 // That is the usual convention (backward = 2 x forward). With the base frozen the step needs less:
 // "needed" counts what it must compute (needed_pair_flops below): no weight gradients of the base,
 // no gradient into the condition, only the shape stream backpropagated, the LoRA products, and no
@@ -100,31 +103,49 @@ std::shared_ptr<std::vector<Pair>> synthetic_pairs(int64_t n, int64_t T, int64_t
   return pairs;
 }
 
-// Matrix-product FLOPs (2 per multiply-add) one FM-DPO pair needs with the base frozen and LoRA of
-// rank r on the shape stream's five attention projections (self qkv/out, cross q/kv/out), both
-// members: 2 x [policy forward (F + LoRA) + policy backward + reference forward (F)].
+// The forward the FM-DPO step runs for one pair (matrix products, 2 per multiply-add): the shape
+// stream alone for both members (GeneratorPolicy asks for the shape latent only, so the pose stream
+// and its blocks are skipped) and the condition's key/value projections once (both members share the
+// pair's condition). Per member and block: self qkv + out, attention over its own T keys, cross q +
+// out, attention over Lc keys, MLP; plus the latent's input/output layers and the block's adaLN row.
+double step_pair_forward_flops(const simu::models::FlowModelConfig& c, double T, double Lc) {
+  const double C = static_cast<double>(c.model_channels), Cc = static_cast<double>(c.cond_channels);
+  const double hidden = std::floor(C * c.mlp_ratio), in = static_cast<double>(c.in_channels);
+  double block = 2 * T * C * 3 * C + 2 * T * C * C + 2 * 2 * T * T * C;  // self qkv + out + attention
+  block += 2 * T * C * C + 2 * T * C * C + 2 * 2 * T * Lc * C;         // cross q + out + attention
+  block += 2 * 2 * T * C * hidden;                                      // MLP
+  const double ada = (c.share_mod ? 1.0 : static_cast<double>(c.num_blocks)) * 2 * C * 6 * C;
+  const double member = c.num_blocks * block + 2 * 2 * T * C * in + ada;
+  const double kv = c.num_blocks * 2 * Lc * Cc * 2 * C;
+  return 2 * member + kv;
+}
+
+// Matrix-product FLOPs one FM-DPO pair needs with the base frozen and LoRA of rank r on the shape
+// stream's five attention projections (self qkv/out, cross q/kv/out): policy forward (G + LoRA),
+// policy backward, reference forward (G), with G = step_pair_forward_flops.
 // Policy backward, shape stream only (the protected stream attends to itself, so nothing else reaches
 // the scored output; the timestep and the condition take no gradient): the input gradient of every
 // linear layer it passes through except the condition's key/value projection, 2x the attention
 // products (dP = dO V^T, dV = P^T dO, dQ = dS K, dK = dS^T Q; flash recomputation not counted), and
 // the LoRA products: gradients of A and B, and of the LoRA input where that input takes a gradient.
-double needed_pair_flops(const simu::models::FlowModelConfig& c, double T, double Lc, double r, double F) {
+// The condition's key/value LoRA runs once per pair (shared condition), forward and backward.
+double needed_pair_flops(const simu::models::FlowModelConfig& c, double T, double Lc, double r, double G) {
   const double C = static_cast<double>(c.model_channels), Cc = static_cast<double>(c.cond_channels);
   const double hidden = std::floor(C * c.mlp_ratio), out = static_cast<double>(c.out_channels);
   // LoRA forward of one projection over n tokens: x A^T (in -> r), then B (r -> out).
   auto lora_fwd = [&](double n, double in, double o) { return 2 * n * (in * r + r * o); };
   // Its backward: dB, d(xA^T), dA, plus dx when the input takes a gradient.
   auto lora_bwd = [&](double n, double in, double o, bool dx) { return 2 * n * (r * o + o * r + in * r + (dx ? r * in : 0)); };
-  const double lora_f = lora_fwd(T, C, 3 * C) + 3 * lora_fwd(T, C, C) + lora_fwd(Lc, Cc, 2 * C);
-  const double lora_b = lora_bwd(T, C, 3 * C, true) + 3 * lora_bwd(T, C, C, true) + lora_bwd(Lc, Cc, 2 * C, false);
+  const double lora_f = 2 * (lora_fwd(T, C, 3 * C) + 3 * lora_fwd(T, C, C)) + lora_fwd(Lc, Cc, 2 * C);
+  const double lora_b = 2 * (lora_bwd(T, C, 3 * C, true) + 3 * lora_bwd(T, C, C, true)) + lora_bwd(Lc, Cc, 2 * C, false);
   double block_bwd = 0;
   block_bwd += 2 * T * C * 3 * C + 2 * T * C * C;  // self qkv + out, input gradients
   block_bwd += 2 * (2 * 2 * T * T * C);            // self attention over its own T keys
   block_bwd += 2 * 2 * T * C * C;                  // cross q + out (kv reads the condition: none)
   block_bwd += 2 * (2 * 2 * T * Lc * C);           // cross attention over Lc keys
   block_bwd += 2 * 2 * T * C * hidden;             // MLP fc1 + fc2
-  const double policy_bwd = c.num_blocks * (block_bwd + lora_b) + 2 * T * C * out;  // + output layer
-  return 2 * ((F + c.num_blocks * lora_f) + policy_bwd + F);
+  const double policy_bwd = 2 * (c.num_blocks * block_bwd + 2 * T * C * out) + c.num_blocks * lora_b;  // + output layer
+  return (G + c.num_blocks * lora_f) + policy_bwd + G;
 }
 
 // Rates of the rows measured alone (world 1), 0 elsewhere: summed over ranks for the scaling.
@@ -135,14 +156,17 @@ std::vector<double> alone_rates(const std::vector<Row>& rows) {
 }
 
 void print_header(const std::string& generator, const simu::models::FlowModelConfig& fc, int64_t T, int64_t L,
-                  const std::string& mode, bool checkpointing, double fwd_flops, double needed_flops, double peak_tflops) {
+                  const std::string& mode, bool checkpointing, double full_flops, double fwd_flops, double needed_flops,
+                  double peak_tflops) {
   fmt::print("bench_fmdpo: {} ({} blocks, {} ch, {} shape tokens), cond {} tokens ({}), LoRA r64 shape branch, bf16 autocast{}\n",
              generator, fc.num_blocks, fc.model_channels, T, L,
              mode == "inputs" ? "made in the step by the released condition embedder, random weights" : "in the pairs",
              checkpointing ? ", activation checkpointing" : "");
-  fmt::print("forward FLOPs per member F = {:.3f} TFLOP; per pair 8F (policy fwd+bwd 3F x2, reference fwd 1F x2); peak {} TFLOP/s\n",
-             fwd_flops / 1e12, peak_tflops);
-  fmt::print("needed FLOPs per pair with the base frozen = {:.3f} TFLOP = {:.2f}F (no base weight gradients, shape stream "
+  fmt::print("forward the step runs per pair G = {:.3f} TFLOP (shape stream of both members, the shared condition's K/V "
+             "once; the full model's forward is F = {:.3f} TFLOP per member); model FLOPs per pair 4G (policy fwd+bwd 3G, "
+             "reference fwd G); peak {} TFLOP/s\n",
+             fwd_flops / 1e12, full_flops / 1e12, peak_tflops);
+  fmt::print("needed FLOPs per pair with the base frozen = {:.3f} TFLOP = {:.2f}G (no base weight gradients, shape stream "
              "backward only, LoRA products counted)\n",
              needed_flops / 1e12, needed_flops / fwd_flops);
 }
@@ -229,7 +253,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   r.world = comm.world_size();
   r.step_s = secs;
   r.pairs_s = cfg.data.global_batch / secs;
-  r.mfu = 8.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
+  r.mfu = 4.0 * fwd_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
   r.needed_util = needed_flops * cfg.data.global_batch / (secs * r.world * o.peak_tflops * 1e12);
   r.peak_gib = stats.allocated_bytes[0].peak / double(1 << 30);
   r.embed_share = inputs && o.embed_timing ? b.timed.seconds / o.steps / secs : -1.0;
@@ -258,10 +282,11 @@ void measure_mode(Bench& b, const std::string& mode, int64_t cond_len, std::vect
   PairSourceFactory source = [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) -> std::unique_ptr<PairSource> {
     return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
   };
-  const double fwd_flops = simu::models::flow_forward_flops(fc, 1, L);
+  const double full_flops = simu::models::flow_forward_flops(fc, 1, L);
+  const double fwd_flops = step_pair_forward_flops(fc, static_cast<double>(T), static_cast<double>(L));
   const double needed_flops = needed_pair_flops(fc, static_cast<double>(T), static_cast<double>(L), 64, fwd_flops);
   if (b.env.rank == 0)
-    print_header(b.o.generator, fc, T, L, mode, b.o.checkpointing, fwd_flops, needed_flops, b.o.peak_tflops);
+    print_header(b.o.generator, fc, T, L, mode, b.o.checkpointing, full_flops, fwd_flops, needed_flops, b.o.peak_tflops);
   for (const auto& fp8 : b.o.fp8_base) {
     // Switched off first: "all" after "on" re-quantises every layer of its scope.
     set_policy_fp8_base(*b.policy, false, simu::models::Fp8Backward::kFp8, "bench_fmdpo");
