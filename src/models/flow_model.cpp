@@ -210,7 +210,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   // Only without a condition cache: with cached keys/values (sampling) the forward has less GPU work
   // per launch and the second stream measured slower (H100, 25 CFG steps at 2,800 condition tokens:
   // 752 ms with it, 713 ms without), while the uncached forward gains (30.4 vs 32.8 ms).
-  if (stream_overlap && inference_only_ok(inference_kernels) && !kv && qkv_fused && S == 2 &&
+  if (stream_overlap && inference_only_ok(inference_kernels) && (!kv || stream_overlap_cached) && qkv_fused && S == 2 &&
       self_attn->is_protected[0] != self_attn->is_protected[1]) {
     x = block_two_streams(fb, x, head_dim);
     if (carry) *carry = ResidualCarry{fb.mlp_out, fb.gate_m};
@@ -305,6 +305,10 @@ void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap(bool on) {
   for (auto& block : block_list_) block->stream_overlap = on;
 }
 
+void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap_cached(bool on) {
+  for (auto& block : block_list_) block->stream_overlap_cached = on;
+}
+
 void SparseStructureFlowTdfyWrapperImpl::set_output_latents(const std::vector<std::string>& names) {
   // The stream holding each named latent (its own, or the share group it is merged into).
   size_t last = 0;
@@ -362,7 +366,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   const int64_t B = x.empty() ? 0 : x.begin()->second.size(0);
   SIMU_CHECK(cond.size(0) > 0 && B % cond.size(0) == 0 && (!cache || cond.size(0) == B),
              "flow model: cond has {} rows for {} latent rows (need the same, or a divisor shared by the rows "
-             "g*Bc + b, without a condition cache)", cond.size(0), B);
+             "b*G + g, without a condition cache)", cond.size(0), B);
   // Timestep embedding (+ shortcut step embedding), then the shared modulation when share_mod.
   auto t_emb = t_embedder->forward(t);  // [B, C]
   if (d.has_value()) {

@@ -143,20 +143,22 @@ TORCH_MODULE(FeedForwardNet);
 class CrossAttentionImpl : public torch::nn::Module {
  public:
   CrossAttentionImpl(int64_t channels, int64_t ctx_channels, int64_t num_heads, bool qk_rms_norm);
-  // x: [B, L, C], context: [B, Lc, Cc] -> [B, L, C]. A context of fewer rows Bc (B = G * Bc) is shared:
-  // row g*Bc + b attends over context row b (attend_shared).
+  // x: [B, L, C], context: [B, Lc, Cc] -> [B, L, C]. A context of fewer rows Bc (B = Bc * G) is shared:
+  // row b*G + g attends over context row b (attend_shared; each context row's G token rows consecutive).
   torch::Tensor forward(const torch::Tensor& x, const torch::Tensor& context);
-  // Keys (RMS-normed when enabled) and values of the context: [B, Lc, H, D] each.
+  // Keys (RMS-normed when enabled) and values of the context: [B, Lc, H, D] each; v (and k without the
+  // norm) are strided views of to_kv's output (split with unbind: one stack in backward).
   std::pair<torch::Tensor, torch::Tensor> context_kv(const torch::Tensor& context);
   // Attention of x over precomputed keys/values, then to_out: [B, L, C].
   // k, v may hold fewer batch rows than x: the rows past them have an all-zero condition
   // (ConditionCache::zero_from) and get to_out(value bias), what attention over identical keys gives.
   torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
-  // Attention of x ([G*Bc, L, C]) over keys/values of Bc condition rows ([Bc, Lc, H, D]), row g*Bc + b over
-  // row b: the G query sets of a condition run as one [Bc, G*L] query sequence, so the condition's
+  // Attention of x ([Bc*G, L, C]) over keys/values of Bc condition rows ([Bc, Lc, H, D]), row b*G + g over
+  // row b (pair-major: FM-DPO stacks x+_0, x-_0, x+_1, x-_1, ...): the G query sets of a condition run as
+  // one [Bc, G*L] query sequence, a view of the queries (and the output a view back), so the condition's
   // projection (to_kv) runs once per condition row, not once per token row (FM-DPO's x+ and x- share
-  // their pair's condition). Same values as attend() over the keys/values repeated G times, up to the
-  // attention kernel's rounding. -> [G*Bc, L, C]
+  // their pair's condition). Same values as attend() over the keys/values repeated G times per row
+  // (repeat_interleave), up to the attention kernel's rounding. -> [Bc*G, L, C]
   torch::Tensor attend_shared(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
   Linear to_q{nullptr}, to_kv{nullptr}, to_out{nullptr};
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
@@ -237,8 +239,10 @@ class MOTBlockImpl : public torch::nn::Module {
   bool inference_kernels = true;  // stream_overlap allowed (without a graph); see set_training_kernels
   // Fused path with one protected stream and one other, without a condition cache: the other (the
   // small pose stream) runs on a second CUDA stream, concurrently with the protected one, joining at
-  // the end of the block. (With a cache, i.e. in sampling, one stream measured faster.)
+  // the end of the block. (With a cache, i.e. in sampling, one stream measured faster in eager mode;
+  // stream_overlap_cached also overlaps there, for CUDA-graph sampling.)
   bool stream_overlap = true;
+  bool stream_overlap_cached = false;
 };
 TORCH_MODULE(MOTBlock);
 
@@ -274,10 +278,10 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   explicit SparseStructureFlowTdfyWrapperImpl(FlowModelConfig config);
 
   // x: one tensor per latent of the config [B, tokens, in_ch]; t: [B] (or [1]) in time_scale units
-  // (t*1000); cond: [B, L, cond_channels], or [Bc, L, cond_channels] with B = G * Bc shared by the rows
-  // g*Bc + b (CrossAttentionImpl::attend_shared; without a cache); d: [B] shortcut step in time_scale
-  // units, only for shortcut models (when given, its embedding is added, also for d = 0). Returns the
-  // velocity per latent.
+  // (t*1000); cond: [B, L, cond_channels], or [Bc, L, cond_channels] with B = Bc * G, condition row b
+  // shared by the rows b*G + g (CrossAttentionImpl::attend_shared; without a cache); d: [B] shortcut
+  // step in time_scale units, only for shortcut models (when given, its embedding is added, also for
+  // d = 0). Returns the velocity per latent.
   // cache: condition keys/values from condition_cache(cond) for this same cond (skips the to_kv
   // projections); null computes them.
   Latents forward(const Latents& x, const torch::Tensor& t, const torch::Tensor& cond,
@@ -306,6 +310,8 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   bool training_kernels() const { return training_kernels_; }
   // On the fused path, run the non-protected stream on a second CUDA stream (MOTBlockImpl::stream_overlap).
   void set_stream_overlap(bool on);
+  // Also overlap the two streams when the condition's keys/values are cached (sampling); off by default.
+  void set_stream_overlap_cached(bool on);
   // Latents later forwards must return (empty: all, the default). When they all live in leading
   // protected streams (shape: protected streams attend only to themselves, so they never read the
   // others), forward runs only those streams and returns only their latents; FM-DPO scores the shape
