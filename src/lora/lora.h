@@ -56,6 +56,13 @@ class LoraAdapter : public models::LinearAdapter {
   // Under autocast: y + scale * (x A^T) B^T as one matrix product accumulating into y (beta 1, alpha
   // scale; one rounding, no full-size scale and sum passes). Otherwise y + delta(x).
   torch::Tensor add_to(const torch::Tensor& y, const torch::Tensor& x) override;
+  // Under autocast with a frozen base (w, b without grad) and no dropout at work: the whole wrapped
+  // layer x W^T + b + scale (x A^T) B^T as one autograd node (lora_linear.cpp). Same products as
+  // Linear + add_to; the up-projection accumulates into the base output in place and the backward's
+  // two input-gradient products into one buffer (dx = dy W + scale (dy B) A), which saves a full-size
+  // copy forward and a full-size sum backward per layer. Undefined (caller's path) otherwise, or when
+  // fused_base is off (the reference the tests compare it with).
+  torch::Tensor forward_with_base(const torch::Tensor& x, const torch::Tensor& w, const torch::Tensor& b) override;
   // The rank-r projection A(dropout(x)) (dropout only in training mode): [..., in] -> [..., r].
   torch::Tensor down(const torch::Tensor& x);
   // scale * B @ A in fp32: [out, in]
@@ -66,6 +73,7 @@ class LoraAdapter : public models::LinearAdapter {
   double scale, dropout;
   bool enabled = true;   // user switch (set_lora_enabled)
   bool merged = false;   // delta currently added into the Linear's weight
+  bool fused_base = true;  // forward_with_base allowed (off: Linear + add_to, the reference path)
 };
 
 // The Linear modules under root that carry a LoraAdapter, with their paths, in module order.

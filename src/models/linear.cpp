@@ -15,7 +15,15 @@ LinearImpl::LinearImpl(int64_t in, int64_t out, bool with_bias) : in_features(in
 }
 
 torch::Tensor LinearImpl::forward(const torch::Tensor& x) {
-  auto y = fp8_ ? fp8_linear(x, *fp8_) : torch::linear(x, weight, bias);
+  if (fp8_) {
+    auto y = fp8_linear(x, *fp8_);
+    return adapter_ && adapter_enabled_ ? adapter_->add_to(y, x) : y;
+  }
+  if (adapter_ && adapter_enabled_) {
+    auto y = adapter_->forward_with_base(x, weight, bias);  // a fused adapter's whole layer, where it has one
+    if (y.defined()) return y;
+  }
+  auto y = torch::linear(x, weight, bias);
   if (adapter_ && adapter_enabled_) y = adapter_->add_to(y, x);
   return y;
 }

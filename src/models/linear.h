@@ -23,6 +23,13 @@ class LinearAdapter {
   virtual torch::Tensor delta(const torch::Tensor& x) = 0;
   // y + delta(x), y: the Linear's output [..., out]. An adapter may fuse the sum into its last product.
   virtual torch::Tensor add_to(const torch::Tensor& y, const torch::Tensor& x) { return y + delta(x); }
+  // The whole layer, x W^T + b + delta(x), where the adapter can compute it as one fused step (w, b:
+  // the weights the Linear would use); undefined when it cannot: the Linear then computes x W^T + b
+  // and calls add_to.
+  virtual torch::Tensor forward_with_base(const torch::Tensor& /*x*/, const torch::Tensor& /*w*/,
+                                          const torch::Tensor& /*b*/) {
+    return {};
+  }
 };
 
 class LinearImpl : public torch::nn::Module {

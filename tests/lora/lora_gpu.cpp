@@ -69,7 +69,8 @@ TEST(LoraGpu, FusedSumUnderAutocastMatchesDelta) {
   lin->set_adapter(adapter);
   auto x = torch::randn({2, 100, 256}, torch::TensorOptions().device(dev)).requires_grad_();
   auto gy = torch::randn({2, 100, 768}, torch::TensorOptions().device(dev));
-  // add_to (one product accumulating into the base output) vs base + delta, values and gradients.
+  // The wrapped layer (frozen base under autocast: LoraAdapter::forward_with_base, one node whose
+  // up-projection and input gradient accumulate in place) vs base + delta, values and gradients.
   auto grads = [&](bool fused) {
     simu::models::Autocast ac(simu::models::Precision::kBf16);
     auto y = fused ? lin->forward(x) : torch::linear(x, lin->weight, lin->bias) + adapter->delta(x);
