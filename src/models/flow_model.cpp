@@ -207,9 +207,9 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   const int64_t head_dim = x[0].size(2) / self_attn->num_heads;
   const bool qkv_fused = self_attn->fused_kernels && (head_dim == 64 || head_dim == 128 || head_dim == 256);
 #ifdef SIMU_HAVE_CUDA_KERNELS
-  // Only without a condition cache: with cached keys/values (sampling) the forward has less GPU work
-  // per launch and the second stream measured slower (H100, 25 CFG steps at 2,800 condition tokens:
-  // 752 ms with it, 713 ms without), while the uncached forward gains (30.4 vs 32.8 ms).
+  // With cached keys/values (sampling) only when stream_overlap_cached (default on; an earlier H100
+  // measurement had one stream faster there, 713 vs 752 ms at 2,800 tokens; this tree measures the
+  // overlap faster on an H200: flow_model.h).
   if (stream_overlap && inference_only_ok(inference_kernels) && (!kv || stream_overlap_cached) && qkv_fused && S == 2 &&
       self_attn->is_protected[0] != self_attn->is_protected[1]) {
     x = block_two_streams(fb, x, head_dim);
