@@ -92,7 +92,11 @@ CrossAttentionImpl::CrossAttentionImpl(int64_t channels, int64_t ctx_channels, i
 std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::context_kv(const torch::Tensor& context) {
   const int64_t B = context.size(0), Lc = context.size(1);
   auto kv = to_kv->forward(context).reshape({B, Lc, 2, num_heads, -1});  // [B, Lc, 2, H, D]
-  auto k = kv.select(2, 0), v = kv.select(2, 1);                         // [B, Lc, H, D]
+  // Strided views as select gives them (no copy for the attention kernel); their backward is one stack
+  // writing both halves of kv's gradient, where two selects zero-fill two [B, Lc, 2, H, D] buffers,
+  // copy into each and add them.
+  auto kvs = kv.unbind(2);
+  auto k = kvs[0], v = kvs[1];  // [B, Lc, H, D]
   if (k_rms_norm) k = k_rms_norm->forward(k);
   return {k, v};
 }
