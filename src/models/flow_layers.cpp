@@ -124,13 +124,12 @@ torch::Tensor CrossAttentionImpl::attend_shared(const torch::Tensor& x, const to
   SIMU_CHECK(Bc > 0 && B % Bc == 0, "cross attention: {} token rows cannot share {} condition rows (need a multiple)", B,
              Bc);
   const int64_t G = B / Bc;
-  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [G*Bc, L, H, D]
+  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [Bc*G, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
-  // Row g*Bc + b attends over condition b: the G query sets of one condition in one sequence.
-  q = q.reshape({G, Bc, L, num_heads, -1}).transpose(0, 1).reshape({Bc, G * L, num_heads, -1});  // [Bc, G*L, H, D]
-  auto h = attention(q, k, v, inference_kernels);                                                  // [Bc, G*L, H, D]
-  h = h.reshape({Bc, G, L, -1}).transpose(0, 1).reshape({B, L, -1});                               // [B, L, C]
-  return to_out->forward(h);
+  // Rows b*G .. b*G + G-1 attend over condition b: consecutive rows, so their G query sets form one
+  // sequence by a view (and the output goes back by a view), no transposed copies either way.
+  auto h = attention(q.reshape({Bc, G * L, num_heads, -1}), k, v, inference_kernels);  // [Bc, G*L, H, D]
+  return to_out->forward(h.reshape({B, L, -1}));                                      // [B, L, C]
 }
 
 torch::Tensor CrossAttentionImpl::forward(const torch::Tensor& x, const torch::Tensor& context) {

@@ -250,14 +250,19 @@ FmdpoTerms fmdpo_terms(PolicyModel& model, const FmdpoInputs& in, double beta, b
              "fmdpo: x_pos, x_neg, eps_pos, eps_neg must share one shape");
   SIMU_CHECK(in.t.dim() == 1 && in.t.size(0) == B && in.w.size(0) == B && in.cond.size(0) == B,
              "fmdpo: t, w and cond must have one entry per pair ({})", B);
-  // Noised latents and velocity targets, both members stacked: [2B, T, C].
+  // Noised latents and velocity targets, both members stacked pair-major: row 2b = x+ of pair b, row
+  // 2b + 1 = its x- ([2B, T, C]), so a pair's two rows are adjacent (shared-condition attention by views).
   auto t = in.t.to(torch::kFloat32).view({B, 1, 1});
-  auto xt = torch::cat({(1 - t) * in.eps_pos + t * in.x_pos, (1 - t) * in.eps_neg + t * in.x_neg});
-  auto target = torch::cat({in.x_pos - in.eps_pos, in.x_neg - in.eps_neg});
-  auto t_scaled = torch::cat({in.t, in.t}).to(torch::kFloat32) * 1000.0;  // [2B]
-  // Both members share the pair's condition: [B, L, Cc] once where the model accepts it, else [2B, L, Cc].
-  auto cond = model.shares_condition() ? in.cond : torch::cat({in.cond, in.cond});
-  auto d = torch::zeros({2 * B}, t_scaled.options());                   // no shortcut
+  auto members = [](const torch::Tensor& pos, const torch::Tensor& neg) {
+    return torch::stack({pos, neg}, 1).flatten(0, 1);  // [B, 2, ...] -> [2B, ...]
+  };
+  auto xt = members((1 - t) * in.eps_pos + t * in.x_pos, (1 - t) * in.eps_neg + t * in.x_neg);
+  auto target = members(in.x_pos - in.eps_pos, in.x_neg - in.eps_neg);
+  auto t_scaled = members(in.t, in.t).to(torch::kFloat32) * 1000.0;  // [2B]
+  // Both members share the pair's condition: [B, L, Cc] once where the model accepts it, else [2B, L, Cc]
+  // (each row repeated for its two members).
+  auto cond = model.shares_condition() ? in.cond : members(in.cond, in.cond);
+  auto d = torch::zeros({2 * B}, t_scaled.options());  // no shortcut
 
   FmdpoTerms out;
   // Policy: adapters on, with graph.
@@ -279,16 +284,16 @@ FmdpoTerms fmdpo_terms(PolicyModel& model, const FmdpoInputs& in, double beta, b
   } else {
     pred = model.predict_shape(xt, t_scaled, cond, d);
   }
-  auto l_pol = flow_mse(pred, target);  // [2B]
-  out.loss_pos_policy = l_pol.narrow(0, 0, B);
-  out.loss_neg_policy = l_pol.narrow(0, B, B);
+  auto l_pol = flow_mse(pred, target).view({B, 2});  // [B, (x+, x-)]
+  out.loss_pos_policy = l_pol.select(1, 0);
+  out.loss_neg_policy = l_pol.select(1, 1);
   // Reference: adapters off, no graph, same inputs.
   {
     torch::NoGradGuard no_grad;
     AdaptersOff off(model);
-    auto l_ref = flow_mse(model.predict_shape(xt, t_scaled, cond, d), target);
-    out.loss_pos_ref = l_ref.narrow(0, 0, B);
-    out.loss_neg_ref = l_ref.narrow(0, B, B);
+    auto l_ref = flow_mse(model.predict_shape(xt, t_scaled, cond, d), target).view({B, 2});
+    out.loss_pos_ref = l_ref.select(1, 0);
+    out.loss_neg_ref = l_ref.select(1, 1);
   }
   out.d_theta = out.loss_pos_policy - out.loss_neg_policy;
   out.d_ref = out.loss_pos_ref - out.loss_neg_ref;

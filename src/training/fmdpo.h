@@ -33,8 +33,10 @@ class PolicyModel {
   virtual torch::Tensor predict_shape(const torch::Tensor& x_shape, const torch::Tensor& t_scaled,
                                       const torch::Tensor& cond, const torch::Tensor& d) = 0;
   // True when predict_shape accepts cond with fewer rows than x_shape: cond [B, L, Cc] for x_shape
-  // [G*B, T, C], row g*B + b conditioned on cond[b]. fmdpo_terms then passes each pair's condition once
-  // for both members (its projections run once, not twice); false (default): cond repeated per row.
+  // [B*G, T, C], row b*G + g conditioned on cond[b] (fmdpo_terms stacks the members pair-major: row 2b
+  // is pair b's x+, row 2b + 1 its x-). fmdpo_terms then passes each pair's condition once for both
+  // members (its projections run once, not twice); false (default): cond repeated per row
+  // (rows 2b and 2b + 1 get cond[b]).
   virtual bool shares_condition() const { return false; }
   // Adapters on (policy) or off (reference).
   virtual void set_adapters_enabled(bool enabled) = 0;
@@ -78,7 +80,8 @@ struct FmdpoTerms {
   torch::Tensor loss;  // scalar mean(w * per_pair)
 };
 
-// Evaluates the objective. The policy runs on both members in one batch of 2B; the reference too
+// Evaluates the objective. The policy runs on both members in one batch of 2B rows, pair-major (x+_0,
+// x-_0, x+_1, x-_1, ...; each row's arithmetic is the same as alone); the reference too
 // (adapters switched off inside, restored on exit, even on error). checkpoint: activation
 // checkpointing of the policy forward, per transformer block when the model supports it
 // (PolicyModel::set_block_checkpointing), else of the whole forward (see checkpointed()).

@@ -39,7 +39,7 @@ class GeneratorPolicy : public PolicyModel {
     auto out = backbone->forward(latents, t_scaled, cond, c.is_shortcut_model ? c10::optional<torch::Tensor>(d) : c10::nullopt);
     return out.at("shape");
   }
-  // Cross attention shares a condition row among the token rows g*B + b (CrossAttentionImpl::attend_shared).
+  // Cross attention shares condition row b among the token rows b*G + g (CrossAttentionImpl::attend_shared).
   bool shares_condition() const override { return true; }
   void set_adapters_enabled(bool enabled) override { simu::lora::set_lora_enabled(*gen_, enabled); }
   std::vector<std::pair<std::string, torch::Tensor>> adapter_parameters() override {

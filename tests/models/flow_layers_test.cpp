@@ -1,5 +1,6 @@
-// The flow model's cross attention layer (src/models/flow_layers.cpp, CrossAttentionImpl): the
-// condition's key/value split against the projection's two halves computed separately (CPU, float32).
+// The flow model's cross attention layer (src/models/flow_layers.cpp, CrossAttentionImpl): the shared
+// condition with pair-major token rows against attending each row on its own, and the condition's
+// key/value split against the projection's two halves computed separately (CPU, float32).
 #include <ATen/CPUGeneratorImpl.h>
 
 #include "common/error.h"
@@ -27,6 +28,38 @@ std::vector<torch::Tensor> grads_of(const torch::Tensor& loss, const std::vector
 }
 
 }  // namespace
+
+// x rows b*G + g share condition row b (pair-major): the same outputs and gradients (x, condition,
+// to_q / to_kv / to_out weights) as attending each token row alone over its own condition row.
+TEST(CrossAttentionLayer, SharedConditionPairMajorEqualsEachRowAlone) {
+  auto ca = random_layer(5);
+  const int64_t Bc = 3, G = 2, L = 5, Lc = 7;
+  auto x = torch::randn({Bc * G, L, C}).requires_grad_(true);
+  auto ctx = torch::randn({Bc, Lc, Cc}).requires_grad_(true);
+  auto weight = torch::randn({Bc * G, L, C});  // a loss that weighs every output element differently
+  const std::vector<torch::Tensor> leaves = {x, ctx, ca->to_q->weight, ca->to_kv->weight, ca->to_out->weight};
+  for (auto& p : leaves) p.requires_grad_(true);
+  // Shared: one call, Bc condition rows for Bc*G token rows.
+  auto shared = ca->forward(x, ctx);  // [Bc*G, L, C]
+  auto g_shared = grads_of((shared * weight).sum(), leaves);
+  // Alone: token row r over condition row r / G, one call per row.
+  std::vector<torch::Tensor> rows;
+  for (int64_t r = 0; r < Bc * G; ++r) rows.push_back(ca->forward(x.narrow(0, r, 1), ctx.narrow(0, r / G, 1)));
+  auto alone = torch::cat(rows);
+  auto g_alone = grads_of((alone * weight).sum(), leaves);
+  EXPECT_TRUE(simu::testing::close(shared.detach(), alone.detach(), 1e-5, "output"));
+  const char* names[] = {"x", "condition", "to_q", "to_kv", "to_out"};
+  for (size_t i = 0; i < leaves.size(); ++i) {
+    EXPECT_TRUE(simu::testing::close(g_shared[i], g_alone[i], 1e-5, names[i]));
+    EXPECT_GT(g_shared[i].abs().max().item<double>(), 0) << names[i];
+  }
+  // The member-major order (row g*Bc + b over condition b) is a different function: the layout matters.
+  std::vector<torch::Tensor> member_major;
+  for (int64_t r = 0; r < Bc * G; ++r) member_major.push_back(ca->forward(x.narrow(0, r, 1), ctx.narrow(0, r % Bc, 1)));
+  EXPECT_FALSE(torch::allclose(shared, torch::cat(member_major), 1e-3, 1e-3));
+  // Token rows that are not a multiple of the condition rows are refused.
+  EXPECT_THROW(ca->forward(x.narrow(0, 0, 5), ctx.narrow(0, 0, 2)), simu::Error);
+}
 
 // context_kv: k = RMS norm of the first C outputs of to_kv, v = the last C, as [B, Lc, H, D]; v is a
 // view of the projection (no copy for the attention kernel), split by unbind (its backward stacks both

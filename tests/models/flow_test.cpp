@@ -169,19 +169,21 @@ TEST(FlowModel, ShapeOutputIndependentOfPose) {
   }
 }
 
-// FM-DPO's two members share their pair's condition: a condition of B rows for 2B token rows (row
-// g*B + b over condition b) gives the forward of the condition repeated, outputs and to_kv gradients.
+// FM-DPO's two members share their pair's condition: a condition of B rows for 2B token rows, pair-major
+// (rows 2b and 2b + 1 over condition b), gives the forward of the condition repeated per row
+// (repeat_interleave), outputs and to_kv gradients.
 TEST(FlowModel, SharedConditionEqualsRepeatedCondition) {
   for (const char* name : {"ss_generator_small", "ss_generator_variant"}) {
     auto f = load(name);
     auto bb = f.gen->backbone();
     const bool with_d = f.gen->config().backbone.is_shortcut_model;
+    // Row 2b: the fixture's row b; row 2b + 1: a second member of it.
     auto x = with_prefix(f.io, "in.latent.");
-    for (auto& [k, v] : x) v = torch::cat({v, torch::randn_like(v)});  // [2B, T, C]: a second member per row
-    const auto cond = f.io.at("in.cond");                             // [B, L, Cc]
-    auto t = torch::cat({f.io.at("in.t"), f.io.at("in.t")}) * 1000;
+    for (auto& [k, v] : x) v = torch::stack({v, torch::randn_like(v)}, 1).flatten(0, 1);  // [2B, T, C]
+    const auto cond = f.io.at("in.cond");                                                // [B, L, Cc]
+    auto t = f.io.at("in.t").repeat_interleave(2) * 1000;
     c10::optional<torch::Tensor> d;
-    if (with_d) d = torch::cat({f.io.at("in.d"), f.io.at("in.d")}) * 1000;
+    if (with_d) d = f.io.at("in.d").repeat_interleave(2) * 1000;
     auto& to_kv = bb->blocks->ptr<simu::models::MOTBlockImpl>(0)->cross_attn[0]->to_kv->weight;
     to_kv.set_requires_grad(true);
     // One pass per layout: outputs, then the gradient of the shape output's sum.
@@ -192,13 +194,17 @@ TEST(FlowModel, SharedConditionEqualsRepeatedCondition) {
       return std::make_pair(y, to_kv.grad().clone());
     };
     auto [shared, g_shared] = run(cond);
-    auto [repeated, g_repeated] = run(torch::cat({cond, cond}));
+    auto [repeated, g_repeated] = run(cond.repeat_interleave(2, 0));
     to_kv.set_requires_grad(false);
     ASSERT_EQ(shared.size(), repeated.size());
     for (const auto& [k, v] : repeated)
       EXPECT_TRUE(simu::testing::close(shared.at(k).detach(), v.detach(), 1e-6, std::string(name) + "." + k));
     EXPECT_TRUE(simu::testing::close(g_shared, g_repeated, 1e-6, std::string(name) + ".to_kv.grad"));
     EXPECT_GT(g_shared.abs().max().item<double>(), 0) << name;
+    // The fixture's rows (2b) give the official forward's output.
+    Latents fixture_rows;
+    for (const auto& [k, v] : shared) fixture_rows[k] = v.detach().slice(0, 0, c10::nullopt, 2);
+    expect_close(fixture_rows, f.io, "out.forward.", std::string(name) + ".shared");
     // Rows that are not a multiple of the condition's are refused, naming both counts.
     auto x3 = x;
     for (auto& [k, v] : x3) v = v.narrow(0, 0, 3);
