@@ -1,6 +1,9 @@
 #include "training/trainer.h"
 
 #include <ATen/CPUGeneratorImpl.h>
+#include <ATen/cuda/CUDAEvent.h>
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
 
 #include <algorithm>
 #include <chrono>
@@ -36,6 +39,31 @@ std::map<std::string, double> StepMetrics::scalars() const {
 
 // ---- trainer ---------------------------------------------------------------------------------
 
+// One forward group's inputs, stacked [m, ...] in their stored dtype on the trainer's device.
+struct StagedGroup {
+  std::vector<int> kinds;                                  // the pairs' kinds, in order
+  torch::Tensor x_pos, x_neg, eps_pos, eps_neg;            // [m, T, C]
+  torch::Tensor t, w;                                      // [m]
+  torch::Tensor cond;                                      // [m, L, Cc] tokens; undefined in inputs mode
+  std::map<std::string, torch::Tensor> inputs;             // inputs mode: kwarg -> [m, ch, S, S]
+  std::vector<torch::Tensor> host;                         // pinned staging buffers, held to the step's end
+  std::shared_ptr<at::cuda::CUDAEvent> ready;              // recorded after its copies (upload stream)
+  // The device tensors above.
+  std::vector<torch::Tensor*> device_tensors() {
+    std::vector<torch::Tensor*> out = {&x_pos, &x_neg, &eps_pos, &eps_neg, &t, &w};
+    if (cond.defined()) out.push_back(&cond);
+    for (auto& [name, v] : inputs) out.push_back(&v);
+    return out;
+  }
+};
+
+struct StagedBatch {
+  DataPosition position;  // the source's position before this batch
+  int64_t step = 0;       // the step whose noise it holds
+  int64_t pairs = 0;
+  std::vector<StagedGroup> groups;
+};
+
 namespace {
 
 const char* kKindNames[2] = {"completion", "preservation"};
@@ -55,7 +83,9 @@ std::map<std::string, torch::Tensor> rng_states(const torch::Device& device) {
 
 Trainer::Trainer(TrainConfig cfg, PolicyModel& model, PairSourceFactory sources, Communicator& comm,
                  torch::Device device)
-    : cfg_(std::move(cfg)), model_(model), make_source_(std::move(sources)), comm_(comm), device_(device) {
+    : cfg_(std::move(cfg)), model_(model), make_source_(std::move(sources)), comm_(comm), device_(device),
+      read_ahead_(device.is_cuda()) {
+  if (device_.is_cuda()) upload_stream_ = c10::cuda::getStreamFromPool(false, device_.index()).unwrap();
   const int64_t world = comm_.world_size();
   const int64_t per_rank = cfg_.data.global_batch / world;
   if (cfg_.data.global_batch % (world * cfg_.data.micro_batch) != 0)
@@ -85,7 +115,8 @@ CheckpointData Trainer::checkpoint_data() const {
   for (const auto& [name, p] : opt_->params()) d.adapter[name] = p.detach().to(torch::kCPU).clone();
   d.optimizer = opt_->state_dict();
   for (auto& [k, v] : rng_states(device_)) d.optimizer[k] = v;
-  const auto pos = source_->position();
+  // The position of the next batch a step will train on (a batch read ahead is not trained on yet).
+  const auto pos = ahead_ ? ahead_->position : source_->position();
   std::ostringstream cfg;
   cfg << cfg_.resolved;
   d.state = {{"data_position", {{"epoch", pos.epoch}, {"step", pos.step}}},
@@ -149,6 +180,7 @@ void Trainer::resume(const std::string& dir) {
   DataPosition pos;
   pos.epoch = ck.state.at("data_position").at("epoch").get<int64_t>();
   pos.step = ck.state.at("data_position").at("step").get<int64_t>();
+  ahead_.reset();
   source_ = make_source_(comm_.rank(), comm_.world_size(), cfg_.data.global_batch, cfg_.data.seed, pos);
   if (comm_.rank() == 0) simu::log::info("resumed from {} at step {} (data epoch {}, batch {})", dir, step_, pos.epoch, pos.step);
 }
@@ -188,63 +220,123 @@ std::vector<std::vector<int64_t>> forward_groups(const std::vector<Pair>& pairs,
 
 }  // namespace
 
-torch::Tensor Trainer::group_condition(const std::vector<Pair>& pairs, const std::vector<int64_t>& group, bool bf16) {
-  if (pairs[group.front()].cond.defined()) {
-    std::vector<torch::Tensor> cd;
-    for (int64_t i : group) cd.push_back(pairs[i].cond);
-    // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.
-    return torch::stack(cd).to(device_).to(torch::kFloat32);
-  }
-  if (!embed_)
-    fail_hint("set model.embedder_config (and model.embedder_weights) in the training config",
-              "{}: the pair cache holds condition inputs (cond_mode inputs) but no condition embedder is loaded",
-              cfg_.file);
-  std::map<std::string, torch::Tensor> batch;
-  for (const auto& [name, first] : pairs[group.front()].inputs) {
-    std::vector<torch::Tensor> parts;
-    for (int64_t i : group) {
-      const auto it = pairs[i].inputs.find(name);
-      SIMU_CHECK(it != pairs[i].inputs.end(), "pair {} lacks condition input '{}'", pairs[i].id, name);
-      parts.push_back(it->second);
-    }
-    batch[name] = torch::stack(parts).to(device_, torch::kFloat32);  // [m, ch, S, S]
-  }
-  // The frozen embedder: no gradient, the step's precision policy.
-  torch::NoGradGuard no_grad;
-  models::Autocast ac(models::Precision::kBf16, bf16);
-  return embed_(batch).to(torch::kFloat32);  // [m, L, Cc]
+Trainer::~Trainer() = default;
+
+namespace {
+
+// Host tensors stacked into [n, ...] on the device. With an upload stream: into a pinned host buffer
+// (kept in `held`; the caching host allocator also keeps it from reuse until the copy is done), copied
+// asynchronously on that stream into memory allocated on it. Without one (reference path, CPU):
+// stack(...).to(device), a synchronous copy from pageable memory on CUDA.
+torch::Tensor stack_to(const std::vector<torch::Tensor>& parts, const torch::Device& device,
+                       const c10::optional<c10::Stream>& stream, std::vector<torch::Tensor>& held) {
+  if (!stream) return torch::stack(parts).to(device);
+  auto dtype = parts.front().scalar_type();
+  for (const auto& p : parts) dtype = c10::promoteTypes(dtype, p.scalar_type());
+  std::vector<int64_t> shape = parts.front().sizes().vec();
+  shape.insert(shape.begin(), static_cast<int64_t>(parts.size()));
+  auto host = torch::empty(shape, torch::TensorOptions().dtype(dtype).pinned_memory(true));
+  at::stack_out(host, parts);
+  held.push_back(host);
+  const c10::cuda::CUDAStreamGuard on_upload(c10::cuda::CUDAStream(c10::cuda::CUDAStream::UNCHECKED, *stream));
+  auto dev = torch::empty(shape, torch::TensorOptions().dtype(dtype).device(device));
+  dev.copy_(host, /*non_blocking=*/true);
+  return dev;
 }
 
-StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
-  const int64_t share = static_cast<int64_t>(pairs.size());
-  const double beta = cfg_.objective.beta;
-  const bool bf16 = cfg_.train.precision == "bf16" && device_.is_cuda();
-  std::vector<torch::Tensor> metric_terms;
-  std::vector<int> metric_kinds;
+// Makes the current (compute) stream wait for a group's uploads, and keeps their device memory from
+// reuse by the upload stream until the compute stream is past this point.
+void wait_for_uploads(StagedGroup& g, const torch::Device& device) {
+  if (!g.ready) return;
+  const auto compute = c10::cuda::getCurrentCUDAStream(device.index());
+  g.ready->block(compute);
+  for (auto* t : g.device_tensors()) t->record_stream(compute);
+}
+
+}  // namespace
+
+std::unique_ptr<StagedBatch> Trainer::read_batch(int64_t step) {
+  auto b = std::make_unique<StagedBatch>();
+  b->position = source_->position();
+  b->step = step;
+  const auto pairs = source_->next_batch();
+  b->pairs = static_cast<int64_t>(pairs.size());
+  const c10::optional<c10::Stream> stream = read_ahead_ ? upload_stream_ : c10::nullopt;
   for (const auto& group : forward_groups(pairs, cfg_.data.micro_batch)) {
-    // One forward: stack pairs, draw their noise.
+    StagedGroup g;
+    auto up = [&](const std::vector<torch::Tensor>& parts) { return stack_to(parts, device_, stream, g.host); };
+    // Stack the pairs, draw their noise (per pair: independent of rank, micro-batch and read-ahead).
     std::vector<torch::Tensor> xp, xn, ts, ep, en, ws;
-    std::vector<int> kinds;
     for (int64_t i : group) {
       const Pair& p = pairs[i];
-      auto nz = draw_pair_noise(cfg_.train.seed, step_, p.id, p.x_pos.sizes(), cfg_.objective.t_mean, cfg_.objective.t_std);
+      auto nz = draw_pair_noise(cfg_.train.seed, step, p.id, p.x_pos.sizes(), cfg_.objective.t_mean, cfg_.objective.t_std);
       xp.push_back(p.x_pos);
       xn.push_back(p.x_neg);
       ts.push_back(nz.t);
       ep.push_back(nz.eps_pos);
       en.push_back(nz.eps_neg);
       ws.push_back(torch::tensor(static_cast<float>(cfg_.objective.weight_of(p.kind))));
-      kinds.push_back(static_cast<int>(p.kind));
+      g.kinds.push_back(static_cast<int>(p.kind));
     }
-    FmdpoInputs in;
     // Stored dtype (f16 or f32) across the bus, fp32 on the device: the host does no conversion work.
-    in.x_pos = torch::stack(xp).to(device_).to(torch::kFloat32);
-    in.x_neg = torch::stack(xn).to(device_).to(torch::kFloat32);
-    in.cond = group_condition(pairs, group, bf16);
-    in.t = torch::stack(ts).to(device_);
-    in.eps_pos = torch::stack(ep).to(device_);
-    in.eps_neg = torch::stack(en).to(device_);
-    in.w = torch::stack(ws).to(device_);
+    g.x_pos = up(xp);
+    g.x_neg = up(xn);
+    g.t = up(ts);
+    g.eps_pos = up(ep);
+    g.eps_neg = up(en);
+    g.w = up(ws);
+    // The condition: the pairs' tokens, or the embedder's inputs (embedded in the step).
+    if (pairs[group.front()].cond.defined()) {
+      std::vector<torch::Tensor> cd;
+      for (int64_t i : group) cd.push_back(pairs[i].cond);
+      g.cond = up(cd);
+    } else {
+      for (const auto& [name, first] : pairs[group.front()].inputs) {
+        std::vector<torch::Tensor> parts;
+        for (int64_t i : group) {
+          const auto it = pairs[i].inputs.find(name);
+          SIMU_CHECK(it != pairs[i].inputs.end(), "pair {} lacks condition input '{}'", pairs[i].id, name);
+          parts.push_back(it->second);
+        }
+        g.inputs[name] = up(parts);
+      }
+    }
+    if (stream) {
+      g.ready = std::make_shared<at::cuda::CUDAEvent>();
+      g.ready->record(c10::cuda::CUDAStream(c10::cuda::CUDAStream::UNCHECKED, *stream));
+    }
+    b->groups.push_back(std::move(g));
+  }
+  return b;
+}
+
+torch::Tensor Trainer::forward_backward(StagedBatch& batch) {
+  const double beta = cfg_.objective.beta;
+  const bool bf16 = cfg_.train.precision == "bf16" && device_.is_cuda();
+  std::vector<torch::Tensor> metric_terms;
+  for (auto& g : batch.groups) {
+    wait_for_uploads(g, device_);
+    FmdpoInputs in;
+    in.x_pos = g.x_pos.to(torch::kFloat32);
+    in.x_neg = g.x_neg.to(torch::kFloat32);
+    in.t = g.t;
+    in.eps_pos = g.eps_pos;
+    in.eps_neg = g.eps_neg;
+    in.w = g.w;
+    if (g.cond.defined()) {
+      in.cond = g.cond.to(torch::kFloat32);
+    } else {
+      if (!embed_)
+        fail_hint("set model.embedder_config (and model.embedder_weights) in the training config",
+                  "{}: the pair cache holds condition inputs (cond_mode inputs) but no condition embedder is loaded",
+                  cfg_.file);
+      std::map<std::string, torch::Tensor> inputs;
+      for (const auto& [name, v] : g.inputs) inputs[name] = v.to(torch::kFloat32);  // [m, ch, S, S]
+      // The frozen embedder: no gradient, the step's precision policy.
+      torch::NoGradGuard no_grad;
+      models::Autocast ac(models::Precision::kBf16, bf16);
+      in.cond = embed_(inputs).to(torch::kFloat32);  // [m, L, Cc]
+    }
     FmdpoTerms terms;
     {
       // CUDA bf16 autocast when enabled (adapters stay fp32; matmuls in bf16); nests, restores.
@@ -253,25 +345,29 @@ StepSums Trainer::forward_backward(const std::vector<Pair>& pairs) {
     }
     // Rank-local mean over its share; the all-reduce averages the ranks -> global mean.
     auto weighted = in.w * terms.per_pair;  // [m]
-    (weighted.sum() / static_cast<double>(share)).backward();
+    (weighted.sum() / static_cast<double>(batch.pairs)).backward();
     // Per-pair metric terms stay on the device until the last micro-batch (no host sync in between):
     // rows weighted loss, d_theta, d_ref, policy +/-, reference +/-; one column per pair.
     metric_terms.push_back(torch::stack({weighted, terms.d_theta, terms.d_ref, terms.loss_pos_policy, terms.loss_neg_policy,
                                          terms.loss_pos_ref, terms.loss_neg_ref})
                                .detach()
                                .to(torch::kFloat32));  // [7, m]
-    metric_kinds.insert(metric_kinds.end(), kinds.begin(), kinds.end());
   }
-  // Metrics: one copy to the host, then sums in float64 pair by pair (in micro-batch order).
+  return metric_terms.empty() ? torch::Tensor() : torch::cat(metric_terms, 1);  // [7, pairs]
+}
+
+StepSums Trainer::metric_sums(const torch::Tensor& terms, const std::vector<int>& kinds) const {
+  const double beta = cfg_.objective.beta;
+  // One copy to the host, then sums in float64 pair by pair (in micro-batch order).
   StepSums sums;
-  if (metric_terms.empty()) return sums;
-  auto host = torch::cat(metric_terms, 1).to(torch::kCPU, torch::kFloat64).contiguous();  // [7, pairs]
+  if (!terms.defined()) return sums;
+  auto host = terms.to(torch::kCPU, torch::kFloat64).contiguous();  // [7, pairs]
   auto a = host.accessor<double, 2>();
   for (int64_t b = 0; b < host.size(1); ++b) {
     sums.loss += a[0][b];
     sums.correct += a[1][b] < a[2][b] ? 1.0 : 0.0;
     sums.margin += -beta / 2.0 * (a[1][b] - a[2][b]);
-    auto& k = sums.kind[std::clamp(metric_kinds[b], 0, 1)];
+    auto& k = sums.kind[std::clamp(kinds[b], 0, 1)];
     k.count += 1.0;
     k.policy_pos += a[3][b];
     k.policy_neg += a[4][b];
@@ -288,14 +384,33 @@ StepMetrics Trainer::step() {
     if (device_.is_cuda()) torch::cuda::synchronize();
   };
   const auto began = clock::now();
-  auto pairs = source_->next_batch();
-  const double seconds_data = seconds_since(began);
+  // This step's batch: read ahead by the previous step, or read and staged now.
+  double seconds_data = 0;
+  std::unique_ptr<StagedBatch> batch;
+  if (ahead_) {
+    SIMU_CHECK(ahead_->step == step_,
+               "trainer: the batch read ahead holds the noise of step {}, not of step {} (a failed step cannot be "
+               "retried; resume from a checkpoint)", ahead_->step + 1, step_ + 1);
+    batch = std::move(ahead_);
+  } else {
+    batch = read_batch(step_);
+    seconds_data = seconds_since(began);
+  }
   const auto compute_began = clock::now();
-  const int64_t share = static_cast<int64_t>(pairs.size());
-  SIMU_CHECK(share == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected", share,
-             cfg_.data.global_batch / comm_.world_size());
+  SIMU_CHECK(batch->pairs == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected",
+             batch->pairs, cfg_.data.global_batch / comm_.world_size());
   opt_->zero_grad();
-  StepSums sums = forward_backward(pairs);
+  const auto terms = forward_backward(*batch);
+  std::vector<int> kinds;
+  for (const auto& g : batch->groups) kinds.insert(kinds.end(), g.kinds.begin(), g.kinds.end());
+  // Read-ahead: the next batch is read and staged, its copies issued, while this step's kernels run.
+  double seconds_ahead = 0;
+  if (read_ahead_) {
+    const auto ahead_began = clock::now();
+    ahead_ = read_batch(step_ + 1);
+    seconds_ahead = seconds_since(ahead_began);
+  }
+  StepSums sums = metric_sums(terms, kinds);
   // Average gradients over ranks, clip, step.
   auto params = opt_->tensors();
   std::vector<torch::Tensor> grads;
@@ -305,8 +420,8 @@ StepMetrics Trainer::step() {
   }
   settle();
   StepMetrics m;
-  m.seconds_data = seconds_data;
-  m.seconds_compute = seconds_since(compute_began);
+  m.seconds_data = seconds_data + seconds_ahead;
+  m.seconds_compute = seconds_since(compute_began) - seconds_ahead;
   auto phase_began = clock::now();
   comm_.all_reduce_mean(grads);
   // Metrics over all ranks (before the update: a non-finite loss must stop it on every rank alike).

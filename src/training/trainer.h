@@ -31,8 +31,10 @@ struct StepMetrics {
   double lr = 0;
   double pairs_per_s = 0;
   // Rank 0's wall time of this step and its phases (each phase waits for the device at its end):
-  // waiting for the data stream, forwards + backwards of its micro-batches, the gradient all-reduce
-  // (including waiting for the slowest rank), clipping + AdamW.
+  // reading and staging batches (waiting for the data stream, stacking, noise, issuing the copies: this
+  // step's batch when it was not read ahead, and the next one when reading ahead), forwards + backwards
+  // of its micro-batches, the gradient all-reduce (including waiting for the slowest rank), clipping +
+  // AdamW.
   double seconds_step = 0, seconds_data = 0, seconds_compute = 0, seconds_allreduce = 0, seconds_optimizer = 0;
   // "<kind>/{policy,ref}_{pos,neg}" mean flow-matching losses per kind ("completion", "preservation").
   std::map<std::string, double> per_kind;
@@ -59,10 +61,14 @@ struct StepSums {
 // loads one.
 using ConditionEmbedFn = std::function<torch::Tensor(const std::map<std::string, torch::Tensor>& inputs)>;
 
+// A batch whose forward groups' inputs are stacked and on their way to the device (trainer.cpp).
+struct StagedBatch;
+
 class Trainer {
  public:
   // model: adapters injected, on `device`; comm: this rank's communicator.
   Trainer(TrainConfig cfg, PolicyModel& model, PairSourceFactory sources, Communicator& comm, torch::Device device);
+  ~Trainer();
   // Restores adapters, optimizer, step, data position and RNG states from a checkpoint directory.
   void resume(const std::string& dir);
   // One optimizer step over one global batch.
@@ -79,14 +85,23 @@ class Trainer {
   // Pairs that carry condition inputs (an inputs-mode cache) are embedded with fn inside the step;
   // without one, such pairs are an error.
   void set_condition_embedder(ConditionEmbedFn fn) { embed_ = std::move(fn); }
+  // Read-ahead (the fast path; on by default on CUDA, off on the CPU): while a step's backward runs on
+  // the device, the next step's batch is read, its noise drawn, and its forward groups stacked into
+  // pinned host memory and copied to the device asynchronously on a side CUDA stream (every group of a
+  // step up front, each with an event its forward waits for); checkpoints store the data position
+  // before that batch. Off (the reference path): each step reads its batch at its start and copies each
+  // group with a plain stack(...).to(device). Both give the same pairs, noise and arithmetic (tests).
+  void set_read_ahead(bool on) { read_ahead_ = on; }
 
  private:
-  // Condition tokens of one forward group [m, L, Cc] float32 on the device: the pairs' tokens, or
-  // their inputs through the condition embedder (no_grad, the step's precision).
-  torch::Tensor group_condition(const std::vector<Pair>& pairs, const std::vector<int64_t>& group, bool bf16);
-  // Forward and backward over this rank's pairs, one group (micro-batch, one condition length) at a
-  // time; gradients accumulate on the adapters. Returns this rank's metric sums.
-  StepSums forward_backward(const std::vector<Pair>& pairs);
+  // Reads the next batch of the source and stages it for step `step` (noise drawn for that step).
+  std::unique_ptr<StagedBatch> read_batch(int64_t step);
+  // Forward and backward over a staged batch, one group (micro-batch, one condition length) at a time;
+  // gradients accumulate on the adapters. Returns the per-pair metric terms ([7, pairs] on the device,
+  // rows as in metric_sums) without waiting for the device.
+  torch::Tensor forward_backward(StagedBatch& batch);
+  // This rank's metric sums of forward_backward's terms (one copy to the host).
+  StepSums metric_sums(const torch::Tensor& terms, const std::vector<int>& kinds) const;
 
   TrainConfig cfg_;
   PolicyModel& model_;
@@ -97,6 +112,9 @@ class Trainer {
   std::unique_ptr<AdamW> opt_;
   ConditionEmbedFn embed_;
   int64_t step_ = 0;
+  bool read_ahead_;
+  std::unique_ptr<StagedBatch> ahead_;  // the next step's batch, read ahead (null: none)
+  c10::optional<c10::Stream> upload_stream_;  // the side CUDA stream of the read-ahead uploads
 };
 
 }  // namespace simu::training

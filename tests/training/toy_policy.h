@@ -65,4 +65,25 @@ inline std::shared_ptr<std::vector<simu::training::Pair>> toy_pairs(int64_t n, i
   return v;
 }
 
+// A training config for the toy policy (device cpu, fp32, seed 7, checkpoints every 2 steps) in out/cfg.yaml.
+inline simu::training::TrainConfig toy_config(const std::string& out, int64_t steps, int64_t global_batch, int64_t micro) {
+  const std::string file = out + "/cfg.yaml";
+  std::filesystem::create_directories(out);
+  std::ofstream(file) << "model: {config: none}\n"
+                         "lora: {r: 2}\n"
+                         "objective: {beta: 2.0}\n"
+                         "optim: {lr: 0.01, warmup_steps: 2, clip_grad_norm: 1.0, weight_decay: 0.01}\n"
+                      << "data: {global_batch: " << global_batch << ", micro_batch: " << micro << "}\n"
+                      << "train: {steps: " << steps << ", device: cpu, precision: fp32, seed: 7}\n"
+                      << "run: {out_dir: " << out << ", checkpoint_every: 2, keep_last: 5, progress: false}\n";
+  return simu::training::TrainConfig::load(file);
+}
+
+// The trainer's source over in-memory pairs.
+inline simu::training::PairSourceFactory memory_source(std::shared_ptr<const std::vector<simu::training::Pair>> pairs) {
+  return [pairs](int rank, int world, int64_t gb, uint64_t seed, simu::training::DataPosition pos) {
+    return std::make_unique<simu::training::MemoryPairSource>(pairs, rank, world, gb, seed, pos);
+  };
+}
+
 }  // namespace simu::testing

@@ -1,5 +1,6 @@
 // The trainer on CUDA with the generator policy: bf16 autocast steps keep the adapters fp32 on the
 // GPU and follow an fp32 CPU run of the same model, pairs, noise and schedule within bf16 rounding.
+// Its read-ahead (pinned staging, uploads on a side stream) against the plain upload path.
 #include <ATen/CPUGeneratorImpl.h>
 
 #include <fstream>
@@ -7,6 +8,7 @@
 #include "flow_mid_config.h"
 #include "models/generator.h"
 #include "test_util.h"
+#include "toy_policy.h"
 #include "training/generator_policy.h"
 #include "training/trainer.h"
 
@@ -100,4 +102,39 @@ TEST(TrainerGpu, Bf16StepsKeepFp32AdaptersAndFollowFp32Cpu) {
   const double cos = cosine(dc, dg);
   EXPECT_GT(cos, 0.9) << "GPU bf16 and CPU fp32 adapter updates point different ways";
   RecordProperty("update_cosine", std::to_string(cos));
+}
+
+// Read-ahead on CUDA (the default there: the next batch stacked into pinned memory and copied on a side
+// stream while a step runs, each forward group waiting for its copies) trains like the reference path
+// (each batch read at its step's start, stack(...).to(device)): long f16 conditions of two lengths
+// (two forward groups per micro-batch) make the copies take a while, so a forward that did not wait
+// for them would read stale or partial memory.
+TEST(TrainerGpu, ReadAheadUploadsMatchThePlainUpload) {
+  SIMU_REQUIRE_CUDA();
+  const int64_t T = 64, C = 8, Cc = 64, R = 4, steps = 5;
+  auto pairs = simu::testing::toy_pairs(12, T, C, 20000, Cc, 41);  // 12 pairs, 3 batches of 4 per epoch
+  for (size_t i = 0; i < pairs->size(); ++i) {
+    auto& p = (*pairs)[i];
+    if (i % 2) p.cond = torch::randn({19000, Cc});
+    p.cond = p.cond.to(torch::kHalf);  // the cache's stored dtype: converted on the device
+  }
+  const torch::Device dev(torch::kCUDA);
+  auto run = [&](bool read_ahead) {
+    simu::testing::ToyPolicy m(C, Cc, R, 5);
+    m.to(dev);
+    auto cfg = simu::testing::toy_config(simu::testing::temp_dir(read_ahead ? "gpu_ahead_on" : "gpu_ahead_off"), steps, 4, 2);
+    cfg.train.device = "cuda";
+    auto comm = Communicator::create(DistEnv{}, dev, std::chrono::seconds(60));  // a world of one
+    Trainer tr(cfg, m, simu::testing::memory_source(pairs), *comm, dev);
+    tr.set_read_ahead(read_ahead);
+    std::vector<double> losses;
+    for (int s = 0; s < steps; ++s) losses.push_back(tr.step().loss);
+    torch::cuda::synchronize();
+    return std::make_pair(losses, std::vector<torch::Tensor>{m.A.detach().cpu(), m.B.detach().cpu()});
+  };
+  const auto [loss_off, ad_off] = run(false);
+  const auto [loss_on, ad_on] = run(true);
+  for (int s = 0; s < steps; ++s) EXPECT_NEAR(loss_on[s], loss_off[s], 1e-6 * std::abs(loss_off[s])) << "step " << s + 1;
+  for (size_t i = 0; i < ad_off.size(); ++i) EXPECT_TRUE(simu::testing::close(ad_on[i], ad_off[i], 1e-6, i ? "B" : "A"));
+  EXPECT_FALSE(torch::equal(ad_on[0], simu::testing::ToyPolicy(C, Cc, R, 5).A)) << "training did not move the adapter";
 }

@@ -14,30 +14,13 @@
 #include "training/trainer.h"
 
 using namespace simu::training;
+using simu::testing::memory_source;
+using simu::testing::toy_config;
 using simu::testing::ToyPolicy;
 
 namespace {
 
 constexpr int64_t T = 6, C = 4, L = 3, Cc = 5, R = 2;
-
-TrainConfig toy_config(const std::string& out, int64_t steps, int64_t global_batch, int64_t micro) {
-  const std::string file = out + "/cfg.yaml";
-  std::filesystem::create_directories(out);
-  std::ofstream(file) << "model: {config: none}\n"
-                         "lora: {r: 2}\n"
-                         "objective: {beta: 2.0}\n"
-                         "optim: {lr: 0.01, warmup_steps: 2, clip_grad_norm: 1.0, weight_decay: 0.01}\n"
-                      << "data: {global_batch: " << global_batch << ", micro_batch: " << micro << "}\n"
-                      << "train: {steps: " << steps << ", device: cpu, precision: fp32, seed: 7}\n"
-                      << "run: {out_dir: " << out << ", checkpoint_every: 2, keep_last: 5, progress: false}\n";
-  return TrainConfig::load(file);
-}
-
-PairSourceFactory memory_source(std::shared_ptr<const std::vector<Pair>> pairs) {
-  return [pairs](int rank, int world, int64_t gb, uint64_t seed, DataPosition pos) {
-    return std::make_unique<MemoryPairSource>(pairs, rank, world, gb, seed, pos);
-  };
-}
 
 std::vector<torch::Tensor> adapter_values(ToyPolicy& m) { return {m.A.detach().clone(), m.B.detach().clone()}; }
 
