@@ -196,6 +196,7 @@ struct Options {
   std::vector<std::string> fp8_base = {"off"};  // off / on / all: rows without / with the FP8 frozen base
   double peak_tflops = 989.4;
   bool checkpointing = false, profile = false, embed_timing = true;
+  bool read_ahead = true;  // Trainer::set_read_ahead (off: the plain upload at each step's start)
   std::vector<std::string> modes = {"tokens"};
 };
 
@@ -231,6 +232,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
     for (size_t i = 0; i < params.size(); ++i) params[i].second.copy_(b.initial_adapters[i]);
   }
   Trainer tr(cfg, *b.policy, source, comm, b.device);
+  tr.set_read_ahead(o.read_ahead);
   const bool inputs = mode == "inputs";
   if (inputs) tr.set_condition_embedder(b.timed.fn());
   for (int s = 0; s < o.warmup; ++s) tr.step();
@@ -366,6 +368,10 @@ int main(int argc, char** argv) {
                  "time the embedder of inputs mode (a device synchronisation before and after it; off: no syncs, no embed column)")
       ->capture_default_str();
   app.add_flag("--profile", o.profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
+  app.add_option("--read-ahead", o.read_ahead,
+                 "the trainer's read-ahead: the next batch staged in pinned memory and uploaded on a side stream "
+                 "while a step runs (off: each step's batch stacked and copied at its start, the reference path)")
+      ->capture_default_str();
   app.add_option("--cond-mode", o.modes,
                  "tokens (condition tokens in the pairs, --cond-len of them) and/or inputs (the released embedder's "
                  "inputs; its random-weight embedder runs in the step), e.g. tokens,inputs")
