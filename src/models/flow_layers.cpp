@@ -73,8 +73,10 @@ FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
 torch::Tensor FeedForwardNetImpl::forward(const torch::Tensor& x) {
   // Fast path: GELU in fc1's epilogue (not with an adapter on fc1: its delta must be added first).
   if (fused_kernels && inference_only_ok(inference_kernels) && !(fc1->adapter() && fc1->adapter_enabled()) &&
-      fused_path(x) && fused::supports_linear_gelu(x))
-    return fc2->forward(fused::linear_gelu_tanh_bf16(x, fc1->weight, fc1->bias));
+      fused_path(x) && fused::supports_linear_gelu(x)) {
+    const auto [w1, b1] = fc1->product_weights(x);  // fc1's compute copy where it applies (linear.h)
+    return fc2->forward(fused::linear_gelu_tanh_bf16(x, w1, b1));
+  }
   return fc2->forward(torch::gelu(fc1->forward(x), "tanh"));
 }
 

@@ -215,17 +215,8 @@ Latents ClassifierFreeGuidanceImpl::forward(const Latents& x, double t_scaled, P
       try {
         if (!graph) graph = attach_graph(c, xs, t, d, zero_from);
         auto y = graph->graph->run(xs, t, d);
-        if (!graph->weights_known) {
-          // The 16-bit weight copies the capture read from the autocast cache (cached_cast returns the
-          // cached copy): kept alive with the graph and refreshed at every later call.
-          graph->weights_known = true;
-          if (at::autocast::is_autocast_enabled(at::kCUDA)) {
-            const auto low = at::autocast::get_autocast_dtype(at::kCUDA);
-            for (const auto& p : backbone->parameters())
-              if (p.is_cuda() && p.scalar_type() == torch::kFloat32 && p.requires_grad() && p.is_leaf())
-                graph->weights.emplace_back(p, at::autocast::cached_cast(low, p, c10::DeviceType::CUDA));
-          }
-        }
+        // The 16-bit weight copies the capture read: kept alive with the graph, refreshed at later calls.
+        if (!graph->weights_known) graph->remember_weights(backbone);
         return y;
       } catch (const std::exception& e) {
         log::warn("sampling: CUDA graph capture failed, continuing with eager launches: {}", e.what());
@@ -303,6 +294,10 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
   if (c.is_shortcut()) d = (o.shortcut ? 1.0 / o.steps : 0.0) * c.time_scale;
   const Precision precision = o.precision.value_or(o.bf16_autocast ? Precision::kBf16 : Precision::kFp32);
   Autocast autocast(precision, cond.is_cuda());
+  // On CUDA in 16 bits: the backbone's Linear weights in that dtype, kept with the layers between calls
+  // (linear.h compute copies; sampling wants no weight gradient), not cast again at every call.
+  if (cond.is_cuda() && precision != Precision::kFp32)
+    set_compute_copies(*reverse_fn->backbone, precision_dtype(precision), /*frozen_only=*/false);
 
   Latents x;
   for (const auto& [k, v] : x0) x[k] = v.to(torch::kFloat32);

@@ -165,8 +165,9 @@ class GraphedForward {
 
 // A persistent CUDA graph of one backbone forward for sampling: its own condition buffer and
 // keys/values (the graph's inputs besides x, t, d), and the 16-bit weight copies the graph reads (under
-// autocast the forward reads the autocast cache's copies, which live only as long as one autocast
-// region; these are refreshed from the parameters at every call). `fingerprint` covers what changes
+// autocast the forward reads the Linear layers' compute copies, and the autocast cache's copies of the
+// other weights, which live only as long as one autocast region; both are kept with the graph and
+// refreshed from the parameters at every later call). `fingerprint` covers what changes
 // the captured kernels (parameter storage, adapters on/off, kernel switches): a mismatch recaptures.
 struct SamplingGraph {
   std::string key;
@@ -176,7 +177,20 @@ struct SamplingGraph {
   ConditionCache kv;   // keys/values of `cond`, static
   std::unique_ptr<GraphedForward> graph;
   std::vector<std::pair<torch::Tensor, torch::Tensor>> weights;  // (parameter, the 16-bit copy the graph reads)
+  // The Linear compute copies the graph reads instead (linear.h; sample() turns them on), with the
+  // weight/bias they copy: refreshed in place at every later call where the weights changed.
+  struct LinearCopy {
+    torch::Tensor weight, bias;
+    std::shared_ptr<ComputeCopy> copy;
+  };
+  std::vector<LinearCopy> copies;
   bool weights_known = false;
+  // After the first capture (autocast still on): records the copies above; Linear weights read through
+  // their compute copies get no autocast copy.
+  void remember_weights(SparseStructureFlowTdfyWrapper& backbone);
+  // At a later call: the current weights into the copies (autocast copies always, compute copies when
+  // stale).
+  void refresh_weights();
 };
 
 // The persistent sampling graphs of one generator, least recently used dropped beyond `max_graphs`.

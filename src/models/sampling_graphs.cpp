@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <set>
 
 #include "common/error.h"
 #include "models/generator.h"
@@ -227,7 +228,7 @@ std::shared_ptr<SamplingGraph> ClassifierFreeGuidanceImpl::attach_graph(const to
     // weights' current values into the copies the graph reads.
     g->cond.copy_(c);
     backbone->condition_cache_into(g->cond, g->kv);
-    for (auto& [p, w] : g->weights) w.copy_(p);
+    g->refresh_weights();
   } else {
     g = std::make_shared<SamplingGraph>();
     g->key = key;
@@ -246,5 +247,30 @@ std::shared_ptr<SamplingGraph> ClassifierFreeGuidanceImpl::attach_graph(const to
   return g;
 }
 
+void SamplingGraph::remember_weights(SparseStructureFlowTdfyWrapper& backbone) {
+  weights_known = true;
+  if (!at::autocast::is_autocast_enabled(at::kCUDA)) return;
+  const auto low = at::autocast::get_autocast_dtype(at::kCUDA);
+  // Linear layers with a compute copy in the autocast dtype: the capture read the copy (sampling runs
+  // without grad mode, so it applied), not an autocast cast of the weight.
+  std::set<const c10::TensorImpl*> through_copy;
+  for (const auto& m : backbone->modules()) {
+    const auto* l = dynamic_cast<const LinearImpl*>(m.get());
+    if (!l || !l->compute_copy() || l->compute_copy()->dtype() != low || !l->compute_copy()->fits(l->weight, l->bias)) continue;
+    copies.push_back({l->weight, l->bias, l->compute_copy()});
+    through_copy.insert(l->weight.unsafeGetTensorImpl());
+    if (l->bias.defined()) through_copy.insert(l->bias.unsafeGetTensorImpl());
+  }
+  // The other weights: the autocast cache's copies (cached_cast returns the cached one).
+  for (const auto& p : backbone->parameters())
+    if (p.is_cuda() && p.scalar_type() == torch::kFloat32 && p.requires_grad() && p.is_leaf() &&
+        !through_copy.count(p.unsafeGetTensorImpl()))
+      weights.emplace_back(p, at::autocast::cached_cast(low, p, c10::DeviceType::CUDA));
+}
+
+void SamplingGraph::refresh_weights() {
+  for (auto& [p, w] : weights) w.copy_(p);
+  for (auto& c : copies) c.copy->refresh(c.weight, c.bias);
+}
 
 }  // namespace simu::models

@@ -100,6 +100,8 @@ std::unique_ptr<PolicyModel> make_generator_policy(const std::string& generator_
   }
   gen->to(device);
   gen->train();
+  // The frozen base's Linear weights kept in bf16, the training autocast dtype (models/linear.h compute copies).
+  if (device.is_cuda()) simu::models::set_compute_copies(*gen, torch::kBFloat16);
   return std::make_unique<GeneratorPolicy>(gen, lc);
 }
 
