@@ -182,10 +182,9 @@ std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::
 
 std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_in, const torch::Tensor& mod,
                                                  const torch::Tensor& cond, const BlockKV* kv, ResidualCarry* carry) {
-  // Modulation: six [B or 1, 1, C] chunks (shift/scale/gate for attention and MLP).
-  auto m = share_mod ? mod : ada_linear->forward(torch::silu(mod));
-  std::vector<torch::Tensor> chunks;
-  for (const auto& c : m.chunk(6, 1)) chunks.push_back(c.unsqueeze(1));
+  // Modulation [B or 1, 6C]: shift/scale/gate for attention and MLP (mod is already the SiLU of the t
+  // embedding, the first half of adaLN_modulation).
+  auto m = share_mod ? mod : ada_linear->forward(mod);
   const size_t S = x_in.size();
   // A pending residual from the previous block: kept for the fused LayerNorm below, else applied now.
   ResidualCarry incoming;
@@ -194,15 +193,18 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   // projection (fused_ops.h); same fp32 arithmetic, one rounding.
   bool fast = fused_kernels && fused_path(x_in[0]) && (m.size(0) == 1 || m.size(0) == x_in[0].size(0));
   for (const auto& xi : x_in) fast = fast && fused::supports_layer_norm_affine(xi);
-  if (!fast) return block_reference(*this, incoming.apply(x_in), chunks, cond, kv);
-  // The streams share the modulation: its fp32 affine rows [1 or B, C] (weight 1 + scale, bias shift)
-  // are made once per block.
-  auto affine_of = [](const torch::Tensor& scale, const torch::Tensor& shift) {
-    return Affine{(1 + scale).squeeze(1).to(torch::kFloat32), shift.squeeze(1).to(torch::kFloat32)};
-  };
-  FusedBlock fb{*this, cond, kv, incoming, carry != nullptr, affine_of(chunks[1], chunks[0]), affine_of(chunks[4], chunks[3]),
-                chunks[2].squeeze(1), chunks[5].squeeze(1), at::autocast::get_autocast_dtype(at::kCUDA),
-                std::vector<torch::Tensor>(S)};
+  if (!fast) {
+    // Six [B or 1, 1, C] chunks.
+    std::vector<torch::Tensor> chunks;
+    for (const auto& c : m.chunk(6, 1)) chunks.push_back(c.unsqueeze(1));
+    return block_reference(*this, incoming.apply(x_in), chunks, cond, kv);
+  }
+  // The streams share the modulation: its fp32 rows [6, 1 or B, C] (norm1/norm3 weight 1 + scale and
+  // bias shift, the gates) made once per block, in one kernel (fused_ops.h modulation_rows; the same
+  // values as (1 + scale).to(float32) and shift.to(float32) on the chunks).
+  const auto rows = fused::modulation_rows(m);
+  FusedBlock fb{*this, cond, kv, incoming, carry != nullptr, Affine{rows[1], rows[0]}, Affine{rows[4], rows[3]},
+                rows[2], rows[5], at::autocast::get_autocast_dtype(at::kCUDA), std::vector<torch::Tensor>(S)};
   std::vector<torch::Tensor> x = x_in, h(S);
   const int64_t head_dim = x[0].size(2) / self_attn->num_heads;
   const bool qkv_fused = self_attn->fused_kernels && (head_dim == 64 || head_dim == 128 || head_dim == 256);
@@ -376,6 +378,16 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   }
   if (c.share_mod) t_emb = adaLN_modulation->forward(t_emb);  // [B, 6C]
   t_emb = t_emb.to(torch::kFloat32);
+  const bool low_autocast = cond.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
+                            fused::is_low_precision(at::autocast::get_autocast_dtype(at::kCUDA));
+  // The blocks' modulation input, once for all of them: the shared modulation, or the SiLU that starts
+  // every block's adaLN_modulation, in the 16-bit dtype its Linear computes in under CUDA autocast (the
+  // cast each block's Linear would otherwise repeat; same values).
+  auto mod = t_emb;  // [B or 1, 6C] or [B or 1, C]
+  if (!c.share_mod) {
+    mod = torch::silu(t_emb);
+    if (low_autocast) mod = mod.to(at::autocast::get_autocast_dtype(at::kCUDA));
+  }
 
   // Input projection per latent, merged into the transformer streams (float32).
   at::ScalarType input_dtype;
@@ -383,20 +395,18 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
   h.resize(streams_run_);  // set_output_latents: only the leading protected streams
   // The condition once in the dtype its projections use: bf16 / fp16 under CUDA autocast in that dtype
   // (the cast every to_kv would otherwise repeat, same values), else fp32.
-  const bool low_autocast = cond.is_cuda() && at::autocast::is_autocast_enabled(at::kCUDA) &&
-                            fused::is_low_precision(at::autocast::get_autocast_dtype(at::kCUDA));
   auto cond32 = cond.to(low_autocast ? at::autocast::get_autocast_dtype(at::kCUDA) : torch::kFloat32);
 
   // Transformer blocks; each leaves its last residual to the next one's first LayerNorm (fused path).
   ResidualCarry carry;
   for (size_t b = 0; b < block_list_.size(); ++b) {
     if (!block_wrapper_) {
-      h = block_list_[b]->forward(h, t_emb, cond32, cache ? &cache->kv[b] : nullptr, &carry);
+      h = block_list_[b]->forward(h, mod, cond32, cache ? &cache->kv[b] : nullptr, &carry);
       continue;
     }
     // Wrapped: inputs = streams + [modulation, condition]; fn owns the block and the cached keys/values.
     std::vector<torch::Tensor> inputs = h;
-    inputs.push_back(t_emb);
+    inputs.push_back(mod);
     inputs.push_back(cond32);
     const size_t S = h.size();
     auto kv = cache ? std::make_shared<const std::vector<std::pair<torch::Tensor, torch::Tensor>>>(cache->kv[b]) : nullptr;

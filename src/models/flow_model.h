@@ -218,7 +218,11 @@ struct ResidualCarry {
 class MOTBlockImpl : public torch::nn::Module {
  public:
   explicit MOTBlockImpl(const FlowModelConfig& c);
-  // x[i]: [B, L_i, C]; mod: [B or 1, C] (t embedding) or [B or 1, 6C] when share_mod; cond: [B, Lc, Cc].
+  // x[i]: [B, L_i, C]; mod: [B or 1, C] the SiLU of the t embedding (adaLN_modulation's first step: the
+  // wrapper applies it once for all blocks, this forward applies its Linear), or [B or 1, 6C] the shared
+  // modulation when share_mod; cond: [B, Lc, Cc].
+  // On the fused path the modulation's fp32 rows come from one kernel (fused_ops.h modulation_rows);
+  // the reference path (block_reference) takes the same chunks through ATen.
   // kv: this block's precomputed condition keys/values per stream (ConditionCache), or null.
   // carry (optional): a pending residual from the previous block is applied first; on the fused path
   // this block's own last residual is left in it instead of applied (so the result is x minus that
@@ -232,7 +236,7 @@ class MOTBlockImpl : public torch::nn::Module {
   MOTSelfAttention self_attn{nullptr};
   std::vector<CrossAttention> cross_attn;
   std::vector<FeedForwardNet> mlp;
-  torch::nn::Sequential adaLN_modulation{nullptr};  // SiLU, Linear(C, 6C); absent when share_mod
+  torch::nn::Sequential adaLN_modulation{nullptr};  // SiLU, Linear(C, 6C); absent when share_mod (forward: see mod)
   Linear ada_linear{nullptr};
   bool share_mod;
   bool fused_kernels = true;  // fused LayerNorm + modulation (+ residual) -> bf16 (fused_ops.h) on the fused path

@@ -306,6 +306,37 @@ __global__ void split_qkv_rms_norm_backward_kernel(const T* __restrict__ qkv, co
       o[lane + 32 * i] = Half2<T>::pack(u[i].x * r - xv[i].x * c, u[i].y * r - xv[i].y * c);
   }
 }
+
+// Scalar conversions of the modulation's storage types (round to nearest even, as ATen's casts).
+template <typename T>
+struct Scalar;
+template <>
+struct Scalar<__nv_bfloat16> {
+  static __device__ __forceinline__ float to_float(__nv_bfloat16 v) { return __bfloat162float(v); }
+  static __device__ __forceinline__ __nv_bfloat16 round(float v) { return __float2bfloat16_rn(v); }
+};
+template <>
+struct Scalar<__half> {
+  static __device__ __forceinline__ float to_float(__half v) { return __half2float(v); }
+  static __device__ __forceinline__ __half round(float v) { return __float2half_rn(v); }
+};
+template <>
+struct Scalar<float> {
+  static __device__ __forceinline__ float to_float(float v) { return v; }
+  static __device__ __forceinline__ float round(float v) { return v; }
+};
+
+// One thread per output element of [6, rows, C]: chunk k of row r, channel c.
+template <typename T>
+__global__ void modulation_rows_kernel(const T* __restrict__ m, float* __restrict__ out, int64_t rows, int64_t C) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int64_t per_chunk = rows * C;
+  if (i >= 6 * per_chunk) return;
+  const int64_t k = i / per_chunk, r = (i % per_chunk) / C, c = i % C;
+  const float v = Scalar<T>::to_float(m[r * 6 * C + k * C + c]);
+  // The scales: 1 + scale in fp32 (ATen's opmath), rounded once to T, then widened.
+  out[i] = (k == 1 || k == 4) ? Scalar<T>::to_float(Scalar<T>::round(v + 1.0f)) : v;
+}
 }  // namespace
 
 namespace {
@@ -388,6 +419,18 @@ cudaError_t split_qkv_rms_norm_backward(const T* qkv, const float* gq, const flo
         qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H);
   });
 }
+
+template <typename T>
+cudaError_t modulation_rows(const T* m, float* out, int64_t rows, int64_t C, cudaStream_t stream) {
+  const int64_t n = 6 * rows * C;
+  if (n == 0) return cudaSuccess;
+  constexpr int kThreads = 256;
+  modulation_rows_kernel<T><<<static_cast<unsigned>((n + kThreads - 1) / kThreads), kThreads, 0, stream>>>(m, out, rows, C);
+  return cudaGetLastError();
+}
+template cudaError_t modulation_rows<__nv_bfloat16>(const __nv_bfloat16*, float*, int64_t, int64_t, cudaStream_t);
+template cudaError_t modulation_rows<__half>(const __half*, float*, int64_t, int64_t, cudaStream_t);
+template cudaError_t modulation_rows<float>(const float*, float*, int64_t, int64_t, cudaStream_t);
 
 // The two storage types.
 #define SIMU_INSTANTIATE(T)                                                                                              \

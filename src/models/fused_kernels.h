@@ -55,4 +55,11 @@ template <typename T>
 cudaError_t split_qkv_rms_norm_backward(const T* qkv, const float* gq, const float* gk, float scale, QkvGrad dq, QkvGrad dk,
                                         QkvGrad dv, T* dqkv, int B, int L, int H, int D, cudaStream_t stream);
 
+// The adaLN modulation of a block as fp32 rows: m [rows, 6C] (T contiguous: bf16, fp16 or float; six chunks
+// of C channels) -> out [6, rows, C] float32 contiguous, out[k, r, c] = m[r, k*C + c] widened to fp32, except
+// the scale chunks (k = 1, 4): float(T(float(m) + 1)), i.e. 1 + scale rounded once to T as ATen's
+// (1 + scale) on a T tensor, then widened.
+template <typename T>
+cudaError_t modulation_rows(const T* m, float* out, int64_t rows, int64_t C, cudaStream_t stream);
+
 }  // namespace simu::models::kernels

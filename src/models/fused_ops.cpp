@@ -20,6 +20,7 @@ namespace simu::models::fused {
 namespace {
 
 std::atomic<int64_t> g_launches{0};
+std::atomic<int64_t> g_modulation_launches{0};
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
 void check_cuda(cudaError_t e, const char* what) {
@@ -56,6 +57,7 @@ void check_out(const torch::Tensor& o, const torch::Tensor& qkv, const char* nam
 }  // namespace
 
 int64_t launch_count() { return g_launches.load(); }
+int64_t modulation_launch_count() { return g_modulation_launches.load(); }
 
 bool is_low_precision(torch::ScalarType dtype) { return dtype == torch::kBFloat16 || dtype == torch::kHalf; }
 
@@ -400,6 +402,42 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autog
   }
 #endif
   return split_into_new(qkv, gamma_q, gamma_k, scale);
+}
+
+bool supports_modulation_rows(const torch::Tensor& m) {
+  const auto dt = m.scalar_type();
+  return compiled() && m.is_cuda() && m.dim() == 2 && m.size(1) % 6 == 0 && m.is_contiguous() &&
+         (is_low_precision(dt) || dt == torch::kFloat32);
+}
+
+torch::Tensor modulation_rows_reference(const torch::Tensor& m) {
+  SIMU_CHECK(m.dim() == 2 && m.size(1) % 6 == 0, "modulation_rows: m must be [G, 6C], got [{}]", fmt::join(m.sizes(), ", "));
+  auto chunks = m.chunk(6, 1);  // [G, C] each
+  std::vector<torch::Tensor> rows;
+  for (size_t k = 0; k < chunks.size(); ++k)
+    rows.push_back((k == 1 || k == 4 ? 1 + chunks[k] : chunks[k]).to(torch::kFloat32));
+  return torch::stack(rows);  // [6, G, C]
+}
+
+torch::Tensor modulation_rows(const torch::Tensor& m) {
+  if (graph_through({m}) || !supports_modulation_rows(m)) return modulation_rows_reference(m);
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  const int64_t G = m.size(0), C = m.size(1) / 6;
+  auto out = torch::empty({6, G, C}, m.options().dtype(torch::kFloat32));
+  const auto stream = c10::cuda::getCurrentCUDAStream(m.device().index()).stream();
+  ++g_modulation_launches;
+  if (m.scalar_type() == torch::kFloat32) {
+    check_cuda(kernels::modulation_rows<float>(m.data_ptr<float>(), out.data_ptr<float>(), G, C, stream), "modulation_rows");
+  } else {
+    by_dtype(m.scalar_type(), [&](auto t) {
+      using T = decltype(t);
+      check_cuda(kernels::modulation_rows<T>(ptr<const T>(m), out.data_ptr<float>(), G, C, stream), "modulation_rows");
+    });
+  }
+  return out;
+#else
+  return modulation_rows_reference(m);
+#endif
 }
 
 bool supports_linear_gelu(const torch::Tensor& x) { return compiled() && x.is_cuda() && x.dim() >= 2; }

@@ -23,6 +23,8 @@ namespace simu::models::fused {
 bool compiled();
 // Number of fused kernel launches so far in this process (tests check that a fast path really ran).
 int64_t launch_count();
+// Launches of modulation_rows' kernel (one per block on the fused path), counted apart from launch_count.
+int64_t modulation_launch_count();
 // bf16 or fp16: the 16-bit types the kernels store.
 bool is_low_precision(torch::ScalarType dtype);
 
@@ -80,6 +82,18 @@ std::tuple<torch::Tensor, torch::Tensor, torch::Tensor> split_qkv_rms_norm_autog
                                                                                    const torch::Tensor& gamma_q,
                                                                                    const torch::Tensor& gamma_k,
                                                                                    double scale);
+
+// A block's adaLN modulation as the fp32 rows its fused kernels read, in one kernel:
+//   m: [G, 6C] bf16, fp16 or float32 (G = 1 or B; the chunks shift_msa, scale_msa, gate_msa, shift_mlp,
+//   scale_mlp, gate_mlp) -> [6, G, C] float32, row k = chunk k widened to fp32, except the scales (k = 1, 4):
+//   1 + scale computed as ATen's (1 + scale) on m's dtype (one rounding to that dtype), then widened.
+// Rows 1/0 and 4/3 are norm1's and norm3's LayerNorm weight/bias, rows 2 and 5 the gates (exact fp32
+// copies of the 16-bit gates, which the residual kernels and addcmul widen anyway). No backward: when
+// grad mode records through m (it requires a gradient), or without kernel support, the reference
+// (the same ATen ops per chunk, differentiable).
+bool supports_modulation_rows(const torch::Tensor& m);
+torch::Tensor modulation_rows(const torch::Tensor& m);
+torch::Tensor modulation_rows_reference(const torch::Tensor& m);
 
 bool supports_linear_gelu(const torch::Tensor& x);
 torch::ScalarType linear_gelu_dtype(const torch::Tensor& x);

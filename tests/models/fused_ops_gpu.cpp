@@ -148,6 +148,47 @@ TEST(FusedOpsGpu, LinearGeluMatchesReference) {
   }
 }
 
+// The block's modulation rows from one kernel equal, bit for bit, what the block computed with ATen
+// before: (1 + scale) on the modulation's dtype then .to(float32), shift and gates .to(float32), for
+// bf16 / fp16 (autocast) and fp32 (share_mod) modulations of one row (sampling) and two (training).
+TEST(FusedOpsGpu, ModulationRowsMatchAtenBitwise) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(8);
+  const int64_t C = 1024;
+  for (const auto dt : {torch::kBFloat16, torch::kHalf, torch::kFloat32})
+  for (const int64_t G : {1, 2}) {
+    // Values around -1 (where 1 + scale loses bits), tiny and large ones.
+    auto m32 = torch::randn({G, 6 * C}, torch::TensorOptions().device(torch::kCUDA)) * 2 - 1;
+    m32.narrow(1, 0, 64).mul_(1e-4);
+    m32.narrow(1, C, 64).fill_(-1).add_(torch::randn({G, 64}, m32.options()) * 1e-3);
+    m32.narrow(1, 4 * C, 64).mul_(300);
+    auto m = m32.to(dt);  // [G, 6C], as ada_linear returns it
+    torch::NoGradGuard ng;
+    const auto n0 = simu::models::fused::modulation_launch_count();
+    auto rows = simu::models::fused::modulation_rows(m);
+    EXPECT_EQ(simu::models::fused::modulation_launch_count(), n0 + 1);
+    ASSERT_EQ(rows.sizes(), (std::vector<int64_t>{6, G, C}));
+    ASSERT_EQ(rows.scalar_type(), torch::kFloat32);
+    // The block's former expressions on [G, 1, C] chunks.
+    std::vector<torch::Tensor> chunks;
+    for (const auto& c : m.chunk(6, 1)) chunks.push_back(c.unsqueeze(1));
+    for (int k = 0; k < 6; ++k) {
+      auto want = (k == 1 || k == 4 ? (1 + chunks[k]) : chunks[k]).squeeze(1).to(torch::kFloat32);
+      EXPECT_TRUE(torch::equal(rows[k], want)) << c10::toString(dt) << " G " << G << " row " << k;
+    }
+    EXPECT_TRUE(torch::equal(rows, simu::models::fused::modulation_rows_reference(m)));
+  }
+  // A modulation that requires a gradient under grad mode: the differentiable reference, no kernel.
+  auto m = torch::randn({2, 6 * C}, torch::TensorOptions().device(torch::kCUDA)).to(torch::kBFloat16).requires_grad_();
+  const auto n0 = simu::models::fused::modulation_launch_count();
+  auto rows = simu::models::fused::modulation_rows(m);
+  EXPECT_EQ(simu::models::fused::modulation_launch_count(), n0);
+  rows.sum().backward();
+  ASSERT_TRUE(m.grad().defined());
+  EXPECT_TRUE(torch::equal(m.grad(), torch::ones_like(m)));
+}
+
 TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
@@ -164,13 +205,16 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   simu::models::Autocast ac(simu::models::Precision::kBf16);
   gen->backbone()->set_fused_kernels(false);
   const auto n0 = simu::models::fused::launch_count();
+  const auto m0 = simu::models::fused::modulation_launch_count();
   auto want = gen->backbone()->forward(x, t, cond, d);
   EXPECT_EQ(simu::models::fused::launch_count(), n0) << "fused kernels ran although switched off";
+  EXPECT_EQ(simu::models::fused::modulation_launch_count(), m0);
   gen->backbone()->set_fused_kernels(true);
   auto got = gen->backbone()->forward(x, t, cond, d);
   // 3 blocks x 2 streams x (3 norms, two of them with the residual in front, + 1 qkv split + 1
-  // fc1-GELU) launches.
+  // fc1-GELU) launches, and one modulation kernel per block.
   EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5);
+  EXPECT_EQ(simu::models::fused::modulation_launch_count(), m0 + 3);
   for (const auto& [k, v] : want) EXPECT_LE(rel(got.at(k), v), 2e-2) << k;
   // The pose stream on a second CUDA stream (the default) or on the same one: the same kernels on
   // the same inputs, so the same numbers.
