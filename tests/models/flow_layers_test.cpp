@@ -4,6 +4,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include "common/error.h"
+#include "graph_nodes.h"
 #include "models/flow_model.h"
 #include "test_util.h"
 
@@ -29,8 +30,9 @@ std::vector<torch::Tensor> grads_of(const torch::Tensor& loss, const std::vector
 
 }  // namespace
 
-// x rows b*G + g share condition row b (pair-major): the same outputs and gradients (x, condition,
-// to_q / to_kv / to_out weights) as attending each token row alone over its own condition row.
+// x rows b*G + g share condition row b (pair-major): no copy of the queries or the output, and the same
+// outputs and gradients (x, condition, to_q / to_kv / to_out weights) as attending each token row alone
+// over its own condition row.
 TEST(CrossAttentionLayer, SharedConditionPairMajorEqualsEachRowAlone) {
   auto ca = random_layer(5);
   const int64_t Bc = 3, G = 2, L = 5, Lc = 7;
@@ -41,6 +43,8 @@ TEST(CrossAttentionLayer, SharedConditionPairMajorEqualsEachRowAlone) {
   for (auto& p : leaves) p.requires_grad_(true);
   // Shared: one call, Bc condition rows for Bc*G token rows.
   auto shared = ca->forward(x, ctx);  // [Bc*G, L, C]
+  // The shared query sequence and the way back are views (CPU's fused attention keeps [B, L, H, D]).
+  EXPECT_EQ(simu::testing::count_graph_nodes(shared, "CloneBackward0"), 0);
   auto g_shared = grads_of((shared * weight).sum(), leaves);
   // Alone: token row r over condition row r / G, one call per row.
   std::vector<torch::Tensor> rows;
