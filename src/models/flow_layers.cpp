@@ -103,22 +103,40 @@ std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::context_kv(const tor
   return {k, v};
 }
 
-torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
-  const int64_t B = x.size(0), L = x.size(1);
-  if (k.size(0) < B) {
-    // Rows k.size(0).. of x have an all-zero condition (ConditionCache::zero_from): every key there is
-    // to_kv's bias (through k_rms_norm), the same for all condition tokens, so the softmax is uniform
-    // and the attention output is the value bias itself: to_out(v(0)) for every query, whatever L_c.
-    const int64_t Bk = k.size(0);
-    auto head = attend(x.narrow(0, 0, Bk), k, v);                                        // [Bk, L, C]
-    auto v0 = context_kv(torch::zeros({1, 1, to_kv->in_features}, x.options().dtype(torch::kFloat32))).second;  // [1, 1, H, D]
-    auto tail = to_out->forward(v0.reshape({1, 1, -1})).to(head.scalar_type());         // [1, 1, C]
-    return torch::cat({head, tail.expand({B - Bk, L, tail.size(2)})}, 0);               // [B, L, C]
-  }
-  auto q = to_q->forward(x).reshape({B, L, num_heads, -1});  // [B, L, H, D]
+torch::Tensor CrossAttentionImpl::zero_condition_output(const torch::Tensor& like) {
+  // An all-zero condition row: every key is to_kv's bias (through k_rms_norm), the same for all condition
+  // tokens, so the softmax is uniform and the attention output is the value bias itself, whatever L_c.
+  auto v0 = context_kv(torch::zeros({1, 1, to_kv->in_features}, like.options().dtype(torch::kFloat32))).second;  // [1, 1, H, D]
+  return to_out->forward(v0.reshape({1, 1, -1}));  // [1, 1, C]
+}
+
+torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v,
+                                         const torch::Tensor& zero_out) {
+  const int64_t B = x.size(0), L = x.size(1), Bk = k.size(0);
+  auto q = to_q->forward(Bk < B ? x.narrow(0, 0, Bk) : x).reshape({Bk, L, num_heads, -1});  // [Bk, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
-  auto h = attention(q, k, v, inference_kernels).reshape({B, L, -1});  // [B, L, C]
-  return to_out->forward(h);
+  auto h = attention(q, k, v, inference_kernels).reshape({Bk, L, -1});  // [Bk, L, C]
+  if (Bk == B) return to_out->forward(h);
+  // Rows Bk.. of x have an all-zero condition (ConditionCache::zero_from): to_out(v(0)) for every query.
+  auto tail = zero_out.defined() ? zero_out : zero_condition_output(x);  // [1, 1, C]
+  const bool plain = !(to_out->adapter() && to_out->adapter_enabled()) && !to_out->fp8_weight();
+  if (plain) {
+    const auto [w, b] = to_out->product_weights(h);
+    if (w.scalar_type() == h.scalar_type() && (!b.defined() || b.scalar_type() == h.scalar_type()) && !h.requires_grad() &&
+        !w.requires_grad()) {
+      // The attended rows' projection straight into the output (the product torch::linear makes of a
+      // contiguous [Bk, L, C] input), the zero rows filled: no concatenation copy.
+      auto out = torch::empty({B, L, to_out->out_features}, h.options());  // [B, L, C]
+      auto head = out.narrow(0, 0, Bk).view({Bk * L, -1});
+      auto h2 = h.reshape({Bk * L, -1});
+      if (b.defined()) at::addmm_out(head, b, h2, w.t());
+      else at::mm_out(head, h2, w.t());
+      out.narrow(0, Bk, B - Bk).copy_(tail.expand({B - Bk, L, tail.size(2)}));
+      return out;
+    }
+  }
+  auto head = to_out->forward(h);  // [Bk, L, C]
+  return torch::cat({head, tail.to(head.scalar_type()).expand({B - Bk, L, tail.size(2)})}, 0);  // [B, L, C]
 }
 
 torch::Tensor CrossAttentionImpl::attend_shared(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {

@@ -56,7 +56,7 @@ std::vector<torch::Tensor> ResidualCarry::apply(const std::vector<torch::Tensor>
 
 namespace {
 
-using BlockKV = std::vector<std::pair<torch::Tensor, torch::Tensor>>;
+using BlockKV = std::vector<CrossKV>;
 using Affine = std::pair<torch::Tensor, torch::Tensor>;  // fp32 LayerNorm weight and bias rows [1 or B, C]
 
 // The reference path of one block: x (a pending residual already applied) -> x after self attention on
@@ -85,7 +85,8 @@ std::vector<torch::Tensor> block_reference(MOTBlockImpl& b, std::vector<torch::T
   // Cross attention over the condition on the affine norm2 (no modulation).
   for (size_t i = 0; i < S; ++i) {
     auto hi = b.norm2[i]->forward(x[i]);
-    x[i] = x[i] + (kv ? b.cross_attn[i]->attend(hi, (*kv)[i].first, (*kv)[i].second) : b.cross_attn[i]->forward(hi, cond));
+    auto& ca = b.cross_attn[i];
+    x[i] = x[i] + (kv ? ca->attend(hi, (*kv)[i].k, (*kv)[i].v, (*kv)[i].zero_out) : ca->forward(hi, cond));
   }
   // MLP on the modulated norm3; gated residual.
   for (size_t i = 0; i < S; ++i)
@@ -126,7 +127,8 @@ struct FusedBlock {
   torch::Tensor rest_of(size_t i, const torch::Tensor& xi, const torch::Tensor& ha) {
     const auto& n2w = b.norm2[i];
     auto [xa, n2] = residual_norm(xi, ha, gate_a, n2w->weight.unsqueeze(0), n2w->bias.unsqueeze(0), n2w->eps);
-    auto c = kv ? b.cross_attn[i]->attend(n2, (*kv)[i].first, (*kv)[i].second) : b.cross_attn[i]->forward(n2, cond);
+    auto& ca = b.cross_attn[i];
+    auto c = kv ? ca->attend(n2, (*kv)[i].k, (*kv)[i].v, (*kv)[i].zero_out) : ca->forward(n2, cond);
     auto [xb, n3] = residual_norm(xa, c, torch::Tensor(), mlp.first, mlp.second, b.norm3[i]->eps);
     mlp_out[i] = b.mlp[i]->forward(n3);
     return leave_residual ? xb : torch::addcmul(xb, mlp_out[i], gate_m.unsqueeze(1));
@@ -333,8 +335,11 @@ ConditionCache SparseStructureFlowTdfyWrapperImpl::condition_cache(const torch::
   cache.zero_from = zero_from;
   auto cond32 = (zero_from >= 0 ? cond.narrow(0, 0, zero_from) : cond).to(torch::kFloat32);
   for (auto& block : block_list_) {
-    std::vector<std::pair<torch::Tensor, torch::Tensor>> per_stream;
-    for (auto& ca : block->cross_attn) per_stream.push_back(ca->context_kv(cond32));
+    std::vector<CrossKV> per_stream;
+    for (auto& ca : block->cross_attn) {
+      auto [k, v] = ca->context_kv(cond32);
+      per_stream.push_back(CrossKV{k, v, zero_from >= 0 ? ca->zero_condition_output(cond32) : torch::Tensor()});
+    }
     cache.kv.push_back(std::move(per_stream));
   }
   return cache;
@@ -348,12 +353,15 @@ void SparseStructureFlowTdfyWrapperImpl::condition_cache_into(const torch::Tenso
     auto& per_stream = dst.kv[b];
     SIMU_CHECK(per_stream.size() == block_list_[b]->cross_attn.size(), "condition_cache_into: stream count differs");
     for (size_t i = 0; i < per_stream.size(); ++i) {
-      auto [k, v] = block_list_[b]->cross_attn[i]->context_kv(cond32);
-      SIMU_CHECK(k.sizes() == per_stream[i].first.sizes() && v.sizes() == per_stream[i].second.sizes(),
+      auto& ca = block_list_[b]->cross_attn[i];
+      auto [k, v] = ca->context_kv(cond32);
+      SIMU_CHECK(k.sizes() == per_stream[i].k.sizes() && v.sizes() == per_stream[i].v.sizes(),
                  "condition_cache_into: keys [{}] do not fit the cache's [{}]", fmt::join(k.sizes(), ", "),
-                 fmt::join(per_stream[i].first.sizes(), ", "));
-      per_stream[i].first.copy_(k);
-      per_stream[i].second.copy_(v);
+                 fmt::join(per_stream[i].k.sizes(), ", "));
+      per_stream[i].k.copy_(k);
+      per_stream[i].v.copy_(v);
+      // The zero rows' output depends on the weights only; made again, as the weights may have changed.
+      if (per_stream[i].zero_out.defined()) per_stream[i].zero_out.copy_(ca->zero_condition_output(cond32));
     }
   }
 }
@@ -409,7 +417,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
     inputs.push_back(mod);
     inputs.push_back(cond32);
     const size_t S = h.size();
-    auto kv = cache ? std::make_shared<const std::vector<std::pair<torch::Tensor, torch::Tensor>>>(cache->kv[b]) : nullptr;
+    auto kv = cache ? std::make_shared<const BlockKV>(cache->kv[b]) : nullptr;
     BlockFn fn = [block = block_list_[b].ptr(), S, kv](const std::vector<torch::Tensor>& v) {
       return block->forward(std::vector<torch::Tensor>(v.begin(), v.begin() + S), v[S], v[S + 1], kv.get());
     };

@@ -151,8 +151,15 @@ class CrossAttentionImpl : public torch::nn::Module {
   std::pair<torch::Tensor, torch::Tensor> context_kv(const torch::Tensor& context);
   // Attention of x over precomputed keys/values, then to_out: [B, L, C].
   // k, v may hold fewer batch rows than x: the rows past them have an all-zero condition
-  // (ConditionCache::zero_from) and get to_out(value bias), what attention over identical keys gives.
-  torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
+  // (ConditionCache::zero_from) and get to_out(value bias), what attention over identical keys gives:
+  // zero_out when given (CrossKV::zero_out, made once per sampling), else zero_condition_output. Where
+  // to_out is a plain product in x's compute dtype (no adapter, no FP8), the attended rows' projection
+  // writes straight into the output and only the zero rows are filled (no concatenation copy).
+  torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v,
+                       const torch::Tensor& zero_out = {});
+  // The cross-attention output of a token row whose condition is all zero, to_out(v(0)): [1, 1, C]
+  // (computed on like's device, under the caller's autocast).
+  torch::Tensor zero_condition_output(const torch::Tensor& like);
   // Attention of x ([Bc*G, L, C]) over keys/values of Bc condition rows ([Bc, Lc, H, D]), row b*G + g over
   // row b (pair-major: FM-DPO stacks x+_0, x-_0, x+_1, x-_1, ...): the G query sets of a condition run as
   // one [Bc, G*L] query sequence, a view of the queries (and the output a view back), so the condition's
@@ -193,11 +200,18 @@ class MOTSelfAttentionImpl : public torch::nn::Module {
 };
 TORCH_MODULE(MOTSelfAttention);
 
+// One block and stream's cached cross-attention inputs: the condition's keys and values [Bk, Lc, H, D]
+// (rows [0, zero_from) of the condition), and with zero_from >= 0 the output every all-zero-condition
+// row gets, zero_out = to_out(value bias) [1, 1, C] (CrossAttentionImpl::zero_condition_output).
+struct CrossKV {
+  torch::Tensor k, v, zero_out;
+};
+
 // Cross-attention keys/values of the condition for every block and stream, computed once and reused
-// over the sampling steps (the condition is the same at every step). kv[block][stream] = (k, v).
+// over the sampling steps (the condition is the same at every step). kv[block][stream].
 struct ConditionCache {
   torch::Tensor cond;  // the condition they were computed from
-  std::vector<std::vector<std::pair<torch::Tensor, torch::Tensor>>> kv;
+  std::vector<std::vector<CrossKV>> kv;
   // >= 0: rows [zero_from, B) of cond are all zero (CFG's unconditional half with force_zeros_cond):
   // kv holds rows [0, zero_from) only, and cross attention gives those rows the value bias directly
   // (CrossAttentionImpl::attend: identical keys, uniform softmax), not an attention over L_c tokens.
@@ -230,7 +244,7 @@ class MOTBlockImpl : public torch::nn::Module {
   // carry comes back empty.
   std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x, const torch::Tensor& mod,
                                      const torch::Tensor& cond,
-                                     const std::vector<std::pair<torch::Tensor, torch::Tensor>>* kv = nullptr,
+                                     const std::vector<CrossKV>* kv = nullptr,
                                      ResidualCarry* carry = nullptr);
   std::vector<LayerNorm32> norm1, norm2, norm3;
   MOTSelfAttention self_attn{nullptr};

@@ -38,3 +38,39 @@ TEST(CrossAttentionLayerGpu, SharedConditionPairMajorIsViewsAndMatchesEachRow) {
   EXPECT_TRUE(simu::testing::close(g_shared[0], g_alone[0], 3e-2, "to_q grad"));
   EXPECT_TRUE(simu::testing::close(g_shared[1], g_alone[1], 3e-2, "to_kv grad"));
 }
+
+// Zero-condition rows (CFG's unconditional half) under fp16 autocast with compute copies, as sampling
+// runs them: the output written in place (attended rows' projection into the output, zero rows filled
+// from a precomputed zero_out) equals the concatenation of to_out(attended rows) and to_out(v(0)) bit
+// for bit, with and without zero_out given.
+TEST(CrossAttentionLayerGpu, ZeroConditionRowsWrittenInPlaceMatchConcatenation) {
+  SIMU_REQUIRE_CUDA();
+  const torch::Device dev(torch::kCUDA);
+  const int64_t C = 256, Cc = 96, H = 4, B = 2, Bk = 1, L = 192, Lc = 300;
+  torch::manual_seed(12);
+  simu::models::CrossAttention ca(C, Cc, H, /*qk_rms_norm=*/false);
+  {
+    torch::NoGradGuard ng;
+    for (auto& p : ca->parameters()) p.copy_(torch::randn_like(p) * 0.1);
+  }
+  ca->to(dev);
+  simu::models::set_compute_copies(*ca, torch::kHalf, /*frozen_only=*/false);
+  torch::NoGradGuard ng;
+  auto x = torch::randn({B, L, C}, dev);
+  auto ctx = torch::randn({Bk, Lc, Cc}, dev);
+  simu::models::Autocast ac(simu::models::Precision::kFp16);
+  auto [k, v] = ca->context_kv(ctx);
+  auto zero_out = ca->zero_condition_output(ctx);
+  ASSERT_EQ(zero_out.sizes(), (std::vector<int64_t>{1, 1, C}));
+  auto got = ca->attend(x, k, v, zero_out);
+  auto got_recomputed = ca->attend(x, k, v);
+  // Reference: the attended row through the plain layer, then the zero row's output appended.
+  auto head = ca->attend(x.narrow(0, 0, Bk), k, v);
+  auto want = torch::cat({head, zero_out.expand({B - Bk, L, C})}, 0);
+  EXPECT_EQ(got.scalar_type(), torch::kHalf);
+  EXPECT_TRUE(torch::equal(got, want));
+  EXPECT_TRUE(torch::equal(got_recomputed, want));
+  // And the zero row is what attention over an all-zero condition gives.
+  auto zero_ctx = ca->forward(x.narrow(0, Bk, B - Bk), torch::zeros({1, Lc, Cc}, dev));
+  EXPECT_TRUE(simu::testing::close(got.narrow(0, Bk, B - Bk).to(torch::kFloat32), zero_ctx.to(torch::kFloat32), 1e-2, "zero row"));
+}

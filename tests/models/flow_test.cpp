@@ -140,7 +140,7 @@ TEST(FlowModel, ZeroConditionRowsTakeTheValueBias) {
     auto bb = f.gen->backbone();
     auto full = bb->condition_cache(pair);
     auto skip = bb->condition_cache(pair, 1);
-    ASSERT_EQ(skip.kv[0][0].first.size(0), 1) << "the zero row's keys should not be computed";
+    ASSERT_EQ(skip.kv[0][0].k.size(0), 1) << "the zero row's keys should not be computed";
     auto want = bb->forward(x, t, pair, c10::nullopt, &full);
     auto got = bb->forward(x, t, pair, c10::nullopt, &skip);
     for (const auto& [k, v] : want) EXPECT_TRUE(simu::testing::close(got.at(k), v, 1e-5, std::string(name) + "." + k));
