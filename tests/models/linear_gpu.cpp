@@ -97,7 +97,14 @@ TEST(LinearGpu, FlowForwardWithComputeCopiesIsBitIdentical) {
   };
   const auto ref = train(false), got = train(true);
   ASSERT_EQ(ref.size(), got.size());
-  for (size_t i = 0; i < ref.size(); ++i) EXPECT_TRUE(torch::equal(got[i], ref[i])) << "training tensor " << i;
+  // Outputs bit for bit. The input gradients pass through the attention backward, whose query gradient
+  // cuDNN accumulates with fp32 atomics (run-to-run order differs, seen on an H200 for a pose latent's
+  // gradient): those are compared at bf16 rounding.
+  const size_t n_out = x.size();
+  for (size_t i = 0; i < ref.size(); ++i) {
+    if (i < n_out) EXPECT_TRUE(torch::equal(got[i], ref[i])) << "training output " << i;
+    else EXPECT_TRUE(simu::testing::close(got[i], ref[i], 1e-2, "training input gradient " + std::to_string(i - n_out)));
+  }
   bb->set_training_kernels(false);
 }
 
