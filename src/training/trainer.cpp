@@ -68,6 +68,22 @@ namespace {
 
 const char* kKindNames[2] = {"completion", "preservation"};
 
+// The step's means over its n pairs (all ranks): loss, accuracy, margin and each pair kind's losses.
+void set_means(const StepSums& sums, double n, StepMetrics& m) {
+  m.loss = sums.loss / n;
+  m.accuracy = sums.correct / n;
+  m.margin = sums.margin / n;
+  for (int k = 0; k < 2; ++k) {
+    const auto& s = sums.kind[k];
+    if (s.count == 0) continue;
+    const std::string kn = kKindNames[k];
+    m.per_kind[kn + "/policy_pos"] = s.policy_pos / s.count;
+    m.per_kind[kn + "/policy_neg"] = s.policy_neg / s.count;
+    m.per_kind[kn + "/ref_pos"] = s.ref_pos / s.count;
+    m.per_kind[kn + "/ref_neg"] = s.ref_neg / s.count;
+  }
+}
+
 // The CPU and (when used) CUDA default generators' states, as uint8 tensors under rng.*.
 std::map<std::string, torch::Tensor> rng_states(const torch::Device& device) {
   std::map<std::string, torch::Tensor> out;
@@ -447,18 +463,7 @@ StepMetrics Trainer::step() {
   heartbeat();
   const double n = static_cast<double>(cfg_.data.global_batch);
   m.step = step_;
-  m.loss = sums.loss / n;
-  m.accuracy = sums.correct / n;
-  m.margin = sums.margin / n;
-  for (int k = 0; k < 2; ++k) {
-    const auto& s = sums.kind[k];
-    if (s.count == 0) continue;
-    const std::string kn = kKindNames[k];
-    m.per_kind[kn + "/policy_pos"] = s.policy_pos / s.count;
-    m.per_kind[kn + "/policy_neg"] = s.policy_neg / s.count;
-    m.per_kind[kn + "/ref_pos"] = s.ref_pos / s.count;
-    m.per_kind[kn + "/ref_neg"] = s.ref_neg / s.count;
-  }
+  set_means(sums, n, m);
   settle();
   m.seconds_step = seconds_since(began);
   m.pairs_per_s = n / std::max(m.seconds_step, 1e-9);
