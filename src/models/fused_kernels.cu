@@ -130,9 +130,7 @@ struct TokenHead {
   int bi, l, h;
   int64_t bl, hd, off, row;
 };
-__device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, int D, TokenHead& th) {
-  const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
-  if (item >= static_cast<int64_t>(B) * L * H) return false;
+__device__ __forceinline__ void token_head(int64_t item, int L, int H, int D, TokenHead& th) {
   th.h = static_cast<int>(item % H);
   th.bl = item / H;
   th.l = static_cast<int>(th.bl % L);
@@ -140,7 +138,24 @@ __device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, int D, T
   th.hd = static_cast<int64_t>(H) * D;
   th.off = static_cast<int64_t>(th.h) * D;
   th.row = th.bl * 3 * th.hd + th.off;
+}
+// The item of this warp (one warp per item); false past the end.
+__device__ __forceinline__ bool token_head_of_warp(int B, int L, int H, int D, TokenHead& th) {
+  const int64_t item = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
+  if (item >= static_cast<int64_t>(B) * L * H) return false;
+  token_head(item, L, H, D, th);
   return true;
+}
+// The item of this thread's group of G lanes (G = 8, 16 or 32: 32 / G items per warp) and whether it is
+// real: lanes past the last item take the last one again (live = false) so that every lane of the warp
+// joins the group's shuffles; they must not store.
+template <int G>
+__device__ __forceinline__ bool token_head_of_group(int B, int L, int H, int D, TokenHead& th) {
+  const int64_t items = static_cast<int64_t>(B) * L * H;
+  const int64_t item = (static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / G;
+  const bool live = item < items;
+  token_head(live ? item : items - 1, L, H, D, th);
+  return live;
 }
 
 // One warp per (token, head); each lane handles D / 64 pairs of channels of q, k and v.
@@ -182,6 +197,84 @@ __global__ void split_qkv_rms_norm_kernel(const T* __restrict__ qkv, const float
   for (int i = 0; i < PPL; ++i) dv[lane + 32 * i] = sv[lane + 32 * i];
 }
 
+
+// Eight values of T in one 16-byte word: a lane's share of a head in the wide split kernels.
+template <typename T>
+struct Pack8 {
+  using T2 = typename Half2<T>::T2;
+  static __device__ __forceinline__ void unpack(const uint4& w, float (&f)[8]) {
+    const T2* p = reinterpret_cast<const T2*>(&w);
+#pragma unroll
+    for (int i = 0; i < 4; ++i) {
+      const float2 a = Half2<T>::to_float2(p[i]);
+      f[2 * i] = a.x;
+      f[2 * i + 1] = a.y;
+    }
+  }
+  // (Built from 32-bit words so that the store stays one 16-byte instruction.)
+  static __device__ __forceinline__ uint4 pack(const float (&f)[8]) {
+    uint32_t u[4];
+#pragma unroll
+    for (int i = 0; i < 4; ++i) {
+      const T2 p = Half2<T>::pack(f[2 * i], f[2 * i + 1]);
+      u[i] = *reinterpret_cast<const uint32_t*>(&p);
+    }
+    return make_uint4(u[0], u[1], u[2], u[3]);
+  }
+};
+// Eight fp32 gammas (two 16-byte loads) times scale, as the 4-byte kernels form them: g * scale.
+__device__ __forceinline__ void gamma8(const float* g, float scale, float (&s)[8]) {
+  const float4 a = reinterpret_cast<const float4*>(g)[0], b = reinterpret_cast<const float4*>(g)[1];
+  s[0] = a.x * scale, s[1] = a.y * scale, s[2] = a.z * scale, s[3] = a.w * scale;
+  s[4] = b.x * scale, s[5] = b.y * scale, s[6] = b.z * scale, s[7] = b.w * scale;
+}
+// Sum over the G consecutive lanes of a group (xor shuffles stay inside it); the whole warp must call.
+template <int G>
+__device__ __forceinline__ float group_sum(float v) {
+#pragma unroll
+  for (int o = G / 2; o > 0; o >>= 1) v += __shfl_xor_sync(0xffffffffu, v, o);
+  return v;
+}
+
+// The q/k RMS norm of one (token, head) spread over a group of G lanes, 8 channels a lane:
+// T(x / max(|x|, 1e-12) * (g * scale)), |x| in fp32 (the lane's 8 squares, then the group's sum).
+template <typename T, int G>
+__device__ __forceinline__ uint4 rms_norm8(const uint4& w, const float* g, float scale) {
+  float x[8], gs[8];
+  Pack8<T>::unpack(w, x);
+  gamma8(g, scale, gs);
+  float ss = 0.f;
+#pragma unroll
+  for (int i = 0; i < 8; ++i) ss += x[i] * x[i];
+  const float inv = 1.f / fmaxf(sqrtf(group_sum<G>(ss)), 1e-12f);
+#pragma unroll
+  for (int i = 0; i < 8; ++i) x[i] = x[i] * inv * gs[i];
+  return Pack8<T>::pack(x);
+}
+
+// split_qkv_rms_norm_kernel moving 16 bytes per lane and access: a group of G = 8 * P lanes per
+// (token, head) of D = 64 * P channels (32 / G items per warp), 8 channels of q, k and v per lane, all
+// three loads issued before the norms. Needs qkv, the gammas and the outputs 16-byte aligned and the
+// output strides multiples of 8 elements (split_qkv_wide_ok). Values as the 4-byte kernel's up to the
+// summation order of |x|.
+template <typename T, int P>
+__global__ void split_qkv_rms_norm_wide_kernel(const T* __restrict__ qkv, const float* __restrict__ gq,
+                                               const float* __restrict__ gk, float scale, QkvOut q, QkvOut k, QkvOut v,
+                                               int B, int L, int H) {
+  constexpr int G = 8 * P;
+  TokenHead th;
+  const bool live = token_head_of_group<G>(B, L, H, 64 * P, th);
+  const int64_t c = th.off + 8 * (threadIdx.x % G);  // this lane's first channel within q, k or v
+  const uint4* src = reinterpret_cast<const uint4*>(qkv + th.row - th.off + c);
+  const uint4 wq = src[0], wk = src[th.hd / 8], wv = src[th.hd / 4];
+  const uint4 yq = rms_norm8<T, G>(wq, gq + c, scale), yk = rms_norm8<T, G>(wk, gk + c, scale);
+  if (!live) return;
+  // (__stwb: a plain write-back store, which keeps each one 16-byte wide.)
+  auto at = [&](const QkvOut& o) { return reinterpret_cast<uint4*>(static_cast<T*>(o.ptr) + th.bi * o.sb + th.l * o.sl + c); };
+  __stwb(at(q), yq);
+  __stwb(at(k), yk);
+  __stwb(at(v), wv);
+}
 
 // Backward of the LayerNorm + affine with respect to its input, for rows held by one warp each:
 //   g = gy * w (fp32), xhat = (x - mean) * rstd,
@@ -307,6 +400,62 @@ __global__ void split_qkv_rms_norm_backward_kernel(const T* __restrict__ qkv, co
   }
 }
 
+
+// Backward of rms_norm8 for one (token, head) over a group of G lanes (formula of
+// split_qkv_rms_norm_backward_kernel): u = dy * (g * scale), dx = u / n - x * (u . x) / n^3.
+template <typename T, int G>
+__device__ __forceinline__ uint4 rms_norm8_backward(const uint4& xw, const uint4& dyw, const float* g, float scale) {
+  float x[8], u[8], gs[8];
+  Pack8<T>::unpack(xw, x);
+  Pack8<T>::unpack(dyw, u);
+  gamma8(g, scale, gs);
+  float ss = 0.f, ux = 0.f;
+#pragma unroll
+  for (int i = 0; i < 8; ++i) {
+    u[i] = u[i] * gs[i];
+    ss += x[i] * x[i];
+    ux += u[i] * x[i];
+  }
+  const float n = sqrtf(group_sum<G>(ss));
+  const float dot = group_sum<G>(ux);
+  const bool clamped = !(n > 1e-12f);
+  const float r = 1.f / (clamped ? 1e-12f : n);
+  const float cc = clamped ? 0.f : dot * r * r * r;
+#pragma unroll
+  for (int i = 0; i < 8; ++i) u[i] = u[i] * r - x[i] * cc;
+  return Pack8<T>::pack(u);
+}
+
+// split_qkv_rms_norm_backward_kernel moving 16 bytes per lane and access (groups of G = 8 * P lanes per
+// (token, head), as split_qkv_rms_norm_wide_kernel); every load is issued before the reductions.
+// Needs 16-byte aligned pointers and gradient strides multiple of 8 elements (split_qkv_backward_wide_ok).
+template <typename T, int P>
+__global__ void split_qkv_rms_norm_backward_wide_kernel(const T* __restrict__ qkv, const float* __restrict__ gq,
+                                                        const float* __restrict__ gk, float scale, QkvGrad dq, QkvGrad dk,
+                                                        QkvGrad dv, T* __restrict__ dqkv, int B, int L, int H) {
+  constexpr int G = 8 * P;
+  TokenHead th;
+  const bool live = token_head_of_group<G>(B, L, H, 64 * P, th);
+  const int64_t c = th.off + 8 * (threadIdx.x % G);
+  const int64_t base = th.row - th.off + c;  // this lane's q channels in qkv / dqkv
+  const uint4* src = reinterpret_cast<const uint4*>(qkv + base);
+  auto grad = [&](const QkvGrad& gr) {
+    return reinterpret_cast<const uint4*>(static_cast<const T*>(gr.ptr) + th.bi * gr.sb + th.l * gr.sl + th.h * gr.sh +
+                                          (c - th.off));
+  };
+  // Loads first (a null gradient is not read: its part is zero).
+  const uint4 zero = make_uint4(0u, 0u, 0u, 0u);
+  const uint4 xq = dq.ptr ? src[0] : zero, xk = dk.ptr ? src[th.hd / 8] : zero;
+  const uint4 gyq = dq.ptr ? *grad(dq) : zero, gyk = dk.ptr ? *grad(dk) : zero, gyv = dv.ptr ? *grad(dv) : zero;
+  const uint4 oq = dq.ptr ? rms_norm8_backward<T, G>(xq, gyq, gq + c, scale) : zero;
+  const uint4 ok = dk.ptr ? rms_norm8_backward<T, G>(xk, gyk, gk + c, scale) : zero;
+  if (!live) return;
+  uint4* dst = reinterpret_cast<uint4*>(dqkv + base);
+  dst[0] = oq;
+  dst[th.hd / 8] = ok;
+  dst[th.hd / 4] = gyv;
+}
+
 // Scalar conversions of the modulation's storage types (round to nearest even, as ATen's casts).
 template <typename T>
 struct Scalar;
@@ -392,12 +541,37 @@ cudaError_t residual_layer_norm_affine(const float* x, const T* h, const float* 
   });
 }
 
+namespace {
+bool aligned16(const void* p) { return reinterpret_cast<uintptr_t>(p) % 16 == 0; }
+// The wide kernels' grid: a group of 8 * P lanes per item, blocks of kBlock threads.
+dim3 wide_grid_for(int64_t items, int P) { return dim3(static_cast<unsigned>((items * 8 * P + kBlock.x - 1) / kBlock.x)); }
+}  // namespace
+
+bool split_qkv_wide_ok(const void* qkv, const float* gq, const float* gk, QkvOut q, QkvOut k, QkvOut v) {
+  auto out_ok = [](const QkvOut& o) { return aligned16(o.ptr) && o.sb % 8 == 0 && o.sl % 8 == 0; };
+  return aligned16(qkv) && aligned16(gq) && aligned16(gk) && out_ok(q) && out_ok(k) && out_ok(v);
+}
+
+bool split_qkv_backward_wide_ok(const void* qkv, const float* gq, const float* gk, QkvGrad dq, QkvGrad dk, QkvGrad dv,
+                                const void* dqkv) {
+  auto grad_ok = [](const QkvGrad& g) {
+    return !g.ptr || (aligned16(g.ptr) && g.sb % 8 == 0 && g.sl % 8 == 0 && g.sh % 8 == 0);
+  };
+  return aligned16(qkv) && aligned16(gq) && aligned16(gk) && aligned16(dqkv) && grad_ok(dq) && grad_ok(dk) && grad_ok(dv);
+}
+
 template <typename T>
 cudaError_t split_qkv_rms_norm(const T* qkv, const float* gq, const float* gk, float scale, QkvOut q, QkvOut k, QkvOut v,
-                               int B, int L, int H, int D, cudaStream_t stream) {
+                               int B, int L, int H, int D, bool wide, cudaStream_t stream) {
+  const int64_t items = static_cast<int64_t>(B) * L * H;
+  if (items == 0) return cudaSuccess;
+  if (wide && !split_qkv_wide_ok(qkv, gq, gk, q, k, v)) return cudaErrorMisalignedAddress;
   return by_head_dim(D, [&](auto p) {
-    split_qkv_rms_norm_kernel<T, decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
-        qkv, gq, gk, scale, q, k, v, B, L, H);
+    constexpr int P = decltype(p)::value;
+    if (wide)
+      split_qkv_rms_norm_wide_kernel<T, P><<<wide_grid_for(items, P), kBlock, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H);
+    else
+      split_qkv_rms_norm_kernel<T, P><<<grid_for(items), kBlock, 0, stream>>>(qkv, gq, gk, scale, q, k, v, B, L, H);
   });
 }
 
@@ -413,10 +587,18 @@ cudaError_t layer_norm_affine_backward(const float* x, const float* w, int64_t r
 
 template <typename T>
 cudaError_t split_qkv_rms_norm_backward(const T* qkv, const float* gq, const float* gk, float scale, QkvGrad dq, QkvGrad dk,
-                                        QkvGrad dv, T* dqkv, int B, int L, int H, int D, cudaStream_t stream) {
+                                        QkvGrad dv, T* dqkv, int B, int L, int H, int D, bool wide, cudaStream_t stream) {
+  const int64_t items = static_cast<int64_t>(B) * L * H;
+  if (items == 0) return cudaSuccess;
+  if (wide && !split_qkv_backward_wide_ok(qkv, gq, gk, dq, dk, dv, dqkv)) return cudaErrorMisalignedAddress;
   return by_head_dim(D, [&](auto p) {
-    split_qkv_rms_norm_backward_kernel<T, decltype(p)::value><<<grid_for(static_cast<int64_t>(B) * L * H), kBlock, 0, stream>>>(
-        qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H);
+    constexpr int P = decltype(p)::value;
+    if (wide)
+      split_qkv_rms_norm_backward_wide_kernel<T, P><<<wide_grid_for(items, P), kBlock, 0, stream>>>(
+          qkv, gq, gk, scale, dq, dk, dv, dqkv, B, L, H);
+    else
+      split_qkv_rms_norm_backward_kernel<T, P><<<grid_for(items), kBlock, 0, stream>>>(qkv, gq, gk, scale, dq, dk, dv, dqkv,
+                                                                                        B, L, H);
   });
 }
 
@@ -439,12 +621,12 @@ template cudaError_t modulation_rows<float>(const float*, float*, int64_t, int64
   template cudaError_t residual_layer_norm_affine<T>(const float*, const T*, const float*, int64_t, float*, const float*, \
                                                      const float*, T*, int64_t, int64_t, int, float, cudaStream_t);      \
   template cudaError_t split_qkv_rms_norm<T>(const T*, const float*, const float*, float, QkvOut, QkvOut, QkvOut, int,   \
-                                             int, int, int, cudaStream_t);                                               \
+                                             int, int, int, bool, cudaStream_t);                                         \
   template cudaError_t layer_norm_affine_backward<T>(const float*, const float*, int64_t, const T*, const float*,        \
                                                      const float*, int64_t, float*, T*, int64_t, int, float,             \
                                                      cudaStream_t);                                                      \
   template cudaError_t split_qkv_rms_norm_backward<T>(const T*, const float*, const float*, float, QkvGrad, QkvGrad,     \
-                                                      QkvGrad, T*, int, int, int, int, cudaStream_t);
+                                                      QkvGrad, T*, int, int, int, int, bool, cudaStream_t);
 SIMU_INSTANTIATE(__nv_bfloat16)
 SIMU_INSTANTIATE(__half)
 #undef SIMU_INSTANTIATE

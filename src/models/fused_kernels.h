@@ -27,14 +27,20 @@ cudaError_t residual_layer_norm_affine(const float* x, const T* h, const float* 
 
 // From a fused projection qkv [B, L, 3, H, D] (T, contiguous) writes, per token and head,
 //   q = T(q / max(|q|, 1e-12) * gq[h] * scale), k likewise with gk, v copied,
-// into outputs (of type T) addressed as out + b*sb + l*sl + h*D + d (strides in elements). D % 64 == 0, D <= 256.
+// into outputs (of type T) addressed as out + b*sb + l*sl + h*D + d (strides in elements). D in 64, 128, 256.
+// Two kernels: wide = false, one warp per (token, head), 4 bytes per lane and access (needs 4-byte aligned
+// outputs and even strides); wide = true, 8 lanes per 64 channels of a head (4 heads of 64 per warp, 2 of
+// 128, 1 of 256), 16 bytes per lane and access: needs split_qkv_wide_ok (else cudaErrorMisalignedAddress).
+// Same per-element arithmetic; only the summation order of |q|, |k| differs.
 struct QkvOut {
   void* ptr;
   int64_t sb, sl;
 };
 template <typename T>
 cudaError_t split_qkv_rms_norm(const T* qkv, const float* gq, const float* gk, float scale, QkvOut q, QkvOut k, QkvOut v,
-                               int B, int L, int H, int D, cudaStream_t stream);
+                               int B, int L, int H, int D, bool wide, cudaStream_t stream);
+// Whether the wide kernel may run: qkv, gq, gk and the outputs 16-byte aligned, output strides multiples of 8.
+bool split_qkv_wide_ok(const void* qkv, const float* gq, const float* gk, QkvOut q, QkvOut k, QkvOut v);
 
 // Backward of layer_norm_affine (and of residual_layer_norm_affine) with respect to x only:
 //   dx = LN'(x)^T (gy * w[r / rows_per_w]) + gx_in   (fp32; gy null: LayerNorm term 0; gx_in null: 0)
@@ -51,9 +57,14 @@ struct QkvGrad {
   const void* ptr;
   int64_t sb, sl, sh;
 };
+// wide: the 16-byte kernel (as split_qkv_rms_norm's), which needs split_qkv_backward_wide_ok.
 template <typename T>
 cudaError_t split_qkv_rms_norm_backward(const T* qkv, const float* gq, const float* gk, float scale, QkvGrad dq, QkvGrad dk,
-                                        QkvGrad dv, T* dqkv, int B, int L, int H, int D, cudaStream_t stream);
+                                        QkvGrad dv, T* dqkv, int B, int L, int H, int D, bool wide, cudaStream_t stream);
+// Whether the wide backward may run: qkv, gammas, dqkv and the non-null gradients 16-byte aligned, gradient
+// strides multiples of 8 elements.
+bool split_qkv_backward_wide_ok(const void* qkv, const float* gq, const float* gk, QkvGrad dq, QkvGrad dk, QkvGrad dv,
+                                const void* dqkv);
 
 // The adaLN modulation of a block as fp32 rows: m [rows, 6C] (T contiguous: bf16, fp16 or float; six chunks
 // of C channels) -> out [6, rows, C] float32 contiguous, out[k, r, c] = m[r, k*C + c] widened to fp32, except

@@ -21,6 +21,8 @@ namespace {
 
 std::atomic<int64_t> g_launches{0};
 std::atomic<int64_t> g_modulation_launches{0};
+std::atomic<bool> g_split_wide{true};
+std::atomic<int64_t> g_split_wide_launches{0};
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
 void check_cuda(cudaError_t e, const char* what) {
@@ -52,12 +54,19 @@ void check_out(const torch::Tensor& o, const torch::Tensor& qkv, const char* nam
   SIMU_CHECK(o.scalar_type() == qkv.scalar_type() && o.stride(3) == 1 && o.stride(2) == o.size(3) && o.device() == qkv.device(),
              "split_qkv_rms_norm: {} must be a {} view (qkv's dtype) on {} with contiguous heads", name,
              c10::toString(qkv.scalar_type()), qkv.device().str());
+  // The 4-byte kernel stores pairs of values: 4-byte aligned rows (the 16-byte one wants more, else this one runs).
+  SIMU_CHECK(reinterpret_cast<uintptr_t>(o.data_ptr()) % 4 == 0 && o.stride(0) % 2 == 0 && o.stride(1) % 2 == 0,
+             "split_qkv_rms_norm: {} must start 4-byte aligned with even batch/token strides, got strides [{}]", name,
+             fmt::join(o.strides(), ", "));
 }
 
 }  // namespace
 
 int64_t launch_count() { return g_launches.load(); }
 int64_t modulation_launch_count() { return g_modulation_launches.load(); }
+void set_split_qkv_wide(bool on) { g_split_wide = on; }
+bool split_qkv_wide() { return g_split_wide.load(); }
+int64_t split_qkv_wide_launch_count() { return g_split_wide_launches.load(); }
 
 bool is_low_precision(torch::ScalarType dtype) { return dtype == torch::kBFloat16 || dtype == torch::kHalf; }
 
@@ -319,17 +328,66 @@ void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, 
              c10::toString(qkv.scalar_type()), qkv.device().str());
   auto gq = gamma_q.to(torch::kFloat32).contiguous(), gk = gamma_k.to(torch::kFloat32).contiguous();
   auto out = [](torch::Tensor& t) { return kernels::QkvOut{t.data_ptr(), t.stride(0), t.stride(1)}; };
+  // The 16-byte kernel where everything is aligned for it (and it is not switched off), else the 4-byte one.
+  const bool wide = g_split_wide && kernels::split_qkv_wide_ok(qkv.data_ptr(), gq.data_ptr<float>(), gk.data_ptr<float>(),
+                                                                out(q), out(k), out(v));
   ++g_launches;
+  if (wide) ++g_split_wide_launches;
   by_dtype(qkv.scalar_type(), [&](auto t) {
     using T = decltype(t);
     check_cuda(kernels::split_qkv_rms_norm<T>(ptr<const T>(qkv), gq.data_ptr<float>(), gk.data_ptr<float>(),
                                               static_cast<float>(scale), out(q), out(k), out(v), static_cast<int>(B),
-                                              static_cast<int>(L), static_cast<int>(H), static_cast<int>(D),
+                                              static_cast<int>(L), static_cast<int>(H), static_cast<int>(D), wide,
                                               c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
                "split_qkv_rms_norm");
   });
 #else
   split_qkv_rms_norm_reference(qkv, gamma_q, gamma_k, scale, q, k, v);
+#endif
+}
+
+torch::Tensor split_qkv_rms_norm_backward(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k,
+                                          double scale, const torch::Tensor& dq, const torch::Tensor& dk,
+                                          const torch::Tensor& dv) {
+  const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
+  SIMU_CHECK(supports_split_qkv(qkv), "split_qkv_rms_norm_backward: unsupported qkv [{}] {} on {}",
+             fmt::join(qkv.sizes(), ", "), c10::toString(qkv.scalar_type()), qkv.device().str());
+  SIMU_CHECK(gamma_q.sizes() == torch::IntArrayRef({H, D}) && gamma_k.sizes() == gamma_q.sizes(),
+             "split_qkv_rms_norm_backward: gammas must be [{}, {}]", H, D);
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  auto gq = gamma_q.to(torch::kFloat32).contiguous(), gk = gamma_k.to(torch::kFloat32).contiguous();
+  // Incoming gradients as strided views in qkv's dtype with contiguous channels and 4-byte aligned rows
+  // (what the 4-byte kernel needs; copied contiguous otherwise).
+  std::vector<torch::Tensor> keep;
+  auto view = [&](const torch::Tensor& g, const char* name) {
+    if (!g.defined()) return kernels::QkvGrad{nullptr, 0, 0, 0};
+    SIMU_CHECK(g.dim() == 4 && g.size(0) == B && g.size(1) == L && g.size(2) == H && g.size(3) == D,
+               "split_qkv_rms_norm_backward: {} must be [{}, {}, {}, {}], got [{}]", name, B, L, H, D,
+               fmt::join(g.sizes(), ", "));
+    auto t = g.to(qkv.device(), qkv.scalar_type());
+    const bool ok = t.stride(3) == 1 && t.stride(0) % 2 == 0 && t.stride(1) % 2 == 0 && t.stride(2) % 2 == 0 &&
+                    reinterpret_cast<uintptr_t>(t.data_ptr()) % 4 == 0;
+    if (!ok) t = t.contiguous();
+    keep.push_back(t);
+    return kernels::QkvGrad{t.data_ptr(), t.stride(0), t.stride(1), t.stride(2)};
+  };
+  const auto gdq = view(dq, "dq"), gdk = view(dk, "dk"), gdv = view(dv, "dv");
+  auto dqkv = torch::empty_like(qkv);
+  const bool wide = g_split_wide && kernels::split_qkv_backward_wide_ok(qkv.data_ptr(), gq.data_ptr<float>(),
+                                                                         gk.data_ptr<float>(), gdq, gdk, gdv, dqkv.data_ptr());
+  ++g_launches;
+  if (wide) ++g_split_wide_launches;
+  by_dtype(qkv.scalar_type(), [&](auto tag) {
+    using T = decltype(tag);
+    check_cuda(kernels::split_qkv_rms_norm_backward<T>(
+                   ptr<const T>(qkv), gq.data_ptr<float>(), gk.data_ptr<float>(), static_cast<float>(scale), gdq, gdk, gdv,
+                   ptr<T>(dqkv), static_cast<int>(B), static_cast<int>(L), static_cast<int>(H), static_cast<int>(D), wide,
+                   c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
+               "split_qkv_rms_norm_backward");
+  });
+  return dqkv;
+#else
+  simu::fail("split_qkv_rms_norm_backward: built without the CUDA kernels");
 #endif
 }
 
@@ -349,6 +407,7 @@ struct SplitQkvRmsNormFn : public torch::autograd::Function<SplitQkvRmsNormFn> {
   static torch::autograd::variable_list forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& qkv,
                                                 const torch::Tensor& gamma_q, const torch::Tensor& gamma_k, double scale) {
     auto [q, k, v] = split_into_new(qkv, gamma_q, gamma_k, scale);
+    ctx->set_materialize_grads(false);  // an output without a gradient reaches backward undefined: not read
     ctx->save_for_backward({qkv, gamma_q.to(torch::kFloat32).contiguous(), gamma_k.to(torch::kFloat32).contiguous()});
     ctx->saved_data["scale"] = scale;
     return {q, k, v};
@@ -356,31 +415,8 @@ struct SplitQkvRmsNormFn : public torch::autograd::Function<SplitQkvRmsNormFn> {
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grad) {
     const auto saved = ctx->get_saved_variables();
-    const auto& qkv = saved[0];
-    const int64_t B = qkv.size(0), L = qkv.size(1), H = qkv.size(3), D = qkv.size(4);
-    // Incoming gradients as strided views in qkv's dtype with contiguous channels and 4-byte aligned rows.
-    std::vector<torch::Tensor> keep;
-    auto view = [&](const torch::Tensor& g) {
-      if (!g.defined()) return kernels::QkvGrad{nullptr, 0, 0, 0};
-      auto t = g.to(qkv.scalar_type());
-      const bool ok = t.stride(3) == 1 && t.stride(0) % 2 == 0 && t.stride(1) % 2 == 0 && t.stride(2) % 2 == 0 &&
-                      reinterpret_cast<uintptr_t>(t.data_ptr()) % 4 == 0;
-      if (!ok) t = t.contiguous();
-      keep.push_back(t);
-      return kernels::QkvGrad{t.data_ptr(), t.stride(0), t.stride(1), t.stride(2)};
-    };
-    const auto dq = view(grad[0]), dk = view(grad[1]), dv = view(grad[2]);
-    auto dqkv = torch::empty_like(qkv);
-    ++g_launches;
-    by_dtype(qkv.scalar_type(), [&](auto tag) {
-      using T = decltype(tag);
-      check_cuda(kernels::split_qkv_rms_norm_backward<T>(
-                     ptr<const T>(qkv), saved[1].data_ptr<float>(), saved[2].data_ptr<float>(),
-                     static_cast<float>(ctx->saved_data["scale"].toDouble()), dq, dk, dv, ptr<T>(dqkv), static_cast<int>(B),
-                     static_cast<int>(L), static_cast<int>(H), static_cast<int>(D),
-                     c10::cuda::getCurrentCUDAStream(qkv.device().index()).stream()),
-                 "split_qkv_rms_norm_backward");
-    });
+    auto dqkv = split_qkv_rms_norm_backward(saved[0], saved[1], saved[2], ctx->saved_data["scale"].toDouble(), grad[0],
+                                            grad[1], grad[2]);
     return {dqkv, torch::Tensor(), torch::Tensor(), torch::Tensor()};
   }
 };

@@ -62,11 +62,29 @@ torch::Tensor multi_head_rms_norm_reference(const torch::Tensor& x, const torch:
 
 // Splits a fused projection qkv: [B, L, 3, H, D] bf16 or fp16 into q, k, v (qkv's dtype), with the official multi-head
 // RMS norm on q and k (q / max(|q|, 1e-12) * gamma * scale in fp32, gamma: [H, D] float32).
-// Writes into the given outputs ([B, L, H, D] views, last two dims contiguous, any batch/token strides),
-// so that k and v can land directly in a larger key/value buffer.
+// Writes into the given outputs ([B, L, H, D] views, last two dims contiguous, any even batch/token strides,
+// 4-byte aligned), so that k and v can land directly in a larger key/value buffer.
+// Two kernels, same per-element arithmetic (only the summation order of |q|, |k| differs): a 16-byte one
+// (8 lanes per 64 channels of a head, 16 bytes per lane and access) when qkv, the fp32 gammas and every
+// output are 16-byte aligned with strides a multiple of 8 elements, else the 4-byte one (one warp per
+// token and head). The reference below stays the reference for both.
 bool supports_split_qkv(const torch::Tensor& qkv);
 void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k, double scale,
                         torch::Tensor q, torch::Tensor k, torch::Tensor v);
+// The backward kernel of split_qkv_rms_norm_autograd at tensor level: the gradients of q, k, v ([B, L, H, D],
+// any dtype, any layout; undefined: zero; rows with contiguous channels, 4-byte aligned and even strides are
+// read in place, others copied) -> dqkv [B, L, 3, H, D] in qkv's dtype, contiguous:
+//   dq_in = u / n - q * (u . q) / n^3 with u = dq * gamma_q * scale, n = |q| (n <= 1e-12: u / 1e-12); k alike;
+//   dv_in = dv. Wide (16-byte) kernel when qkv, gammas, dqkv and the gradients are 16-byte aligned with strides
+// a multiple of 8 elements. CUDA kernels only (supports_split_qkv).
+torch::Tensor split_qkv_rms_norm_backward(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k,
+                                          double scale, const torch::Tensor& dq, const torch::Tensor& dk,
+                                          const torch::Tensor& dv);
+// Switches the 16-byte split kernels on (default) or off (the 4-byte ones always: benchmarks and tests of
+// the fallback), process-wide; split_qkv_wide_launch_count counts 16-byte launches, forward and backward.
+void set_split_qkv_wide(bool on);
+bool split_qkv_wide();
+int64_t split_qkv_wide_launch_count();
 void split_qkv_rms_norm_reference(const torch::Tensor& qkv, const torch::Tensor& gamma_q, const torch::Tensor& gamma_k,
                                   double scale, torch::Tensor q, torch::Tensor k, torch::Tensor v);
 

@@ -92,35 +92,100 @@ TEST(FusedOpsGpu, ResidualLayerNormAffineMatchesReference) {
   }
 }
 
-TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
-  SIMU_REQUIRE_CUDA();
-  ASSERT_TRUE(simu::models::fused::compiled());
-  torch::manual_seed(2);
-  for (const auto dt : kLow) {
-  SCOPED_TRACE(name(dt));
-  const auto bf = torch::TensorOptions().device(torch::kCUDA).dtype(dt);
-  const int64_t B = 2, L = 517, H = 16, D = 64, extra = 5;
-  auto qkv = (torch::randn({B, L, 3, H, D}, bf.dtype(torch::kFloat32)) * 4).to(dt);
+namespace {
+// The split shapes the tests run: (B, L, H, D). The real stream's 16 heads of 64 at 4,096 + 4 tokens, batch 2
+// and 1 (B*L*H a multiple of the 16-byte kernel's 4 heads per warp); odd item counts B*L*H, so that the last
+// warp of the 16-byte kernel has lanes past the end (2,585 heads of 64: 4 per warp; 231 of 128: 2 per warp);
+// and heads of 256 (one per warp).
+struct SplitShape {
+  int64_t B, L, H, D;
+};
+const std::vector<SplitShape> kSplitShapes = {{2, 4100, 16, 64}, {1, 4100, 16, 64}, {1, 517, 5, 64}, {1, 77, 3, 128},
+                                              {2, 33, 3, 256}};
+std::string split_name(torch::ScalarType dt, const SplitShape& s) {
+  return fmt::format("{} B {} L {} H {} D {}", name(dt), s.B, s.L, s.H, s.D);
+}
+
+// One split case against the ATen reference: q into a new tensor, k and v into a larger key/value buffer at
+// an offset of `extra` tokens (as the pose tokens come first), through the kernel `wide` says (checked with
+// the 16-byte launch counter). Returns q for comparing the two kernels.
+torch::Tensor check_split(torch::ScalarType dt, const SplitShape& s, int64_t extra, bool wide) {
+  const auto opt = torch::TensorOptions().device(torch::kCUDA).dtype(dt);
+  const auto f32 = opt.dtype(torch::kFloat32);
+  auto qkv = (torch::randn({s.B, s.L, 3, s.H, s.D}, f32) * 4).to(dt);
   qkv.select(1, 3).select(1, 0).select(1, 0).zero_();  // a zero query (token 3, head 0): the clamp keeps it zero
-  auto gq = 1 + 0.2 * torch::randn({H, D}, bf.dtype(torch::kFloat32)), gk = torch::randn({H, D}, bf.dtype(torch::kFloat32));
-  // Keys and values land in a larger buffer at an offset (the pose stream's keys come first).
-  auto k_buf = torch::zeros({B, L + extra, H, D}, bf), v_buf = torch::zeros({B, L + extra, H, D}, bf);
-  auto q = torch::empty({B, L, H, D}, bf);
-  simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q, k_buf.narrow(1, extra, L), v_buf.narrow(1, extra, L));
+  auto gq = 1 + 0.2 * torch::randn({s.H, s.D}, f32), gk = torch::randn({s.H, s.D}, f32);
+  auto k_buf = torch::zeros({s.B, s.L + extra, s.H, s.D}, opt), v_buf = torch::zeros({s.B, s.L + extra, s.H, s.D}, opt);
+  auto q = torch::empty({s.B, s.L, s.H, s.D}, opt);
+  const auto n0 = simu::models::fused::launch_count(), w0 = simu::models::fused::split_qkv_wide_launch_count();
+  simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q, k_buf.narrow(1, extra, s.L), v_buf.narrow(1, extra, s.L));
+  EXPECT_EQ(simu::models::fused::launch_count(), n0 + 1);
+  EXPECT_EQ(simu::models::fused::split_qkv_wide_launch_count(), w0 + (wide ? 1 : 0)) << "wide path expected: " << wide;
   auto q_ref = torch::empty_like(q), k_ref = torch::empty_like(q), v_ref = torch::empty_like(q);
   simu::models::fused::split_qkv_rms_norm_reference(qkv, gq, gk, 8.0, q_ref, k_ref, v_ref);
   EXPECT_LE(rel(q, q_ref), ulp(dt));
-  EXPECT_LE(rel(k_buf.narrow(1, extra, L), k_ref), ulp(dt));
-  EXPECT_TRUE(torch::equal(v_buf.narrow(1, extra, L), v_ref));
+  EXPECT_LE(rel(k_buf.narrow(1, extra, s.L), k_ref), ulp(dt));
+  EXPECT_TRUE(torch::equal(v_buf.narrow(1, extra, s.L), v_ref));
   EXPECT_EQ(q.select(1, 3).select(1, 0).abs().max().item<float>(), 0.f);
   // The buffer outside the written slice is untouched.
-  EXPECT_EQ(k_buf.narrow(1, 0, extra).abs().max().item<float>(), 0.f);
-  // Independent check of the norm: |q| = scale * |gamma-weighted unit vector|; with gamma = 1 it is scale.
-  auto ones = torch::ones({H, D}, bf.dtype(torch::kFloat32));
-  simu::models::fused::split_qkv_rms_norm(qkv, ones, ones, 8.0, q, k_ref, v_ref);
-  auto norms = q.to(torch::kFloat32).norm(2, {-1});  // [B, L, H]
-  norms.select(1, 3).select(1, 0).fill_(8.0);          // the zero query
+  if (extra > 0) EXPECT_EQ(k_buf.narrow(1, 0, extra).abs().max().item<float>(), 0.f);
+  if (extra > 0) EXPECT_EQ(v_buf.narrow(1, 0, extra).abs().max().item<float>(), 0.f);
+  // Independent check of the norm: with gamma = 1, |q| = scale (8) for every nonzero query.
+  auto ones = torch::ones({s.H, s.D}, f32);
+  auto q1 = torch::empty_like(q);
+  simu::models::fused::split_qkv_rms_norm(qkv, ones, ones, 8.0, q1, k_ref, v_ref);
+  auto norms = q1.to(torch::kFloat32).norm(2, {-1});  // [B, L, H]
+  norms.select(1, 3).select(1, 0).fill_(8.0);           // the zero query
   EXPECT_LT((norms - 8.0).abs().max().item<double>(), 8.0 * 0.01);
+  return q;
+}
+}  // namespace
+
+// The split kernels against the ATen reference in both storage types, batch 1 and 2, head dims 64 / 128 /
+// 256 and item counts that leave the 16-byte kernel's last warp partly empty. Paths: the 16-byte kernel
+// (aligned outputs, k/v at a 16-byte aligned token offset), the 4-byte one forced (set_split_qkv_wide(false))
+// and taken by itself for an output at a 4-byte (not 16-byte) aligned offset; the two kernels agree.
+TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  ASSERT_TRUE(simu::models::fused::split_qkv_wide()) << "the 16-byte split kernels are on by default";
+  for (const auto dt : kLow)
+  for (const auto& s : kSplitShapes) {
+    SCOPED_TRACE(split_name(dt, s));
+    // The same inputs (seed) through both kernels: one rounding of fp32 values that differ only in the
+    // summation order of the norms, so at most one ulp apart.
+    torch::manual_seed(2);
+    auto q_wide = check_split(dt, s, 4, true);
+    simu::models::fused::set_split_qkv_wide(false);
+    torch::manual_seed(2);
+    auto q_narrow = check_split(dt, s, 4, false);
+    simu::models::fused::set_split_qkv_wide(true);
+    EXPECT_LE(rel(q_wide, q_narrow), ulp(dt));
+    // No offset: k and v start the buffer.
+    torch::manual_seed(3);
+    (void)check_split(dt, s, 0, true);
+  }
+  // An output 4-byte but not 16-byte aligned (2 elements into its buffer): the 4-byte kernel.
+  torch::manual_seed(4);
+  const int64_t B = 2, L = 517, H = 16, D = 64;
+  for (const auto dt : kLow) {
+    SCOPED_TRACE(name(dt));
+    const auto opt = torch::TensorOptions().device(torch::kCUDA).dtype(dt);
+    auto qkv = (torch::randn({B, L, 3, H, D}, opt.dtype(torch::kFloat32)) * 4).to(dt);
+    auto gq = 1 + 0.2 * torch::randn({H, D}, opt.dtype(torch::kFloat32)), gk = torch::randn({H, D}, opt.dtype(torch::kFloat32));
+    auto q = torch::empty({B * L * H * D + 2}, opt).narrow(0, 2, B * L * H * D).view({B, L, H, D});
+    auto k = torch::empty_like(q), v = torch::empty_like(q);  // aligned: one unaligned output is enough
+    const auto w0 = simu::models::fused::split_qkv_wide_launch_count();
+    simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q, k, v);
+    EXPECT_EQ(simu::models::fused::split_qkv_wide_launch_count(), w0) << "an unaligned output takes the 4-byte kernel";
+    auto q_ref = torch::empty_like(k), k_ref = torch::empty_like(k), v_ref = torch::empty_like(k);
+    simu::models::fused::split_qkv_rms_norm_reference(qkv, gq, gk, 8.0, q_ref, k_ref, v_ref);
+    EXPECT_LE(rel(q, q_ref), ulp(dt));
+    EXPECT_LE(rel(k, k_ref), ulp(dt));
+    EXPECT_TRUE(torch::equal(v, v_ref));
+    // An output at an odd element offset cannot take either kernel: an error naming it.
+    auto q_odd = torch::empty({B * L * H * D + 1}, opt).narrow(0, 1, B * L * H * D).view({B, L, H, D});
+    EXPECT_THROW(simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q_odd, k, v), simu::Error);
   }
 }
 
@@ -366,53 +431,117 @@ TEST(FusedOpsGpu, ResidualLayerNormAffineGradientMatchesFp64) {
   }
 }
 
+namespace {
+// fp64 autograd of the split (F.normalize(x) * gamma * scale for q and k, v copied) from the same 16-bit
+// qkv, given the incoming gradients of q, k, v ([B, L, H, D], undefined: none) -> dqkv [B, L, 3, H, D] fp64.
+torch::Tensor split_grad64(const torch::Tensor& qkv, const torch::Tensor& gq, const torch::Tensor& gk, double scale,
+                           const std::vector<torch::Tensor>& grads) {
+  auto x64 = qkv.detach().to(torch::kFloat64).requires_grad_();
+  auto norm64 = [&](const torch::Tensor& x, const torch::Tensor& g) {
+    return x / x.norm(2, -1, true).clamp_min(1e-12) * (g.to(torch::kFloat64) * scale);
+  };
+  const std::vector<torch::Tensor> outs = {norm64(x64.select(2, 0), gq), norm64(x64.select(2, 1), gk), x64.select(2, 2)};
+  auto loss = torch::zeros({}, x64.options());
+  for (int p = 0; p < 3; ++p)
+    if (grads[p].defined()) loss = loss + (outs[p] * grads[p].to(torch::kFloat64)).sum();
+  loss.backward();
+  return x64.grad();
+}
+// dqkv against split_grad64: one rounding to the storage type (a ulp of the largest value), per part, and
+// a small mean error.
+void expect_split_grad(const torch::Tensor& got, const torch::Tensor& want, torch::ScalarType dt) {
+  ASSERT_EQ(got.scalar_type(), dt);
+  for (int part = 0; part < 3; ++part) EXPECT_LE(rel(got.select(2, part), want.select(2, part)), ulp(dt)) << "part " << part;
+  EXPECT_LT((got.to(torch::kFloat64) - want).abs().mean().item<double>(), 2e-3 * want.abs().mean().item<double>() + 1e-6);
+}
+}  // namespace
+
+// The differentiable split (forward and backward kernels through autograd) against fp64 autograd, in both
+// storage types and the shapes of kSplitShapes, with the gradients arriving as attention hands them back
+// (permuted [B, H, L, D] views): both launches take the 16-byte kernels. Then only q used (no incoming
+// gradient for k and v: zero parts).
 TEST(FusedOpsGpu, SplitQkvRmsNormGradientMatchesFp64) {
   SIMU_REQUIRE_CUDA();
   ASSERT_TRUE(simu::models::fused::compiled());
   torch::manual_seed(13);
   const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const double scale = 8.0;
+  for (const auto dt : kLow)
+  for (const auto& s : kSplitShapes) {
+    SCOPED_TRACE(split_name(dt, s));
+    auto qkv = (torch::randn({s.B, s.L, 3, s.H, s.D}, f32) * 4).to(dt).requires_grad_();
+    auto gq = 1 + 0.1 * torch::randn({s.H, s.D}, f32), gk = 1 + 0.1 * torch::randn({s.H, s.D}, f32);
+    const auto n0 = simu::models::fused::launch_count(), w0 = simu::models::fused::split_qkv_wide_launch_count();
+    auto [q, k, v] = simu::models::fused::split_qkv_rms_norm_autograd(qkv, gq, gk, scale);
+    EXPECT_EQ(simu::models::fused::launch_count(), n0 + 1);
+    // Values: as the reference split.
+    auto rq = torch::empty_like(q), rk = torch::empty_like(k), rv = torch::empty_like(v);
+    simu::models::fused::split_qkv_rms_norm_reference(qkv.detach(), gq, gk, scale, rq, rk, rv);
+    EXPECT_LE(rel(q, rq), ulp(dt));
+    EXPECT_LE(rel(k, rk), ulp(dt));
+    EXPECT_TRUE(torch::equal(v, rv));
+    // Gradients through [B, H, L, D] permuted views (rounded to dt on their way to the dt outputs).
+    auto r = [&] { return torch::randn({s.B, s.H, s.L, s.D}, f32); };
+    auto Rq = r(), Rk = r(), Rv = r();
+    auto loss = (q.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rq).sum() +
+                (k.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rk).sum() + (v.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rv).sum();
+    loss.backward();
+    EXPECT_EQ(simu::models::fused::launch_count(), n0 + 2);
+    EXPECT_EQ(simu::models::fused::split_qkv_wide_launch_count(), w0 + 2) << "16-byte forward and backward";
+    auto in = [&](const torch::Tensor& R) { return R.to(dt).permute({0, 2, 1, 3}); };  // [B, L, H, D]
+    const auto want = split_grad64(qkv, gq, gk, scale, {in(Rq), in(Rk), in(Rv)});
+    expect_split_grad(qkv.grad(), want, dt);
+    // Only q used: zero gradients for the k and v parts.
+    qkv.mutable_grad() = torch::Tensor();
+    auto [q2, k2, v2] = simu::models::fused::split_qkv_rms_norm_autograd(qkv, gq, gk, scale);
+    (q2.to(torch::kFloat32) * Rq.permute({0, 2, 1, 3})).sum().backward();
+    EXPECT_EQ(simu::models::fused::split_qkv_wide_launch_count(), w0 + 4);
+    EXPECT_EQ(qkv.grad().select(2, 1).abs().max().item<double>(), 0.0);
+    EXPECT_EQ(qkv.grad().select(2, 2).abs().max().item<double>(), 0.0);
+    expect_split_grad(qkv.grad(), split_grad64(qkv, gq, gk, scale, {in(Rq), {}, {}}), dt);
+  }
+}
+
+// The backward kernels at tensor level (split_qkv_rms_norm_backward) against fp64 autograd: the 16-byte
+// kernel with missing gradients (k only; q and v only), the 4-byte kernel forced, and taken by itself for a
+// gradient 4-byte but not 16-byte aligned; the two kernels agree within a ulp.
+TEST(FusedOpsGpu, SplitQkvRmsNormBackwardPaths) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(14);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
   const int64_t B = 2, L = 517, H = 16, D = 64;
   const double scale = 8.0;
-  auto qkv = (torch::randn({B, L, 3, H, D}, f32) * 4).to(torch::kBFloat16).requires_grad_();
-  auto gq = 1 + 0.1 * torch::randn({H, D}, f32), gk = 1 + 0.1 * torch::randn({H, D}, f32);
-  const auto n0 = simu::models::fused::launch_count();
-  auto [q, k, v] = simu::models::fused::split_qkv_rms_norm_autograd(qkv, gq, gk, scale);
-  EXPECT_EQ(simu::models::fused::launch_count(), n0 + 1);
-  // Values: as the reference split.
-  auto rq = torch::empty_like(q), rk = torch::empty_like(k), rv = torch::empty_like(v);
-  simu::models::fused::split_qkv_rms_norm_reference(qkv.detach(), gq, gk, scale, rq, rk, rv);
-  EXPECT_LE(rel(q, rq), 1.0 / 128);
-  EXPECT_LE(rel(k, rk), 1.0 / 128);
-  EXPECT_TRUE(torch::equal(v, rv));
-  // Gradients arriving the way attention hands them back: through [B, H, L, D] permuted views.
-  auto r = [&] { return torch::randn({B, H, L, D}, f32); };
-  auto Rq = r(), Rk = r(), Rv = r();
-  auto loss = (q.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rq).sum() +
-              (k.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rk).sum() + (v.permute({0, 2, 1, 3}).to(torch::kFloat32) * Rv).sum();
-  loss.backward();
-  EXPECT_EQ(simu::models::fused::launch_count(), n0 + 2);
-  // fp64 autograd of F.normalize(x) * gamma * scale, from the same bf16 inputs; incoming gradients
-  // rounded to bf16 as autograd hands them to the bf16 outputs.
-  auto x64 = qkv.detach().to(torch::kFloat64).requires_grad_();
-  auto norm64 = [&](const torch::Tensor& x, const torch::Tensor& g) {
-    return x / x.norm(2, -1, true).clamp_min(1e-12) * (g.to(torch::kFloat64) * scale);
-  };
-  auto b64 = [](const torch::Tensor& t) { return t.to(torch::kBFloat16).to(torch::kFloat64); };
-  auto loss64 = (norm64(x64.select(2, 0), gq).permute({0, 2, 1, 3}) * b64(Rq)).sum() +
-                (norm64(x64.select(2, 1), gk).permute({0, 2, 1, 3}) * b64(Rk)).sum() +
-                (x64.select(2, 2).permute({0, 2, 1, 3}) * b64(Rv)).sum();
-  loss64.backward();
-  for (int part = 0; part < 3; ++part)
-    EXPECT_LE(rel(qkv.grad().select(2, part), x64.grad().select(2, part)), 1.0 / 128) << "part " << part;
-  EXPECT_LT((qkv.grad().to(torch::kFloat64) - x64.grad()).abs().mean().item<double>(),
-            2e-3 * x64.grad().abs().mean().item<double>() + 1e-6);
-  // Only q used: zero gradients for the k and v parts.
-  qkv.mutable_grad() = torch::Tensor();
-  auto [q2, k2, v2] = simu::models::fused::split_qkv_rms_norm_autograd(qkv, gq, gk, scale);
-  (q2.to(torch::kFloat32) * Rq.permute({0, 2, 1, 3})).sum().backward();
-  EXPECT_EQ(qkv.grad().select(2, 1).abs().max().item<double>(), 0.0);
-  EXPECT_EQ(qkv.grad().select(2, 2).abs().max().item<double>(), 0.0);
-  EXPECT_LE(rel(qkv.grad().select(2, 0), x64.grad().select(2, 0)), 1.0 / 128);
+  for (const auto dt : kLow) {
+    SCOPED_TRACE(name(dt));
+    auto qkv = (torch::randn({B, L, 3, H, D}, f32) * 4).to(dt);
+    auto gq = 1 + 0.1 * torch::randn({H, D}, f32), gk = 1 + 0.1 * torch::randn({H, D}, f32);
+    auto r = [&] { return torch::randn({B, L, H, D}, f32).to(dt); };
+    const auto dq = r(), dk = r(), dv = r();
+    auto run = [&](const torch::Tensor& a, const torch::Tensor& b, const torch::Tensor& c, bool wide) {
+      const auto w0 = simu::models::fused::split_qkv_wide_launch_count();
+      auto g = simu::models::fused::split_qkv_rms_norm_backward(qkv, gq, gk, scale, a, b, c);
+      EXPECT_EQ(simu::models::fused::split_qkv_wide_launch_count(), w0 + (wide ? 1 : 0)) << "wide path expected: " << wide;
+      expect_split_grad(g, split_grad64(qkv, gq, gk, scale, {a, b, c}), dt);
+      return g;
+    };
+    // 16-byte kernel: all three, k only, q and v only.
+    auto g_wide = run(dq, dk, dv, true);
+    auto g_k = run({}, dk, {}, true);
+    EXPECT_EQ(g_k.select(2, 0).abs().max().item<double>(), 0.0);
+    EXPECT_EQ(g_k.select(2, 2).abs().max().item<double>(), 0.0);
+    auto g_qv = run(dq, {}, dv, true);
+    EXPECT_EQ(g_qv.select(2, 1).abs().max().item<double>(), 0.0);
+    // The 4-byte kernel forced: within a ulp of the 16-byte one (summation order only).
+    simu::models::fused::set_split_qkv_wide(false);
+    auto g_narrow = run(dq, dk, dv, false);
+    simu::models::fused::set_split_qkv_wide(true);
+    EXPECT_LE(rel(g_narrow, g_wide), ulp(dt));
+    // A gradient 2 elements into its buffer (4-byte aligned, not 16): read in place by the 4-byte kernel.
+    auto dq_off = torch::empty({B * L * H * D + 2}, dq.options()).narrow(0, 2, B * L * H * D).view({B, L, H, D}).copy_(dq);
+    auto g_off = run(dq_off, dk, dv, false);
+    EXPECT_TRUE(torch::equal(g_off, g_narrow));
+  }
 }
 
 TEST(FusedOpsGpu, FlowTrainingKernelsMatchReferenceGradients) {
