@@ -60,6 +60,13 @@ void check_out(const torch::Tensor& o, const torch::Tensor& qkv, const char* nam
              fmt::join(o.strides(), ", "));
 }
 
+// A gamma as the split kernels read it: fp32, contiguous and 16-byte aligned (the 16-byte kernels read it as
+// float4; a view starting elsewhere is copied: 4 KB at the real size).
+[[maybe_unused]] torch::Tensor gamma_f32(const torch::Tensor& g) {
+  auto t = g.to(torch::kFloat32).contiguous();
+  return reinterpret_cast<uintptr_t>(t.data_ptr()) % 16 == 0 ? t : t.clone();
+}
+
 }  // namespace
 
 int64_t launch_count() { return g_launches.load(); }
@@ -326,7 +333,7 @@ void split_qkv_rms_norm(const torch::Tensor& qkv, const torch::Tensor& gamma_q, 
 #ifdef SIMU_HAVE_CUDA_KERNELS
   SIMU_CHECK(supports_split_qkv(qkv), "split_qkv_rms_norm: unsupported qkv [{}] {} on {}", fmt::join(qkv.sizes(), ", "),
              c10::toString(qkv.scalar_type()), qkv.device().str());
-  auto gq = gamma_q.to(torch::kFloat32).contiguous(), gk = gamma_k.to(torch::kFloat32).contiguous();
+  auto gq = gamma_f32(gamma_q), gk = gamma_f32(gamma_k);
   auto out = [](torch::Tensor& t) { return kernels::QkvOut{t.data_ptr(), t.stride(0), t.stride(1)}; };
   // The 16-byte kernel where everything is aligned for it (and it is not switched off), else the 4-byte one.
   const bool wide = g_split_wide && kernels::split_qkv_wide_ok(qkv.data_ptr(), gq.data_ptr<float>(), gk.data_ptr<float>(),
@@ -355,7 +362,7 @@ torch::Tensor split_qkv_rms_norm_backward(const torch::Tensor& qkv, const torch:
   SIMU_CHECK(gamma_q.sizes() == torch::IntArrayRef({H, D}) && gamma_k.sizes() == gamma_q.sizes(),
              "split_qkv_rms_norm_backward: gammas must be [{}, {}]", H, D);
 #ifdef SIMU_HAVE_CUDA_KERNELS
-  auto gq = gamma_q.to(torch::kFloat32).contiguous(), gk = gamma_k.to(torch::kFloat32).contiguous();
+  auto gq = gamma_f32(gamma_q), gk = gamma_f32(gamma_k);
   // Incoming gradients as strided views in qkv's dtype with contiguous channels and 4-byte aligned rows
   // (what the 4-byte kernel needs; copied contiguous otherwise).
   std::vector<torch::Tensor> keep;
@@ -408,7 +415,7 @@ struct SplitQkvRmsNormFn : public torch::autograd::Function<SplitQkvRmsNormFn> {
                                                 const torch::Tensor& gamma_q, const torch::Tensor& gamma_k, double scale) {
     auto [q, k, v] = split_into_new(qkv, gamma_q, gamma_k, scale);
     ctx->set_materialize_grads(false);  // an output without a gradient reaches backward undefined: not read
-    ctx->save_for_backward({qkv, gamma_q.to(torch::kFloat32).contiguous(), gamma_k.to(torch::kFloat32).contiguous()});
+    ctx->save_for_backward({qkv, gamma_f32(gamma_q), gamma_f32(gamma_k)});
     ctx->saved_data["scale"] = scale;
     return {q, k, v};
   }

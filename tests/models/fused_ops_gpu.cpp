@@ -183,6 +183,14 @@ TEST(FusedOpsGpu, SplitQkvRmsNormMatchesReference) {
     EXPECT_LE(rel(q, q_ref), ulp(dt));
     EXPECT_LE(rel(k, k_ref), ulp(dt));
     EXPECT_TRUE(torch::equal(v, v_ref));
+    // A gamma view 4 bytes into its buffer: copied aligned, the 16-byte kernel, the same numbers.
+    auto gq_off = torch::empty({H * D + 1}, gq.options()).narrow(0, 1, H * D).view({H, D}).copy_(gq);
+    auto q_al = torch::empty_like(k), q_goff = torch::empty_like(k);
+    const auto w1 = simu::models::fused::split_qkv_wide_launch_count();
+    simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q_al, k_ref, v_ref);
+    simu::models::fused::split_qkv_rms_norm(qkv, gq_off, gk, 8.0, q_goff, k_ref, v_ref);
+    EXPECT_EQ(simu::models::fused::split_qkv_wide_launch_count(), w1 + 2);
+    EXPECT_TRUE(torch::equal(q_al, q_goff));
     // An output at an odd element offset cannot take either kernel: an error naming it.
     auto q_odd = torch::empty({B * L * H * D + 1}, opt).narrow(0, 1, B * L * H * D).view({B, L, H, D});
     EXPECT_THROW(simu::models::fused::split_qkv_rms_norm(qkv, gq, gk, 8.0, q_odd, k, v), simu::Error);
