@@ -222,8 +222,17 @@ void time_sampling(Bench& bn, int64_t L, const torch::Tensor& cond1, at::Generat
       bn.rows.push_back({L, fmt::format("sample {} steps CFG {}{}", o.steps, bn.cfg, graphs ? ", persistent CUDA graphs (" + mode + ")" : ", eager"), ms,
                       flops / (ms * 1e-3) / 1e12, peak_gib(dev)});
       simu::log::info("cond {}: sampling ({}) {:.1f} ms", L, mode, ms);
-      if (bn.profile && !graphs && dev.is_cuda())
-        simu::bench::print_gpu_kernel_profile(fmt::format("sample {} steps, cond {}", o.steps, L), run, 12);
+      // Profiled once per mode: graph replays show their kernels too (CUPTI), without launch gaps.
+      if (bn.profile && dev.is_cuda()) {
+        simu::bench::print_gpu_kernel_profile(fmt::format("sample {} steps, cond {}, {}", o.steps, L, mode), run, 12);
+        // The ATen call chains of a 2-step sampling call (the per-op table is quadratic in the op count).
+        if (!graphs) {
+          auto o2 = o;
+          o2.steps = 2;
+          simu::bench::print_gpu_op_profile(fmt::format("sample 2 steps, cond {}, eager", L),
+                                            [&] { auto y = gen->sample(cond1, x0, o2); }, 40);
+        }
+      }
     }
     simu::models::GraphedForward::set_overlapped_capture(true);
     gen->reverse_fn->clear_graphs();  // the next condition length starts without them

@@ -16,6 +16,106 @@
 
 namespace simu::bench {
 
+// Where the GPU waits: from the CUDA activities of one profiled call (kernels, copies, memsets), the
+// span from the first start to the last end, the time any stream is busy (the union of the activity
+// intervals) and the idle rest, by gap size; per stream its activity count, busy time (union) and the
+// time it waits between its first and last activity; and the largest whole-GPU gaps with the
+// activities on either side. Method: CUPTI timestamps as Kineto reports them (ns), no extra syncs.
+inline void print_gpu_timeline(const std::vector<torch::autograd::profiler::KinetoEvent>& events, int top_gaps = 6) {
+  struct Act {
+    uint64_t start, end;
+    int64_t stream;
+    std::string name;
+  };
+  std::vector<Act> acts;
+  for (const auto& e : events)
+    if (e.deviceType() == c10::DeviceType::CUDA && e.endNs() > e.startNs())
+      acts.push_back({e.startNs(), e.endNs(), e.deviceResourceId(), e.name()});
+  if (acts.empty()) return;
+  std::sort(acts.begin(), acts.end(), [](const Act& a, const Act& b) { return a.start < b.start; });
+  // Union of intervals: busy time and the gaps between busy runs (whole GPU).
+  struct Gap {
+    double us;
+    size_t before, after;  // indices into acts: the activity ending last before it, the one starting it
+  };
+  std::vector<Gap> gaps;
+  double busy_ns = 0;
+  uint64_t run_start = acts[0].start, run_end = acts[0].end;
+  size_t run_last = 0;
+  for (size_t i = 1; i < acts.size(); ++i) {
+    if (acts[i].start > run_end) {
+      busy_ns += static_cast<double>(run_end - run_start);
+      gaps.push_back({static_cast<double>(acts[i].start - run_end) * 1e-3, run_last, i});
+      run_start = acts[i].start;
+    }
+    if (acts[i].end >= run_end) {
+      run_end = acts[i].end;
+      run_last = i;
+    }
+  }
+  busy_ns += static_cast<double>(run_end - run_start);
+  const double span_ms = static_cast<double>(run_end - acts[0].start) * 1e-6;
+  double small = 0, mid = 0, big = 0;
+  int n_small = 0, n_mid = 0, n_big = 0;
+  for (const auto& g : gaps) {
+    if (g.us < 20) {
+      small += g.us, ++n_small;
+    } else if (g.us < 200) {
+      mid += g.us, ++n_mid;
+    } else {
+      big += g.us, ++n_big;
+    }
+  }
+  fmt::print("timeline: span {:.2f} ms (first GPU activity to last), busy (any stream) {:.2f} ms ({:.1f}%), idle {:.2f} ms: "
+             "{} gaps < 20 us ({:.2f} ms), {} of 20-200 us ({:.2f} ms), {} >= 200 us ({:.2f} ms)\n",
+             span_ms, busy_ns * 1e-6, span_ms > 0 ? 100 * busy_ns * 1e-6 / span_ms : 0.0, span_ms - busy_ns * 1e-6, n_small,
+             small * 1e-3, n_mid, mid * 1e-3, n_big, big * 1e-3);
+  // Per stream: busy union and the waits between its own activities.
+  std::map<int64_t, std::vector<const Act*>> by_stream;
+  for (const auto& a : acts) by_stream[a.stream].push_back(&a);
+  // The busiest streams only (graph replays spread their branches over many streams).
+  std::vector<std::pair<int64_t, double>> order;
+  for (const auto& [stream, list] : by_stream) {
+    double k = 0;
+    for (const auto* a : list) k += static_cast<double>(a->end - a->start);
+    order.push_back({stream, k});
+  }
+  std::sort(order.begin(), order.end(), [](const auto& a, const auto& b) { return a.second > b.second; });
+  if (order.size() > 4) {
+    double rest = 0;
+    for (size_t i = 4; i < order.size(); ++i) rest += order[i].second;
+    fmt::print("  (the 4 busiest of {} streams below; the other {} hold {:.2f} ms of activity time)\n", order.size(),
+               order.size() - 4, rest * 1e-6);
+    order.resize(4);
+  }
+  for (const auto& [stream, unused] : order) {
+    const auto& list = by_stream[stream];
+    double sb = 0;
+    uint64_t s0 = list[0]->start, e0 = list[0]->end;
+    for (size_t i = 1; i < list.size(); ++i) {
+      if (list[i]->start > e0) {
+        sb += static_cast<double>(e0 - s0);
+        s0 = list[i]->start;
+      }
+      e0 = std::max(e0, list[i]->end);
+    }
+    sb += static_cast<double>(e0 - s0);
+    const double sspan = static_cast<double>(e0 - list[0]->start) * 1e-6;
+    fmt::print("  stream {}: {} activities, busy {:.2f} ms, waits {:.2f} ms between its first and last\n", stream, list.size(),
+               sb * 1e-6, sspan - sb * 1e-6);
+  }
+  std::sort(gaps.begin(), gaps.end(), [](const Gap& a, const Gap& b) { return a.us > b.us; });
+  auto cut = [](std::string n) {
+    if (n.size() > 60) n = n.substr(0, 60) + "...";
+    for (auto& ch : n)
+      if (ch == '|') ch = '/';
+    return n;
+  };
+  if (!gaps.empty()) fmt::print("| largest gaps us | after | before |\n|---|---|---|\n");
+  for (int i = 0; i < std::min<int>(top_gaps, static_cast<int>(gaps.size())); ++i)
+    fmt::print("| {:.1f} | {} | {} |\n", gaps[i].us, cut(acts[gaps[i].before].name), cut(acts[gaps[i].after].name));
+}
+
 // Runs fn once under the profiler and prints the `top` GPU kernels by total time (name cut to 90
 // characters), their share of all kernel time, and kernel time versus the wall time of the call.
 inline void print_gpu_kernel_profile(const std::string& title, const std::function<void()>& fn, int top = 20) {
@@ -46,6 +146,7 @@ inline void print_gpu_kernel_profile(const std::string& title, const std::functi
   std::sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.second.first > b.second.first; });
   fmt::print("\nprofile: {}: wall {:.2f} ms (profiled), GPU kernel time {:.2f} ms ({:.0f}% of wall), {} kernel names\n",
              title, wall_ms, total, wall_ms > 0 ? 100 * total / wall_ms : 0.0, rows.size());
+  print_gpu_timeline(result->events());
   fmt::print("| kernel | calls | ms | % of kernel time |\n|---|---|---|---|\n");
   for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
     std::string name = rows[i].first;

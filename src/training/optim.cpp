@@ -90,6 +90,27 @@ double clip_grad_norm(const std::vector<torch::Tensor>& params, double max_norm)
   return norm;
 }
 
+torch::Tensor clip_grad_norm_on_device(const std::vector<torch::Tensor>& params, double max_norm) {
+  auto grads = defined_grads(params);
+  SIMU_CHECK(!grads.empty() && grads.front().is_cuda(), "clip_grad_norm_on_device: needs CUDA gradients, got {}",
+             grads.empty() ? std::string("none") : grads.front().device().str());
+  for (const auto& g : grads)
+    SIMU_CHECK(g.device() == grads.front().device() && g.scalar_type() == grads.front().scalar_type(),
+               "clip_grad_norm_on_device: gradients must share one device and dtype ({} {} vs {} {})",
+               g.device().str(), c10::toString(g.scalar_type()), grads.front().device().str(),
+               c10::toString(grads.front().scalar_type()));
+  torch::NoGradGuard ng;
+  // As global_grad_norm: per-tensor norms in one launch, their float64 sum of squares.
+  auto norm = torch::stack(at::_foreach_norm(grads, 2)).to(torch::kFloat64).pow(2).sum().sqrt();  // []
+  if (max_norm > 0) {
+    // coef = max_norm / (norm + 1e-6) in float64, clamped to 1 (x * 1 is exact), rounded to the
+    // gradients' dtype as the Scalar overload rounds its double.
+    auto coef = (max_norm / (norm + 1e-6)).clamp_max(1.0).to(grads.front().scalar_type());
+    at::_foreach_mul_(grads, coef);
+  }
+  return norm;
+}
+
 AdamW::AdamW(std::vector<std::pair<std::string, torch::Tensor>> params, const OptimConfig& cfg)
     : params_(std::move(params)) {
   SIMU_CHECK(!params_.empty(), "AdamW: no trainable parameters (were the adapters injected?)");
@@ -112,7 +133,17 @@ std::vector<torch::Tensor> AdamW::tensors() const {
   return out;
 }
 
-void AdamW::step(double lr) {
+void AdamW::step(double lr) { fused_step(lr, c10::nullopt); }
+
+void AdamW::step(double lr, const torch::Tensor& skip) {
+  SIMU_CHECK(fused_ && skip.defined() && skip.dim() == 0 && skip.scalar_type() == torch::kFloat32 &&
+                 skip.device() == params_.front().second.device(),
+             "AdamW::step: a skip flag needs CUDA parameters and a 0-dim float32 flag on their device, got {}",
+             skip.defined() ? skip.device().str() + " " + c10::toString(skip.scalar_type()) : std::string("none"));
+  fused_step(lr, skip);
+}
+
+void AdamW::fused_step(double lr, const c10::optional<torch::Tensor>& skip) {
   if (!fused_) {
     for (auto& group : opt_->param_groups()) static_cast<torch::optim::AdamWOptions&>(group.options()).lr(lr);
     opt_->step();
@@ -138,10 +169,16 @@ void AdamW::step(double lr) {
   }
   if (p.empty()) return;
   // torch.optim.AdamW(fused=True): steps + 1, then the fused multi-tensor update of every parameter.
+  // With a skip flag the steps advance by 1 - skip and the kernel returns early where skip is set.
   torch::NoGradGuard ng;
-  at::_foreach_add_(st, 1);
+  if (skip) {
+    at::_foreach_add_(st, 1.0 - *skip);
+  } else {
+    at::_foreach_add_(st, 1);
+  }
   at::_fused_adamw_(p, g, m, v, /*max_exp_avg_sqs=*/{}, st, lr, cfg_.betas.at(0), cfg_.betas.at(1), cfg_.weight_decay,
-                    cfg_.eps, /*amsgrad=*/false, /*maximize=*/false);
+                    cfg_.eps, /*amsgrad=*/false, /*maximize=*/false, /*grad_scale=*/c10::nullopt,
+                    /*found_inf=*/skip ? c10::optional<at::Tensor>(*skip) : c10::nullopt);
 }
 
 void AdamW::zero_grad() {

@@ -39,6 +39,13 @@ double global_grad_norm(const std::vector<torch::Tensor>& params);
 // Scales gradients by min(1, max_norm / (norm + 1e-6)) when max_norm > 0 (PyTorch's rule).
 // Returns the norm before clipping.
 double clip_grad_norm(const std::vector<torch::Tensor>& params, double max_norm);
+// The same on CUDA without a host sync (the trainer's device-side update): returns the norm before
+// clipping as a 0-dim float64 tensor on the gradients' device, and (max_norm > 0) multiplies every
+// gradient by min(1, max_norm / (norm + 1e-6)), computed in float64 on the device and applied in the
+// gradients' dtype: the same arithmetic as clip_grad_norm, whose host branch skips the multiply by 1.
+// A non-finite norm makes the coefficient NaN (the update is then skipped: AdamW::step's skip).
+// Needs CUDA gradients of one dtype (error otherwise).
+torch::Tensor clip_grad_norm_on_device(const std::vector<torch::Tensor>& params, double max_norm);
 
 // AdamW on named parameters (decoupled weight decay, PyTorch's torch.optim.AdamW update).
 // CPU parameters: torch::optim::AdamW (the fixture-checked reference). CUDA parameters (float32): the
@@ -51,6 +58,10 @@ class AdamW {
   AdamW(std::vector<std::pair<std::string, torch::Tensor>> params, const OptimConfig& cfg);
   // One update with learning rate lr.
   void step(double lr);
+  // CUDA only: the update skipped on the device where skip (0-dim float32 on the parameters' device)
+  // is nonzero: parameters, moments and step counts then stay as they were, with no host sync
+  // (at::_fused_adamw_'s found_inf; the step counts advance by 1 - skip).
+  void step(double lr, const torch::Tensor& skip);
   void zero_grad();
   const std::vector<std::pair<std::string, torch::Tensor>>& params() const { return params_; }
   std::vector<torch::Tensor> tensors() const;
@@ -60,6 +71,8 @@ class AdamW {
   void load_state_dict(const std::map<std::string, torch::Tensor>& state, const std::string& source);
 
  private:
+  void fused_step(double lr, const c10::optional<torch::Tensor>& skip);
+
   std::vector<std::pair<std::string, torch::Tensor>> params_;
   std::unique_ptr<torch::optim::AdamW> opt_;  // CPU path only
   // CUDA path: moments and step count (a float32 device scalar, as the fused kernel takes it) per

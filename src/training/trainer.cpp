@@ -64,6 +64,14 @@ struct StagedBatch {
   std::vector<StagedGroup> groups;
 };
 
+struct StepTail {
+  Clock::time_point began, compute_began;  // the step's start; its forwards' start
+  double seconds_data = 0, seconds_ahead = 0;  // reading this step's batch; reading the next one ahead
+  torch::Tensor terms;                         // [7, pairs] per-pair metric terms on the device
+  std::vector<int> kinds;                      // the pairs' kinds, in order
+  std::vector<at::cuda::CUDAEvent> phase;      // device path: compute start, backward end, all-reduce end, update end
+};
+
 namespace {
 
 const char* kKindNames[2] = {"completion", "preservation"};
@@ -394,14 +402,10 @@ StepSums Trainer::metric_sums(const torch::Tensor& terms, const std::vector<int>
 }
 
 StepMetrics Trainer::step() {
-  using clock = std::chrono::steady_clock;
-  // Waits for the device so that a phase's wall time includes its GPU work (timing breakdown only).
-  auto settle = [&] {
-    if (device_.is_cuda()) torch::cuda::synchronize();
-  };
-  const auto began = clock::now();
+  const auto began = Clock::now();
   // This step's batch: read ahead by the previous step, or read and staged now.
-  double seconds_data = 0;
+  StepTail tail;
+  tail.began = began;
   std::unique_ptr<StagedBatch> batch;
   if (ahead_) {
     SIMU_CHECK(ahead_->step == step_,
@@ -410,63 +414,126 @@ StepMetrics Trainer::step() {
     batch = std::move(ahead_);
   } else {
     batch = read_batch(step_);
-    seconds_data = seconds_since(began);
+    tail.seconds_data = seconds_since(began);
   }
-  const auto compute_began = clock::now();
+  tail.compute_began = Clock::now();
+  const bool on_device = device_update_ && device_.is_cuda();
+  if (on_device) {
+    tail.phase.emplace_back(cudaEventDefault);
+    tail.phase.back().record();
+  }
   SIMU_CHECK(batch->pairs == cfg_.data.global_batch / comm_.world_size(), "data source gave {} pairs, {} expected",
              batch->pairs, cfg_.data.global_batch / comm_.world_size());
   opt_->zero_grad();
-  const auto terms = forward_backward(*batch);
-  std::vector<int> kinds;
-  for (const auto& g : batch->groups) kinds.insert(kinds.end(), g.kinds.begin(), g.kinds.end());
+  tail.terms = forward_backward(*batch);
+  for (const auto& g : batch->groups) tail.kinds.insert(tail.kinds.end(), g.kinds.begin(), g.kinds.end());
   // Read-ahead: the next batch is read and staged, its copies issued, while this step's kernels run.
-  double seconds_ahead = 0;
   if (read_ahead_) {
-    const auto ahead_began = clock::now();
+    const auto ahead_began = Clock::now();
     ahead_ = read_batch(step_ + 1);
-    seconds_ahead = seconds_since(ahead_began);
+    tail.seconds_ahead = seconds_since(ahead_began);
   }
-  StepSums sums = metric_sums(terms, kinds);
-  // Average gradients over ranks, clip, step.
-  auto params = opt_->tensors();
+  StepMetrics m = on_device ? finish_on_device(tail) : finish_on_host(tail);
+  ++step_;
+  heartbeat();
+  m.step = step_;
+  m.seconds_step = seconds_since(began);
+  m.pairs_per_s = static_cast<double>(cfg_.data.global_batch) / std::max(m.seconds_step, 1e-9);
+  return m;
+}
+
+std::vector<torch::Tensor> Trainer::adapter_grads() {
   std::vector<torch::Tensor> grads;
-  for (auto& p : params) {
+  for (auto& p : opt_->tensors()) {
     if (!p.grad().defined()) p.mutable_grad() = torch::zeros_like(p);
     grads.push_back(p.grad());
   }
+  return grads;
+}
+
+void Trainer::stop_if_non_finite(double global_loss, double grad_norm) const {
+  // A non-finite loss or gradient (global values: every rank takes the same branch) stops training
+  // before the optimizer touches the adapters, so the last checkpoint stays the last good state.
+  if (!std::isfinite(global_loss) || !std::isfinite(grad_norm))
+    fail_hint("lower optim.lr or objective.beta, check the pair cache (pairs validate), then --resume latest",
+              "{}: step {}: non-finite {} (loss {}, gradient norm {}); training stopped before this update, the "
+              "adapters and the checkpoints in {}/checkpoints are unchanged",
+              cfg_.file, step_ + 1, std::isfinite(global_loss) ? "gradient" : "loss", global_loss, grad_norm,
+              cfg_.run.out_dir);
+}
+
+// The reference path: each phase waits for the device (its wall time is the phase's), the metrics and
+// the gradient norm come to the host before the update, which runs only when both are finite.
+StepMetrics Trainer::finish_on_host(StepTail& tail) {
+  auto settle = [&] {
+    if (device_.is_cuda()) torch::cuda::synchronize();
+  };
+  StepSums sums = metric_sums(tail.terms, tail.kinds);
+  // Average gradients over ranks, clip, step.
+  auto params = opt_->tensors();
+  auto grads = adapter_grads();
   settle();
   StepMetrics m;
-  m.seconds_data = seconds_data + seconds_ahead;
-  m.seconds_compute = seconds_since(compute_began) - seconds_ahead;
-  auto phase_began = clock::now();
+  m.seconds_data = tail.seconds_data + tail.seconds_ahead;
+  m.seconds_compute = seconds_since(tail.compute_began) - tail.seconds_ahead;
+  auto phase_began = Clock::now();
   comm_.all_reduce_mean(grads);
   // Metrics over all ranks (before the update: a non-finite loss must stop it on every rank alike).
   sums = StepSums::unpack(comm_.all_reduce_sum(sums.pack()));
   settle();
   m.seconds_allreduce = seconds_since(phase_began);
-  phase_began = clock::now();
+  phase_began = Clock::now();
   m.grad_norm = clip_grad_norm(params, cfg_.optim.clip_grad_norm);
   m.lr = learning_rate(cfg_.optim, step_, cfg_.train.steps);
-  // A non-finite loss or gradient (global values: every rank takes the same branch) stops training
-  // before the optimizer touches the adapters, so the last checkpoint stays the last good state.
-  const double global_loss = sums.loss / static_cast<double>(cfg_.data.global_batch);
-  if (!std::isfinite(global_loss) || !std::isfinite(m.grad_norm))
-    fail_hint("lower optim.lr or objective.beta, check the pair cache (pairs validate), then --resume latest",
-              "{}: step {}: non-finite {} (loss {}, gradient norm {}); training stopped before this update, the "
-              "adapters and the checkpoints in {}/checkpoints are unchanged",
-              cfg_.file, step_ + 1, std::isfinite(global_loss) ? "gradient" : "loss", global_loss, m.grad_norm,
-              cfg_.run.out_dir);
+  stop_if_non_finite(sums.loss / static_cast<double>(cfg_.data.global_batch), m.grad_norm);
   opt_->step(m.lr);
   settle();
   m.seconds_optimizer = seconds_since(phase_began);
-  ++step_;
-  heartbeat();
-  const double n = static_cast<double>(cfg_.data.global_batch);
-  m.step = step_;
-  set_means(sums, n, m);
-  settle();
-  m.seconds_step = seconds_since(began);
-  m.pairs_per_s = n / std::max(m.seconds_step, 1e-9);
+  set_means(sums, static_cast<double>(cfg_.data.global_batch), m);
+  return m;
+}
+
+// The fast path on CUDA: all-reduce, norm, clipping and AdamW are issued behind the backward with no
+// host wait; the update is skipped on the device when the global loss or the norm is not finite; one
+// copy at the end brings the metric terms, the norm and that flag to the host, which then stops
+// training as the reference path does. Phase times come from CUDA events (device time).
+StepMetrics Trainer::finish_on_device(StepTail& tail) {
+  auto params = opt_->tensors();
+  auto grads = adapter_grads();
+  tail.phase.emplace_back(cudaEventDefault);
+  tail.phase.back().record();
+  // This rank's loss sum rides along with the gradients: their all-reduce makes its finiteness global.
+  auto reduced = grads;
+  reduced.push_back(tail.terms[0].sum().reshape({1}).to(grads.front().scalar_type()));  // [1]
+  comm_.all_reduce_mean(reduced);
+  tail.phase.emplace_back(cudaEventDefault);
+  tail.phase.back().record();
+  StepMetrics m;
+  m.lr = learning_rate(cfg_.optim, step_, cfg_.train.steps);
+  auto norm = clip_grad_norm_on_device(params, cfg_.optim.clip_grad_norm);  // [] float64
+  auto skip = torch::logical_not(torch::isfinite(norm)).logical_or(torch::logical_not(torch::isfinite(reduced.back()[0])))
+                  .to(torch::kFloat32);  // []
+  opt_->step(m.lr, skip);
+  tail.phase.emplace_back(cudaEventDefault);
+  tail.phase.back().record();
+  // The step's one wait: [7 x pairs] terms, then the norm and the skip flag, in float64.
+  const int64_t n = tail.terms.numel();
+  auto host = torch::cat({tail.terms.to(torch::kFloat64).flatten(), norm.reshape({1}), skip.to(torch::kFloat64).reshape({1})})
+                  .to(torch::kCPU);  // [n + 2]
+  StepSums sums = metric_sums(host.narrow(0, 0, n).view(tail.terms.sizes()), tail.kinds);
+  sums = StepSums::unpack(comm_.all_reduce_sum(sums.pack()));
+  m.grad_norm = host[n].item<double>();
+  const double global_loss = sums.loss / static_cast<double>(cfg_.data.global_batch);
+  // The device's flag and the host's sums see the same values; a flag without a non-finite host value
+  // (a float32 loss sum overflowing) still stops, as a non-finite loss.
+  const bool skipped = host[n + 1].item<double>() != 0;
+  stop_if_non_finite(skipped && std::isfinite(m.grad_norm) && std::isfinite(global_loss) ? NAN : global_loss,
+                     m.grad_norm);
+  m.seconds_data = tail.seconds_data + tail.seconds_ahead;
+  m.seconds_compute = tail.phase[0].elapsed_time(tail.phase[1]) * 1e-3;
+  m.seconds_allreduce = tail.phase[1].elapsed_time(tail.phase[2]) * 1e-3;
+  m.seconds_optimizer = tail.phase[2].elapsed_time(tail.phase[3]) * 1e-3;
+  set_means(sums, static_cast<double>(cfg_.data.global_batch), m);
   return m;
 }
 

@@ -63,6 +63,8 @@ using ConditionEmbedFn = std::function<torch::Tensor(const std::map<std::string,
 
 // A batch whose forward groups' inputs are stacked and on their way to the device (trainer.cpp).
 struct StagedBatch;
+// What a step hands from its forwards and backwards to its update (trainer.cpp).
+struct StepTail;
 
 class Trainer {
  public:
@@ -92,6 +94,13 @@ class Trainer {
   // before that batch. Off (the reference path): each step reads its batch at its start and copies each
   // group with a plain stack(...).to(device). Both give the same pairs, noise and arithmetic (tests).
   void set_read_ahead(bool on) { read_ahead_ = on; }
+  // Device-side update (the fast path; on by default, used on CUDA): the gradient all-reduce, the
+  // norm, clipping and AdamW follow the backward with no host wait, the update is skipped on the
+  // device when the global loss or the norm is not finite, and the step waits once, at its end, for
+  // its metrics (the phase times in StepMetrics are then CUDA event times). Off (the reference path):
+  // the host reads the metrics and the norm before it issues the update, waiting for the device at
+  // each phase's end. Both give bit-identical adapters and metrics (tests/training/trainer_gpu.cpp).
+  void set_device_update(bool on) { device_update_ = on; }
 
  private:
   // Reads the next batch of the source and stages it for step `step` (noise drawn for that step).
@@ -102,6 +111,13 @@ class Trainer {
   torch::Tensor forward_backward(StagedBatch& batch);
   // This rank's metric sums of forward_backward's terms (one copy to the host).
   StepSums metric_sums(const torch::Tensor& terms, const std::vector<int>& kinds) const;
+  // The adapters' gradients (zeros where a parameter got none).
+  std::vector<torch::Tensor> adapter_grads();
+  // A step's all-reduce, clipping, update and metrics: the reference path and the device-side one.
+  StepMetrics finish_on_host(StepTail& tail);
+  StepMetrics finish_on_device(StepTail& tail);
+  // Throws (naming the step, the values and the out dir) when the global loss or the norm is not finite.
+  void stop_if_non_finite(double global_loss, double grad_norm) const;
 
   TrainConfig cfg_;
   PolicyModel& model_;
@@ -113,6 +129,7 @@ class Trainer {
   ConditionEmbedFn embed_;
   int64_t step_ = 0;
   bool read_ahead_;
+  bool device_update_ = true;
   std::unique_ptr<StagedBatch> ahead_;  // the next step's batch, read ahead (null: none)
   c10::optional<c10::Stream> upload_stream_;  // the side CUDA stream of the read-ahead uploads
 };

@@ -1,9 +1,11 @@
 // The trainer on CUDA with the generator policy: bf16 autocast steps keep the adapters fp32 on the
 // GPU and follow an fp32 CPU run of the same model, pairs, noise and schedule within bf16 rounding.
-// Its read-ahead (pinned staging, uploads on a side stream) against the plain upload path.
+// Its read-ahead (pinned staging, uploads on a side stream) against the plain upload path, and its
+// device-side update (no host wait before AdamW) against the reference path.
 #include <ATen/CPUGeneratorImpl.h>
 
 #include <fstream>
+#include <limits>
 
 #include "flow_mid_config.h"
 #include "models/generator.h"
@@ -137,4 +139,94 @@ TEST(TrainerGpu, ReadAheadUploadsMatchThePlainUpload) {
   for (int s = 0; s < steps; ++s) EXPECT_NEAR(loss_on[s], loss_off[s], 1e-6 * std::abs(loss_off[s])) << "step " << s + 1;
   for (size_t i = 0; i < ad_off.size(); ++i) EXPECT_TRUE(simu::testing::close(ad_on[i], ad_off[i], 1e-6, i ? "B" : "A"));
   EXPECT_FALSE(torch::equal(ad_on[0], simu::testing::ToyPolicy(C, Cc, R, 5).A)) << "training did not move the adapter";
+}
+
+namespace {
+// A trainer run on CUDA over toy pairs: its metrics, adapters and optimizer state at the end.
+struct UpdateRun {
+  std::vector<StepMetrics> metrics;
+  std::vector<torch::Tensor> adapters;
+  std::map<std::string, torch::Tensor> state;
+};
+UpdateRun train_toy_on_cuda(const std::shared_ptr<std::vector<Pair>>& pairs, bool device_update, double clip,
+                            const std::string& name) {
+  const int64_t C = 8, Cc = 64, R = 4, steps = 5;
+  const torch::Device dev(torch::kCUDA);
+  simu::testing::ToyPolicy m(C, Cc, R, 5);
+  m.to(dev);
+  auto cfg = simu::testing::toy_config(simu::testing::temp_dir(name), steps, 4, 2);
+  cfg.train.device = "cuda";
+  cfg.optim.clip_grad_norm = clip;
+  auto comm = Communicator::create(DistEnv{}, dev, std::chrono::seconds(60));  // a world of one
+  Trainer tr(cfg, m, simu::testing::memory_source(pairs), *comm, dev);
+  tr.set_device_update(device_update);
+  UpdateRun r;
+  for (int s = 0; s < steps; ++s) r.metrics.push_back(tr.step());
+  r.adapters = {m.A.detach().cpu(), m.B.detach().cpu()};
+  r.state = tr.optimizer().state_dict();
+  return r;
+}
+}  // namespace
+
+// The device-side update (all-reduce, norm, clipping and AdamW issued with no host wait, one copy of
+// the metrics at the step's end) against the reference path that waits for the metrics and the norm
+// first: bit-identical metrics, adapters and optimizer state, with clipping in every step (a tiny
+// clip_grad_norm) and in none (a huge one: the device multiplies by exactly 1).
+TEST(TrainerGpu, DeviceUpdateMatchesTheHostPath) {
+  SIMU_REQUIRE_CUDA();
+  auto pairs = simu::testing::toy_pairs(12, 64, 8, 300, 64, 43);
+  for (const double clip : {1e-4, 1e9}) {
+    SCOPED_TRACE("clip_grad_norm " + std::to_string(clip));
+    const auto ref = train_toy_on_cuda(pairs, false, clip, "gpu_update_host");
+    const auto dev = train_toy_on_cuda(pairs, true, clip, "gpu_update_device");
+    for (size_t s = 0; s < ref.metrics.size(); ++s) {
+      SCOPED_TRACE("step " + std::to_string(s + 1));
+      EXPECT_EQ(dev.metrics[s].loss, ref.metrics[s].loss);
+      EXPECT_EQ(dev.metrics[s].grad_norm, ref.metrics[s].grad_norm);
+      EXPECT_EQ(dev.metrics[s].accuracy, ref.metrics[s].accuracy);
+      EXPECT_EQ(dev.metrics[s].margin, ref.metrics[s].margin);
+      EXPECT_EQ(dev.metrics[s].lr, ref.metrics[s].lr);
+      EXPECT_EQ(dev.metrics[s].per_kind, ref.metrics[s].per_kind);
+      if (clip < 1) EXPECT_GT(ref.metrics[s].grad_norm, clip) << "the tiny clip must clip";
+      if (clip > 1) EXPECT_LT(ref.metrics[s].grad_norm, clip);
+    }
+    for (size_t i = 0; i < ref.adapters.size(); ++i) EXPECT_TRUE(torch::equal(dev.adapters[i], ref.adapters[i])) << i;
+    ASSERT_EQ(dev.state.size(), ref.state.size());
+    for (const auto& [k, v] : ref.state) EXPECT_TRUE(torch::equal(dev.state.at(k), v)) << k;
+  }
+}
+
+// With the device-side update a non-finite loss still stops training with the step named, and the
+// update it skipped on the device left the adapters and the optimizer state (moments, step counts)
+// as they were.
+TEST(TrainerGpu, DeviceUpdateSkipsANonFiniteStep) {
+  SIMU_REQUIRE_CUDA();
+  auto pairs = simu::testing::toy_pairs(8, 64, 8, 300, 64, 21);
+  const torch::Device dev(torch::kCUDA);
+  simu::testing::ToyPolicy m(8, 64, 4, 6);
+  m.to(dev);
+  auto cfg = simu::testing::toy_config(simu::testing::temp_dir("gpu_update_nonfinite"), 6, 8, 8);
+  cfg.train.device = "cuda";
+  auto comm = Communicator::create(DistEnv{}, dev, std::chrono::seconds(60));
+  Trainer tr(cfg, m, simu::testing::memory_source(pairs), *comm, dev);
+  tr.set_read_ahead(false);  // the poisoned pair must be read at step 3 itself
+  tr.step();
+  tr.step();
+  (*pairs)[3].x_pos = (*pairs)[3].x_pos.clone();
+  (*pairs)[3].x_pos[0][0] = std::numeric_limits<float>::quiet_NaN();
+  const std::vector<torch::Tensor> before = {m.A.detach().cpu(), m.B.detach().cpu()};
+  const auto state_before = tr.optimizer().state_dict();
+  std::string msg;
+  try {
+    tr.step();
+  } catch (const simu::Error& e) {
+    msg = e.what();
+  }
+  EXPECT_NE(msg.find("step 3: non-finite loss"), std::string::npos) << msg;
+  EXPECT_EQ(tr.steps_done(), 2);
+  EXPECT_TRUE(torch::equal(m.A.detach().cpu(), before[0]));
+  EXPECT_TRUE(torch::equal(m.B.detach().cpu(), before[1]));
+  const auto state_after = tr.optimizer().state_dict();
+  ASSERT_EQ(state_after.size(), state_before.size());
+  for (const auto& [k, v] : state_before) EXPECT_TRUE(torch::equal(state_after.at(k), v)) << k;
 }
