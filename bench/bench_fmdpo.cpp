@@ -197,6 +197,7 @@ struct Options {
   double peak_tflops = 989.4;
   bool checkpointing = false, profile = false, embed_timing = true;
   bool read_ahead = true;  // Trainer::set_read_ahead (off: the plain upload at each step's start)
+  bool device_update = true;  // Trainer::set_device_update (off: the host waits for metrics and norm first)
   std::vector<std::string> modes = {"tokens"};
 };
 
@@ -233,6 +234,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   }
   Trainer tr(cfg, *b.policy, source, comm, b.device);
   tr.set_read_ahead(o.read_ahead);
+  tr.set_device_update(o.device_update);
   const bool inputs = mode == "inputs";
   if (inputs) tr.set_condition_embedder(b.timed.fn());
   for (int s = 0; s < o.warmup; ++s) tr.step();
@@ -368,6 +370,10 @@ int main(int argc, char** argv) {
                  "time the embedder of inputs mode (a device synchronisation before and after it; off: no syncs, no embed column)")
       ->capture_default_str();
   app.add_flag("--profile", o.profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
+  app.add_option("--device-update", o.device_update,
+                 "the trainer's device-side update: all-reduce, clipping and AdamW issued behind the backward with "
+                 "no host wait (off: the reference path, which reads the metrics and the norm first)")
+      ->capture_default_str();
   app.add_option("--read-ahead", o.read_ahead,
                  "the trainer's read-ahead: the next batch staged in pinned memory and uploaded on a side stream "
                  "while a step runs (off: each step's batch stacked and copied at its start, the reference path)")
