@@ -9,6 +9,7 @@
 #include "models/flow_model.h"
 #include "models/flow_model_internal.h"
 #include "models/fused_ops.h"
+#include "models/mlp_epilogue.h"
 
 namespace simu::models {
 
@@ -71,11 +72,17 @@ FeedForwardNetImpl::FeedForwardNetImpl(int64_t channels, double mlp_ratio) {
 }
 
 torch::Tensor FeedForwardNetImpl::forward(const torch::Tensor& x) {
-  // Fast path: GELU in fc1's epilogue (not with an adapter on fc1: its delta must be added first).
-  if (fused_kernels && inference_only_ok(inference_kernels) && !(fc1->adapter() && fc1->adapter_enabled()) &&
-      fused_path(x) && fused::supports_linear_gelu(x)) {
+  const bool fused = fused_kernels && fused_path(x) && !(fc1->adapter() && fc1->adapter_enabled());
+  // Inference: GELU in fc1's epilogue (not with an adapter on fc1: its delta must be added first).
+  if (fused && inference_only_ok(inference_kernels) && fused::supports_linear_gelu(x)) {
     const auto [w1, b1] = fc1->product_weights(x);  // fc1's compute copy where it applies (linear.h)
     return fc2->forward(fused::linear_gelu_tanh_bf16(x, w1, b1));
+  }
+  // Training kernels or a graph, frozen base: GELU and its gradient in cuBLASLt epilogues, the same products
+  // with and without a graph (mlp_epilogue.h); undefined where it does not apply.
+  if (fused) {
+    auto y = mlp_epilogue::frozen_mlp(x, *fc1, *fc2);  // [..., C]
+    if (y.defined()) return y;
   }
   return fc2->forward(torch::gelu(fc1->forward(x), "tanh"));
 }

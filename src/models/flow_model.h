@@ -134,8 +134,10 @@ class FeedForwardNetImpl : public torch::nn::Module {
   FeedForwardNetImpl(int64_t channels, double mlp_ratio);
   torch::Tensor forward(const torch::Tensor& x);
   Linear fc1{nullptr}, fc2{nullptr};
-  bool fused_kernels = true;     // fc1 + GELU in one matrix product (fused_ops.h), inference only
-  bool inference_kernels = true;  // false: never the GELU epilogue (it has no backward), see set_training_kernels
+  // fc1 + GELU in one matrix product: inference GELU_BIAS (fused_ops.h); with a graph or training kernels,
+  // a frozen base's GELU_AUX_BIAS forward and DGELU backward (mlp_epilogue.h)
+  bool fused_kernels = true;
+  bool inference_kernels = true;  // false: never the inference-only GELU_BIAS epilogue, see set_training_kernels
 };
 TORCH_MODULE(FeedForwardNet);
 

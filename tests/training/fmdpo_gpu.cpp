@@ -7,6 +7,7 @@
 
 #include "models/fused_ops.h"
 #include "models/generator.h"
+#include "models/mlp_epilogue.h"
 #include "models/precision.h"
 #include "flow_mid_config.h"
 #include "test_util.h"
@@ -35,10 +36,14 @@ TEST(FmdpoGpu, PolicyAndReferenceShareOneArithmetic) {
   fin.w = torch::tensor({1.0f, 0.1f}).to(dev);
   simu::models::Autocast ac(simu::models::Precision::kBf16);
   const auto n0 = simu::models::fused::launch_count();
+  const auto m0 = simu::models::mlp_epilogue::launch_count();
   auto terms = simu::training::fmdpo_terms(*policy, fin, 500.0, false);
   // Policy forward (graph) and reference forward (none): 3 blocks x 4 kernels each, in the shape stream
   // alone (only the shape latent is scored, so the pose stream does not run: set_output_latents).
   EXPECT_EQ(simu::models::fused::launch_count() - n0, 2 * 3 * 1 * 4) << "fused training kernels did not run";
+  // Both forwards also take the MLP's GELU_AUX_BIAS epilogue (mlp_epilogue.h), one per block.
+  if (simu::models::mlp_epilogue::compiled())
+    EXPECT_EQ(simu::models::mlp_epilogue::launch_count() - m0, 2 * 3) << "the MLP's cuBLASLt epilogue did not run";
   EXPECT_TRUE(torch::equal(terms.loss_pos_policy, terms.loss_pos_ref));
   EXPECT_TRUE(torch::equal(terms.loss_neg_policy, terms.loss_neg_ref));
   EXPECT_TRUE(torch::equal(terms.d_theta, terms.d_ref));
@@ -46,7 +51,10 @@ TEST(FmdpoGpu, PolicyAndReferenceShareOneArithmetic) {
   EXPECT_NEAR(terms.per_pair.max().item<double>(), std::log(2.0), 1e-6);
   EXPECT_NEAR(terms.per_pair.min().item<double>(), std::log(2.0), 1e-6);
   // The backward reaches every adapter (lora_B gets a gradient at lora_B = 0).
+  const auto m1 = simu::models::mlp_epilogue::launch_count();
   terms.loss.backward();
+  // The policy's backward: one DGELU epilogue per block.
+  if (simu::models::mlp_epilogue::compiled()) EXPECT_EQ(simu::models::mlp_epilogue::launch_count() - m1, 3);
   for (auto& [name, p] : policy->adapter_parameters())
     if (name.find("lora_B") != std::string::npos) {
       ASSERT_TRUE(p.grad().defined()) << name;

@@ -1,0 +1,113 @@
+// bench_mlp_epilogue: one flow block's frozen MLP (fc1 -> GELU(tanh) -> fc2, the FeedForwardNet module with
+// the trainer's settings: frozen weights with bf16/fp16 compute copies, training kernels, CUDA autocast) at
+// training size, its ATen path (fused kernels off: addmm, GELU kernel, addmm; backward mm, GELU backward
+// kernel, mm) against the cuBLASLt epilogue path (models/mlp_epilogue.h: GELU_AUX_BIAS forward, DGELU
+// backward). Per call, in microseconds (host clock around --iters calls after --warmup, synchronised):
+//   policy: forward with a graph + backward of the input gradient;  reference: forward without a graph.
+// Then the prediction for one FM-DPO step: --blocks x (policy difference + reference difference) (one
+// policy forward/backward and one reference forward per block and step, as the step's profile counts them).
+#include <fmt/format.h>
+#include <torch/cuda.h>
+
+#include <chrono>
+#include <functional>
+
+#include "common/cli.h"
+#include "common/error.h"
+#include "models/flow_model.h"
+#include "models/linear.h"
+#include "models/mlp_epilogue.h"
+#include "models/precision.h"
+
+namespace {
+
+namespace sm = simu::models;
+
+struct Args {
+  int64_t rows = 16384;  // micro 2: 2 pairs x 2 members x 4,096 shape tokens
+  int64_t channels = 1024;
+  double ratio = 4.0;
+  std::string precision = "bf16";
+  int iters = 50, warmup = 10, blocks = 24;
+};
+
+// Mean microseconds per call of f over iters calls after warmup calls.
+double time_us(const std::function<void()>& f, int iters, int warmup) {
+  for (int i = 0; i < warmup; ++i) f();
+  torch::cuda::synchronize();
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int i = 0; i < iters; ++i) f();
+  torch::cuda::synchronize();
+  return std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count() / iters;
+}
+
+void run(const Args& a) {
+  SIMU_CHECK(torch::cuda::is_available(), "bench_mlp_epilogue: needs a CUDA device");
+  SIMU_CHECK(sm::mlp_epilogue::compiled(), "bench_mlp_epilogue: built without cuBLASLt (CMake found no libcublasLt)");
+  const auto p = sm::parse_precision(a.precision, torch::kCUDA, "--precision");
+  SIMU_CHECK(p != sm::Precision::kFp32, "--precision: bf16 or fp16 (the epilogue path stores 16-bit), got fp32");
+  const auto dt = sm::precision_dtype(p);
+  torch::manual_seed(0);
+  sm::FeedForwardNet ffn(a.channels, a.ratio);
+  ffn->to(torch::kCUDA);
+  for (auto& q : ffn->parameters()) q.set_requires_grad(false);
+  sm::set_compute_copies(*ffn, dt);
+  ffn->inference_kernels = false;  // the trainer's set_training_kernels(true)
+  const auto o = torch::TensorOptions().device(torch::kCUDA).dtype(dt);
+  auto x0 = torch::randn({a.rows, a.channels}, o);  // a fused LayerNorm's 16-bit output
+  auto gy = torch::randn({a.rows, a.channels}, o);
+  sm::Autocast ac(p);
+  fmt::print("bench_mlp_epilogue: rows {}, {} -> {} -> {} channels, {}, {} iters after {} warm-up\n", a.rows, a.channels,
+             ffn->fc1->out_features, a.channels, sm::precision_name(p), a.iters, a.warmup);
+  fmt::print("| path | policy fwd+bwd (us) | reference fwd (us) | epilogue launches per policy call |\n|---|---|---|---|\n");
+  double pol[2] = {0, 0}, ref[2] = {0, 0};
+  for (const bool fused : {false, true}) {
+    ffn->fused_kernels = fused;
+    const auto n0 = sm::mlp_epilogue::launch_count();
+    auto x = x0.clone().requires_grad_();
+    auto policy = [&] {
+      x.mutable_grad() = torch::Tensor();
+      ffn->forward(x).backward(gy);
+    };
+    policy();
+    const auto launches = sm::mlp_epilogue::launch_count() - n0;
+    pol[fused] = time_us(policy, a.iters, a.warmup);
+    ref[fused] = time_us(
+        [&] {
+          torch::NoGradGuard ng;
+          (void)ffn->forward(x0);
+        },
+        a.iters, a.warmup);
+    fmt::print("| {} | {:.1f} | {:.1f} | {} |\n", fused ? "cuBLASLt epilogues" : "ATen (addmm, gelu, addmm)", pol[fused],
+               ref[fused], launches);
+  }
+  const double step_ms = a.blocks * ((pol[0] - pol[1]) + (ref[0] - ref[1])) / 1000.0;
+  fmt::print("saving per call: policy {:.1f} us, reference {:.1f} us; per training step ({} blocks, one policy and one "
+             "reference forward each): {:.2f} ms\n",
+             pol[0] - pol[1], ref[0] - ref[1], a.blocks, step_ms);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"One flow block's frozen MLP at training size: ATen GELU vs cuBLASLt GELU epilogues, per call and per "
+               "FM-DPO step"};
+  Args a;
+  app.add_option("--rows", a.rows, "token rows (micro-batch pairs x 2 members x 4,096 shape tokens)")
+      ->capture_default_str()->check(CLI::PositiveNumber);
+  app.add_option("--channels", a.channels, "model channels C (fc1: C -> ratio C)")->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  app.add_option("--ratio", a.ratio, "MLP ratio")->capture_default_str()->check(CLI::PositiveNumber);
+  app.add_option("--precision", a.precision, "bf16 (training) | fp16")->capture_default_str();
+  app.add_option("--iters", a.iters, "timed calls per path")->capture_default_str()->check(CLI::PositiveNumber);
+  app.add_option("--warmup", a.warmup, "untimed calls first")->capture_default_str()->check(CLI::NonNegativeNumber);
+  app.add_option("--blocks", a.blocks, "transformer blocks per step (the real model: 24)")->capture_default_str()
+      ->check(CLI::PositiveNumber);
+  simu::cli::CommonOptions common;
+  simu::cli::add_common_options(app, common);
+  return simu::cli::run(app, argc, argv, [&] {
+    simu::cli::apply_common_options(common);
+    run(a);
+    return 0;
+  });
+}

@@ -1,0 +1,45 @@
+// The frozen MLP's epilogue path (src/models/mlp_epilogue.h) on the CPU: its reference is linear ->
+// tanh-GELU -> linear (fp64 math written out), and nothing takes the cuBLASLt path off CUDA (the
+// FeedForwardNet's CPU forward is unchanged). The CUDA comparisons are in mlp_epilogue_gpu.cpp.
+#include <cmath>
+
+#include "models/flow_model.h"
+#include "models/mlp_epilogue.h"
+#include "test_util.h"
+
+namespace me = simu::models::mlp_epilogue;
+
+// mlp_reference = (gelu_tanh(x W1^T + b1)) W2^T + b2, values and input gradient, in fp64.
+TEST(MlpEpilogue, ReferenceIsLinearTanhGeluLinear) {
+  torch::manual_seed(1);
+  const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
+  auto x = torch::randn({2, 5, 16}, f64).requires_grad_();
+  auto w1 = torch::randn({32, 16}, f64) / 4, b1 = torch::randn({32}, f64), w2 = torch::randn({8, 32}, f64) / 6,
+       b2 = torch::randn({8}, f64);
+  auto y = me::mlp_reference(x, w1, b1, w2, b2);
+  ASSERT_EQ(y.sizes(), (std::vector<int64_t>{2, 5, 8}));
+  // Written out: u = x W1^T + b1, gelu(u) = u/2 (1 + tanh(sqrt(2/pi) (u + 0.044715 u^3))).
+  auto x2 = x.detach().clone().requires_grad_();
+  auto u = torch::matmul(x2, w1.t()) + b1;
+  auto g = 0.5 * u * (1 + torch::tanh(std::sqrt(2.0 / M_PI) * (u + 0.044715 * u.pow(3))));
+  auto want = torch::matmul(g, w2.t()) + b2;
+  EXPECT_TRUE(simu::testing::close(y, want, 1e-12, "output"));
+  y.sum().backward();
+  want.sum().backward();
+  EXPECT_TRUE(simu::testing::close(x.grad(), x2.grad(), 1e-12, "input gradient"));
+}
+
+// Off CUDA the epilogue path declines (undefined) and the module computes fc2(gelu(fc1(x))) as before.
+TEST(MlpEpilogue, NoEpilogueOnTheCpu) {
+  torch::manual_seed(2);
+  simu::models::FeedForwardNet ffn(16, 4.0);
+  for (auto& p : ffn->parameters()) p.set_requires_grad(false);
+  ffn->inference_kernels = false;
+  auto x = torch::randn({2, 3, 16}).requires_grad_();
+  EXPECT_FALSE(me::frozen_mlp(x, *ffn->fc1, *ffn->fc2).defined());
+  EXPECT_FALSE(me::mlp(x, ffn->fc1->weight, ffn->fc1->bias, ffn->fc2->weight, ffn->fc2->bias).defined());
+  const auto n0 = me::launch_count();
+  auto y = ffn->forward(x);
+  EXPECT_EQ(me::launch_count(), n0);
+  EXPECT_TRUE(torch::equal(y, ffn->fc2->forward(torch::gelu(ffn->fc1->forward(x), "tanh"))));
+}
