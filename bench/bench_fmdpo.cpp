@@ -39,6 +39,7 @@
 #include "common/log.h"
 #include "gpu_profile.h"
 #include "models/cond_embedder.h"
+#include "models/mlp_epilogue.h"
 #include "training/distributed.h"
 #include "training/launcher.h"
 #include "training/generator_policy.h"
@@ -198,6 +199,7 @@ struct Options {
   bool checkpointing = false, profile = false, embed_timing = true;
   bool read_ahead = true;  // Trainer::set_read_ahead (off: the plain upload at each step's start)
   bool device_update = true;  // Trainer::set_device_update (off: the host waits for metrics and norm first)
+  bool mlp_epilogue = true;   // models::mlp_epilogue::set_enabled (off: the ATen fc1, GELU, fc2 of the MLP)
   std::vector<std::string> modes = {"tokens"};
 };
 
@@ -235,6 +237,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   Trainer tr(cfg, *b.policy, source, comm, b.device);
   tr.set_read_ahead(o.read_ahead);
   tr.set_device_update(o.device_update);
+  simu::models::mlp_epilogue::set_enabled(o.mlp_epilogue);
   const bool inputs = mode == "inputs";
   if (inputs) tr.set_condition_embedder(b.timed.fn());
   for (int s = 0; s < o.warmup; ++s) tr.step();
@@ -370,6 +373,10 @@ int main(int argc, char** argv) {
                  "time the embedder of inputs mode (a device synchronisation before and after it; off: no syncs, no embed column)")
       ->capture_default_str();
   app.add_flag("--profile", o.profile, "print the GPU kernels of one step (first micro-batch size, one rank) by time");
+  app.add_option("--mlp-epilogue", o.mlp_epilogue,
+                 "the frozen MLP's GELU in cuBLASLt epilogues (GELU_AUX_BIAS forward, DGELU backward; off: ATen's "
+                 "fc1, GELU and fc2, the reference path)")
+      ->capture_default_str();
   app.add_option("--device-update", o.device_update,
                  "the trainer's device-side update: all-reduce, clipping and AdamW issued behind the backward with "
                  "no host wait (off: the reference path, which reads the metrics and the norm first)")

@@ -31,6 +31,7 @@ namespace simu::models::mlp_epilogue {
 namespace {
 
 std::atomic<int64_t> g_launches{0};
+std::atomic<bool> g_enabled{true};
 
 bool is_16bit(torch::ScalarType t) { return t == torch::kBFloat16 || t == torch::kHalf; }
 bool aligned16(const torch::Tensor& t) { return reinterpret_cast<std::uintptr_t>(t.data_ptr()) % 16 == 0; }
@@ -216,6 +217,9 @@ bool compiled() {
 
 int64_t launch_count() { return g_launches.load(); }
 
+void set_enabled(bool on) { g_enabled = on; }
+bool enabled() { return g_enabled.load(); }
+
 bool supports(const torch::Tensor& x2, const torch::Tensor& w1, const torch::Tensor& b1, const torch::Tensor& w2,
               const torch::Tensor& b2) {
   return fc1_ok(x2, w1, b1) && operands_ok({&w2, &b2}, x2) && w2.dim() == 2 && w2.size(1) == w1.size(0) &&
@@ -290,6 +294,7 @@ torch::Tensor mlp_reference(const torch::Tensor& x, const torch::Tensor& w1, con
 }
 
 torch::Tensor frozen_mlp(const torch::Tensor& x, LinearImpl& fc1, LinearImpl& fc2) {
+  if (!g_enabled.load()) return {};
   if (!compiled() || !x.is_cuda() || x.dim() < 2 || !at::autocast::is_autocast_enabled(at::kCUDA)) return {};
   const auto lp = at::autocast::get_autocast_dtype(at::kCUDA);
   if (!is_16bit(lp)) return {};

@@ -30,6 +30,10 @@ bool compiled();
 // cuBLASLt epilogue products run so far in this process (forward GELU_AUX_BIAS and backward DGELU each
 // count one); tests check that the fast path really ran. Counted apart from fused::launch_count.
 int64_t launch_count();
+// The fast path's switch (on by default; process-wide): off, frozen_mlp always declines and the module
+// takes the ATen reference path (benchmarks compare the two in one run: bench_fmdpo --mlp-epilogue).
+void set_enabled(bool on);
+bool enabled();
 
 // Whether mlp can take these operands: compiled, CUDA, x2: [rows >= 1, K] contiguous bf16/fp16; w1: [N, K],
 // b1: [N], w2: [C, N], b2: [C], all contiguous in x2's dtype on its device; K, N, C multiples of 8 (16-byte
