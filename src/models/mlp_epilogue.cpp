@@ -24,11 +24,26 @@
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 #include <cublasLt.h>
+#include <dlfcn.h>
 #endif
 
 namespace simu::models::mlp_epilogue {
 
 namespace {
+
+#ifdef SIMU_HAVE_CUBLASLT
+// cuBLASLt entry points looked up in the process: the libcublasLt that LibTorch loaded. Linking one here
+// could load a second build of it from another folder (the CUDA toolkit's) ahead of torch's, and every
+// ATen product would then run on that one. Null when the process has none.
+void* lt_symbol(const char* name) { return dlsym(RTLD_DEFAULT, name); }
+template <typename F>
+F lt_function(const char* name) {
+  void* p = lt_symbol(name);
+  SIMU_CHECK(p != nullptr, "mlp_epilogue: {} is not in the process (LibTorch's libcublasLt is not loaded)", name);
+  return reinterpret_cast<F>(p);
+}
+#define SIMU_LT(fn) ([] { static const auto f = lt_function<decltype(&::fn)>(#fn); return f; }())
+#endif
 
 std::atomic<int64_t> g_launches{0};
 std::atomic<bool> g_enabled{true};
@@ -72,30 +87,30 @@ struct LtProduct {
 };
 
 void check_lt(cublasStatus_t s, const char* what) {
-  SIMU_CHECK(s == CUBLAS_STATUS_SUCCESS, "mlp_epilogue: cuBLASLt {} failed: {}", what, cublasLtGetStatusString(s));
+  SIMU_CHECK(s == CUBLAS_STATUS_SUCCESS, "mlp_epilogue: cuBLASLt {} failed: {}", what, SIMU_LT(cublasLtGetStatusString)(s));
 }
 
 // Owning handles of the descriptors.
 struct LtDeleter {
-  void operator()(cublasLtMatmulDesc_t p) const { cublasLtMatmulDescDestroy(p); }
-  void operator()(cublasLtMatrixLayout_t p) const { cublasLtMatrixLayoutDestroy(p); }
-  void operator()(cublasLtMatmulPreference_t p) const { cublasLtMatmulPreferenceDestroy(p); }
+  void operator()(cublasLtMatmulDesc_t p) const { SIMU_LT(cublasLtMatmulDescDestroy)(p); }
+  void operator()(cublasLtMatrixLayout_t p) const { SIMU_LT(cublasLtMatrixLayoutDestroy)(p); }
+  void operator()(cublasLtMatmulPreference_t p) const { SIMU_LT(cublasLtMatmulPreferenceDestroy)(p); }
 };
 template <typename T>
 using LtPtr = std::unique_ptr<std::remove_pointer_t<T>, LtDeleter>;
 
 template <typename T>
 void set_desc(cublasLtMatmulDesc_t d, cublasLtMatmulDescAttributes_t a, const T& v) {
-  check_lt(cublasLtMatmulDescSetAttribute(d, a, &v, sizeof(v)), "MatmulDescSetAttribute");
+  check_lt(SIMU_LT(cublasLtMatmulDescSetAttribute)(d, a, &v, sizeof(v)), "MatmulDescSetAttribute");
 }
 template <typename T>
 void set_pref(cublasLtMatmulPreference_t p, cublasLtMatmulPreferenceAttributes_t a, const T& v) {
-  check_lt(cublasLtMatmulPreferenceSetAttribute(p, a, &v, sizeof(v)), "MatmulPreferenceSetAttribute");
+  check_lt(SIMU_LT(cublasLtMatmulPreferenceSetAttribute)(p, a, &v, sizeof(v)), "MatmulPreferenceSetAttribute");
 }
 
 LtPtr<cublasLtMatrixLayout_t> layout(cudaDataType_t type, int64_t rows, int64_t cols, int64_t ld) {
   cublasLtMatrixLayout_t l = nullptr;
-  check_lt(cublasLtMatrixLayoutCreate(&l, type, static_cast<uint64_t>(rows), static_cast<uint64_t>(cols), ld),
+  check_lt(SIMU_LT(cublasLtMatrixLayoutCreate)(&l, type, static_cast<uint64_t>(rows), static_cast<uint64_t>(cols), ld),
            "MatrixLayoutCreate");
   return LtPtr<cublasLtMatrixLayout_t>(l);
 }
@@ -124,7 +139,7 @@ std::optional<cublasLtMatmulAlgo_t> find_algo(cublasLtHandle_t handle, cublasLtM
   std::lock_guard<std::mutex> lock(g_algo_mutex);
   if (auto it = g_algos.find(key); it != g_algos.end()) return it->second;
   cublasLtMatmulPreference_t raw = nullptr;
-  check_lt(cublasLtMatmulPreferenceCreate(&raw), "MatmulPreferenceCreate");
+  check_lt(SIMU_LT(cublasLtMatmulPreferenceCreate)(&raw), "MatmulPreferenceCreate");
   LtPtr<cublasLtMatmulPreference_t> pref(raw);
   set_pref(raw, CUBLASLT_MATMUL_PREF_MAX_WORKSPACE_BYTES, static_cast<uint64_t>(ws_size));
   set_pref(raw, CUBLASLT_MATMUL_PREF_MIN_ALIGNMENT_A_BYTES, std::get<8>(key));
@@ -136,7 +151,7 @@ std::optional<cublasLtMatmulAlgo_t> find_algo(cublasLtHandle_t handle, cublasLtM
            static_cast<uint32_t>(CUBLASLT_REDUCTION_SCHEME_NONE | CUBLASLT_REDUCTION_SCHEME_COMPUTE_TYPE));
   cublasLtMatmulHeuristicResult_t result{};
   int found = 0;
-  const auto s = cublasLtMatmulAlgoGetHeuristic(handle, desc, la, lb, ld, ld, raw, 1, &result, &found);
+  const auto s = SIMU_LT(cublasLtMatmulAlgoGetHeuristic)(handle, desc, la, lb, ld, ld, raw, 1, &result, &found);
   std::optional<cublasLtMatmulAlgo_t> algo;
   if (s == CUBLAS_STATUS_SUCCESS && found > 0 && result.state == CUBLAS_STATUS_SUCCESS) algo = result.algo;
   return g_algos[key] = algo;
@@ -152,7 +167,7 @@ bool run_product(const LtProduct& p) {
   void* ws = at::cuda::getCUDABlasLtWorkspace();
   const cudaDataType_t type = p.dtype == torch::kHalf ? CUDA_R_16F : CUDA_R_16BF;
   cublasLtMatmulDesc_t raw = nullptr;
-  check_lt(cublasLtMatmulDescCreate(&raw, CUBLAS_COMPUTE_32F, CUDA_R_32F), "MatmulDescCreate");
+  check_lt(SIMU_LT(cublasLtMatmulDescCreate)(&raw, CUBLAS_COMPUTE_32F, CUDA_R_32F), "MatmulDescCreate");
   LtPtr<cublasLtMatmulDesc_t> desc(raw);
   set_desc(raw, CUBLASLT_MATMUL_DESC_TRANSA, p.trans_a ? CUBLAS_OP_T : CUBLAS_OP_N);
   set_desc(raw, CUBLASLT_MATMUL_DESC_TRANSB, CUBLAS_OP_N);
@@ -166,7 +181,7 @@ bool run_product(const LtProduct& p) {
   const auto algo = find_algo(handle, raw, la.get(), lb.get(), ld.get(), p, ws_size);
   if (!algo) return false;
   const float alpha = 1.0f, beta = 0.0f;
-  check_lt(cublasLtMatmul(handle, raw, &alpha, p.a, la.get(), p.b, lb.get(), &beta, p.d, ld.get(), p.d, ld.get(),
+  check_lt(SIMU_LT(cublasLtMatmul)(handle, raw, &alpha, p.a, la.get(), p.b, lb.get(), &beta, p.d, ld.get(), p.d, ld.get(),
                           &*algo, ws, ws_size, at::cuda::getCurrentCUDAStream()),
            "Matmul");
   ++g_launches;
@@ -209,7 +224,8 @@ class FrozenMlpFn : public torch::autograd::Function<FrozenMlpFn> {
 
 bool compiled() {
 #ifdef SIMU_HAVE_CUBLASLT
-  return true;
+  static const bool loaded = lt_symbol("cublasLtMatmul") != nullptr;
+  return loaded;
 #else
   return false;
 #endif

@@ -25,7 +25,8 @@ class LinearImpl;
 
 namespace simu::models::mlp_epilogue {
 
-// True when the library was built with cuBLASLt (CMake found libcublasLt beside the CUDA LibTorch).
+// True when the library was built against cublasLt.h and the process has LibTorch's libcublasLt loaded
+// (its functions are looked up at run time, never linked: one cuBLASLt per process, torch's).
 bool compiled();
 // cuBLASLt epilogue products run so far in this process (forward GELU_AUX_BIAS and backward DGELU each
 // count one); tests check that the fast path really ran. Counted apart from fused::launch_count.
