@@ -65,7 +65,7 @@ struct StagedBatch {
 };
 
 struct StepTail {
-  Clock::time_point began, compute_began;  // the step's start; its forwards' start
+  Clock::time_point compute_began;             // its forwards' start
   double seconds_data = 0, seconds_ahead = 0;  // reading this step's batch; reading the next one ahead
   torch::Tensor terms;                         // [7, pairs] per-pair metric terms on the device
   std::vector<int> kinds;                      // the pairs' kinds, in order
@@ -405,7 +405,6 @@ StepMetrics Trainer::step() {
   const auto began = Clock::now();
   // This step's batch: read ahead by the previous step, or read and staged now.
   StepTail tail;
-  tail.began = began;
   std::unique_ptr<StagedBatch> batch;
   if (ahead_) {
     SIMU_CHECK(ahead_->step == step_,
