@@ -216,12 +216,7 @@ TEST(TrainerGpu, DeviceUpdateSkipsANonFiniteStep) {
   (*pairs)[3].x_pos[0][0] = std::numeric_limits<float>::quiet_NaN();
   const std::vector<torch::Tensor> before = {m.A.detach().cpu(), m.B.detach().cpu()};
   const auto state_before = tr.optimizer().state_dict();
-  std::string msg;
-  try {
-    tr.step();
-  } catch (const simu::Error& e) {
-    msg = e.what();
-  }
+  const std::string msg = simu::testing::error_of([&] { tr.step(); });
   EXPECT_NE(msg.find("step 3: non-finite loss"), std::string::npos) << msg;
   EXPECT_EQ(tr.steps_done(), 2);
   EXPECT_TRUE(torch::equal(m.A.detach().cpu(), before[0]));
