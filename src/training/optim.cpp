@@ -56,6 +56,11 @@ std::vector<torch::Tensor> defined_grads(const std::vector<torch::Tensor>& param
     if (p.grad().defined()) out.push_back(p.grad());
   return out;
 }
+// CUDA gradients' global norm on the device: per-tensor norms in one multi-tensor launch, their
+// float64 sum of squares, its square root ([] float64). Shared by the host-sync and device paths.
+torch::Tensor device_grad_norm(const std::vector<torch::Tensor>& grads) {
+  return torch::stack(at::_foreach_norm(grads, 2)).to(torch::kFloat64).pow(2).sum().sqrt();
+}
 }  // namespace
 
 double global_grad_norm(const std::vector<torch::Tensor>& params) {
@@ -63,10 +68,7 @@ double global_grad_norm(const std::vector<torch::Tensor>& params) {
   if (grads.empty()) return 0.0;
   // CUDA: per-tensor norms in one multi-tensor launch, their float64 sum of squares on the device,
   // one host sync.
-  if (grads.front().is_cuda()) {
-    auto norms = torch::stack(at::_foreach_norm(grads, 2)).to(torch::kFloat64);  // [N]
-    return norms.pow(2).sum().sqrt().item<double>();
-  }
+  if (grads.front().is_cuda()) return device_grad_norm(grads).item<double>();
   // CPU: sum of squared per-tensor norms, in float64.
   double sq = 0.0;
   for (const auto& g : grads) {
@@ -100,8 +102,7 @@ torch::Tensor clip_grad_norm_on_device(const std::vector<torch::Tensor>& params,
                g.device().str(), c10::toString(g.scalar_type()), grads.front().device().str(),
                c10::toString(grads.front().scalar_type()));
   torch::NoGradGuard ng;
-  // As global_grad_norm: per-tensor norms in one launch, their float64 sum of squares.
-  auto norm = torch::stack(at::_foreach_norm(grads, 2)).to(torch::kFloat64).pow(2).sum().sqrt();  // []
+  auto norm = device_grad_norm(grads);  // [] float64, as global_grad_norm
   if (max_norm > 0) {
     // coef = max_norm / (norm + 1e-6) in float64, clamped to 1 (x * 1 is exact), rounded to the
     // gradients' dtype as the Scalar overload rounds its double.
