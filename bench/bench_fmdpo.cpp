@@ -200,6 +200,7 @@ struct Options {
   bool read_ahead = true;  // Trainer::set_read_ahead (off: the plain upload at each step's start)
   bool device_update = true;  // Trainer::set_device_update (off: the host waits for metrics and norm first)
   bool mlp_epilogue = true;   // models::mlp_epilogue::set_enabled (off: the ATen fc1, GELU, fc2 of the MLP)
+  std::vector<int> lt_algo_ranks;  // models::mlp_epilogue::set_algo_ranks (GELU_AUX_BIAS, DGELU; empty: the default)
   std::vector<std::string> modes = {"tokens"};
 };
 
@@ -238,6 +239,7 @@ Row measure_setting(Bench& b, const PairSourceFactory& source, Communicator& com
   tr.set_read_ahead(o.read_ahead);
   tr.set_device_update(o.device_update);
   simu::models::mlp_epilogue::set_enabled(o.mlp_epilogue);
+  if (!o.lt_algo_ranks.empty()) simu::models::mlp_epilogue::set_algo_ranks(o.lt_algo_ranks[0], o.lt_algo_ranks[1]);
   const bool inputs = mode == "inputs";
   if (inputs) tr.set_condition_embedder(b.timed.fn());
   for (int s = 0; s < o.warmup; ++s) tr.step();
@@ -377,6 +379,10 @@ int main(int argc, char** argv) {
                  "the frozen MLP's GELU in cuBLASLt epilogues (GELU_AUX_BIAS forward, DGELU backward; off: ATen's "
                  "fc1, GELU and fc2, the reference path)")
       ->capture_default_str();
+  app.add_option("--lt-algo-ranks", o.lt_algo_ranks,
+                 "the cuBLASLt heuristic ranks the epilogue products run, GELU_AUX_BIAS then DGELU "
+                 "(mlp_epilogue::set_algo_ranks; default: the library's)")
+      ->expected(2)->delimiter(',')->check(CLI::Range(0, 15));
   app.add_option("--device-update", o.device_update,
                  "the trainer's device-side update: all-reduce, clipping and AdamW issued behind the backward with "
                  "no host wait (off: the reference path, which reads the metrics and the norm first)")

@@ -9,6 +9,7 @@
 #include <fmt/format.h>
 #include <torch/cuda.h>
 
+#include <algorithm>
 #include <chrono>
 #include <functional>
 
@@ -29,6 +30,7 @@ struct Args {
   double ratio = 4.0;
   std::string precision = "bf16";
   int iters = 50, warmup = 10, blocks = 24;
+  int candidates = 0;  // heuristic ranks timed per epilogue product (0: none)
 };
 
 // Mean microseconds per call of f over iters calls after warmup calls.
@@ -39,6 +41,45 @@ double time_us(const std::function<void()>& f, int iters, int warmup) {
   for (int i = 0; i < iters; ++i) f();
   torch::cuda::synchronize();
   return std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count() / iters;
+}
+
+// The epilogue products alone at the step's shapes under each heuristic rank 0..n-1 (set_algo_ranks), with
+// the plain ATen product of the same shape (no epilogue) as the ceiling they are measured against, and each
+// rank's largest difference from rank 0's output (0: the same bits).
+void time_candidates(const Args& a, torch::ScalarType dt) {
+  namespace me = sm::mlp_epilogue;
+  const int64_t K = a.channels, N = static_cast<int64_t>(a.channels * a.ratio);
+  const auto o = torch::TensorOptions().device(torch::kCUDA).dtype(dt);
+  auto x2 = torch::randn({a.rows, K}, o), w1 = torch::randn({N, K}, o) * 0.03, b1 = torch::randn({N}, o) * 0.1;  // fc1
+  auto dy = torch::randn({a.rows, K}, o), w2 = torch::randn({K, N}, o) * 0.03;                                    // fc2^T
+  const double flop = 2.0 * static_cast<double>(a.rows) * static_cast<double>(K) * static_cast<double>(N);
+  auto rate = [&](double us) { return flop / (us * 1e-6) / 1e12; };
+  const double plain_fwd = time_us([&] { (void)at::addmm(b1, x2, w1.t()); }, a.iters, a.warmup);
+  const double plain_bwd = time_us([&] { (void)at::mm(dy, w2); }, a.iters, a.warmup);
+  fmt::print("\nepilogue products by heuristic rank: rows {}, {} x {}, {}; plain ATen product of the same shape: "
+             "fc1 {:.1f} us ({:.0f} TFLOP/s), dY W2 {:.1f} us ({:.0f} TFLOP/s)\n",
+             a.rows, K, N, c10::toString(dt), plain_fwd, rate(plain_fwd), plain_bwd, rate(plain_bwd));
+  fmt::print("| product | rank asked | rank run (of found) | algorithm | us | TFLOP/s | vs plain | max abs diff vs rank 0 |\n"
+             "|---|---|---|---|---|---|---|---|\n");
+  torch::Tensor h0, pre0, d0;
+  const auto before = me::algo_ranks();
+  for (int r = 0; r < a.candidates; ++r) {
+    me::set_algo_ranks(r, r);
+    auto [h, pre] = me::linear_gelu_aux(x2, w1, b1);
+    const auto fi = me::last_algo();
+    const double fus = time_us([&] { (void)me::linear_gelu_aux(x2, w1, b1); }, a.iters, a.warmup);
+    if (r == 0) h0 = h, pre0 = pre;
+    const double fdiff = std::max((h - h0).abs().max().item<double>(), (pre - pre0).abs().max().item<double>());
+    fmt::print("| GELU_AUX_BIAS | {} | {} ({}) | {} | {:.1f} | {:.0f} | {:.2f} | {:.3g} |\n", r, fi.rank, fi.found,
+               fi.config, fus, rate(fus), plain_fwd / fus, fdiff);
+    auto d = me::linear_dgelu(dy, w2, pre0);
+    const auto bi = me::last_algo();
+    const double bus = time_us([&] { (void)me::linear_dgelu(dy, w2, pre0); }, a.iters, a.warmup);
+    if (r == 0) d0 = d;
+    fmt::print("| DGELU | {} | {} ({}) | {} | {:.1f} | {:.0f} | {:.2f} | {:.3g} |\n", r, bi.rank, bi.found, bi.config, bus,
+               rate(bus), plain_bwd / bus, (d - d0).abs().max().item<double>());
+  }
+  me::set_algo_ranks(before.first, before.second);
 }
 
 void run(const Args& a) {
@@ -90,6 +131,7 @@ void run(const Args& a) {
   fmt::print("saving per call: policy {:.1f} us, reference {:.1f} us; per training step ({} blocks, one policy and one "
              "reference forward each): {:.2f} ms\n",
              pol[0] - pol[1], ref[0] - ref[1], a.blocks, step_ms);
+  if (a.candidates > 0) time_candidates(a, dt);
 }
 
 }  // namespace
@@ -106,6 +148,10 @@ int main(int argc, char** argv) {
   app.add_option("--precision", a.precision, "bf16 (training) | fp16")->capture_default_str();
   app.add_option("--iters", a.iters, "timed calls per path")->capture_default_str()->check(CLI::PositiveNumber);
   app.add_option("--warmup", a.warmup, "untimed calls first")->capture_default_str()->check(CLI::NonNegativeNumber);
+  app.add_option("--candidates", a.candidates,
+                 "also time fc1's GELU_AUX_BIAS and the DGELU product alone under heuristic ranks 0..N-1 "
+                 "(mlp_epilogue::set_algo_ranks; 0: skip)")
+      ->capture_default_str()->check(CLI::Range(0, 16));
   app.add_option("--blocks", a.blocks, "transformer blocks per step (the real model: 24)")->capture_default_str()
       ->check(CLI::PositiveNumber);
   simu::cli::CommonOptions common;

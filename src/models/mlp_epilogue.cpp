@@ -6,6 +6,8 @@
 #include <fmt/ranges.h>
 #include <torch/autograd.h>
 
+#include <algorithm>
+#include <array>
 #include <atomic>
 #include <cstdint>
 #include <initializer_list>
@@ -47,6 +49,7 @@ F lt_function(const char* name) {
 
 std::atomic<int64_t> g_launches{0};
 std::atomic<bool> g_enabled{true};
+std::atomic<int> g_rank_gelu_aux{0}, g_rank_dgelu{0};  // set_algo_ranks
 
 bool is_16bit(torch::ScalarType t) { return t == torch::kBFloat16 || t == torch::kHalf; }
 bool aligned16(const torch::Tensor& t) { return reinterpret_cast<std::uintptr_t>(t.data_ptr()) % 16 == 0; }
@@ -123,21 +126,45 @@ uint32_t alignment(const void* p) {
   return r;
 }
 
-// The heuristic's first algorithm per problem (shape, epilogue, dtype, workspace, pointer alignments), kept
-// for the process: a forward with a graph and one without run the same algorithm. nullopt: none.
+// The heuristic's algorithm of the rank set_algo_ranks gives the product's epilogue (0: its first) per problem (shape, epilogue, dtype,
+// workspace, pointer alignments), kept for the process: a forward with a graph and one without run the
+// same algorithm. nullopt: none.
 using AlgoKey = std::tuple<int, int, bool, int64_t, int64_t, int64_t, int, size_t, uint32_t, uint32_t, uint32_t, uint32_t,
-                           uint32_t>;
+                           uint32_t, int>;
+struct Chosen {
+  std::optional<cublasLtMatmulAlgo_t> algo;
+  AlgoInfo info;
+};
 std::mutex g_algo_mutex;
-std::map<AlgoKey, std::optional<cublasLtMatmulAlgo_t>> g_algos;
+std::map<AlgoKey, Chosen> g_algos;
+AlgoInfo g_last_algo;  // under g_algo_mutex
+
+// One algorithm's configuration as cuBLASLt reports it (for benchmark tables).
+std::string describe(const cublasLtMatmulAlgo_t& algo) {
+  auto get = [&](cublasLtMatmulAlgoConfigAttributes_t a) {
+    uint32_t v = 0;
+    size_t written = 0;
+    const auto s = SIMU_LT(cublasLtMatmulAlgoConfigGetAttribute)(&algo, a, &v, sizeof(v), &written);
+    return s == CUBLAS_STATUS_SUCCESS ? static_cast<int64_t>(v) : int64_t{-1};
+  };
+  return fmt::format("id {} tile {} stages {} splitK {} swizzle {} cluster {}", get(CUBLASLT_ALGO_CONFIG_ID),
+                     get(CUBLASLT_ALGO_CONFIG_TILE_ID), get(CUBLASLT_ALGO_CONFIG_STAGES_ID),
+                     get(CUBLASLT_ALGO_CONFIG_SPLITK_NUM), get(CUBLASLT_ALGO_CONFIG_CTA_SWIZZLING),
+                     get(CUBLASLT_ALGO_CONFIG_CLUSTER_SHAPE_ID));
+}
 
 std::optional<cublasLtMatmulAlgo_t> find_algo(cublasLtHandle_t handle, cublasLtMatmulDesc_t desc, cublasLtMatrixLayout_t la,
                                               cublasLtMatrixLayout_t lb, cublasLtMatrixLayout_t ld, const LtProduct& p,
                                               size_t ws_size) {
+  const int rank = (p.epilogue == CUBLASLT_EPILOGUE_DGELU ? g_rank_dgelu : g_rank_gelu_aux).load();
   const AlgoKey key{static_cast<int>(c10::cuda::current_device()), static_cast<int>(p.epilogue), p.trans_a, p.m, p.n, p.k,
                     static_cast<int>(p.dtype), ws_size, alignment(p.a), alignment(p.b), alignment(p.d),
-                    p.bias ? alignment(p.bias) : 0u, alignment(p.aux)};
+                    p.bias ? alignment(p.bias) : 0u, alignment(p.aux), rank};
   std::lock_guard<std::mutex> lock(g_algo_mutex);
-  if (auto it = g_algos.find(key); it != g_algos.end()) return it->second;
+  if (auto it = g_algos.find(key); it != g_algos.end()) {
+    g_last_algo = it->second.info;
+    return it->second.algo;
+  }
   cublasLtMatmulPreference_t raw = nullptr;
   check_lt(SIMU_LT(cublasLtMatmulPreferenceCreate)(&raw), "MatmulPreferenceCreate");
   LtPtr<cublasLtMatmulPreference_t> pref(raw);
@@ -149,12 +176,24 @@ std::optional<cublasLtMatmulAlgo_t> find_algo(cublasLtHandle_t handle, cublasLtM
   // Split-K partial sums in fp32 only (no reduction in the 16-bit output type).
   set_pref(raw, CUBLASLT_MATMUL_PREF_REDUCTION_SCHEME_MASK,
            static_cast<uint32_t>(CUBLASLT_REDUCTION_SCHEME_NONE | CUBLASLT_REDUCTION_SCHEME_COMPUTE_TYPE));
-  cublasLtMatmulHeuristicResult_t result{};
+  // The heuristic's list, best first; rank k where it has k + 1 usable entries, else its first.
+  constexpr int kRequested = 16;
+  std::array<cublasLtMatmulHeuristicResult_t, kRequested> results{};
   int found = 0;
-  const auto s = SIMU_LT(cublasLtMatmulAlgoGetHeuristic)(handle, desc, la, lb, ld, ld, raw, 1, &result, &found);
-  std::optional<cublasLtMatmulAlgo_t> algo;
-  if (s == CUBLAS_STATUS_SUCCESS && found > 0 && result.state == CUBLAS_STATUS_SUCCESS) algo = result.algo;
-  return g_algos[key] = algo;
+  const auto s = SIMU_LT(cublasLtMatmulAlgoGetHeuristic)(handle, desc, la, lb, ld, ld, raw, kRequested, results.data(),
+                                                         &found);
+  Chosen c;
+  c.info.found = s == CUBLAS_STATUS_SUCCESS ? found : 0;
+  for (int r : {rank, 0}) {
+    if (r < c.info.found && results[r].state == CUBLAS_STATUS_SUCCESS) {
+      c.algo = results[r].algo;
+      c.info.rank = r;
+      c.info.config = describe(results[r].algo);
+      break;
+    }
+  }
+  g_last_algo = c.info;
+  return (g_algos[key] = c).algo;
 }
 
 // Runs the product on the current stream with ATen's cuBLASLt handle and workspace; false (nothing run)
@@ -235,6 +274,23 @@ int64_t launch_count() { return g_launches.load(); }
 
 void set_enabled(bool on) { g_enabled = on; }
 bool enabled() { return g_enabled.load(); }
+
+void set_algo_ranks(int gelu_aux, int dgelu) {
+  for (int r : {gelu_aux, dgelu})
+    SIMU_CHECK(r >= 0 && r < 16, "mlp_epilogue::set_algo_ranks: {} is not a heuristic rank in [0, 15]", r);
+  g_rank_gelu_aux = gelu_aux;
+  g_rank_dgelu = dgelu;
+}
+std::pair<int, int> algo_ranks() { return {g_rank_gelu_aux.load(), g_rank_dgelu.load()}; }
+
+AlgoInfo last_algo() {
+#ifdef SIMU_HAVE_CUBLASLT
+  std::lock_guard<std::mutex> lock(g_algo_mutex);
+  return g_last_algo;
+#else
+  return {};
+#endif
+}
 
 bool supports(const torch::Tensor& x2, const torch::Tensor& w1, const torch::Tensor& b1, const torch::Tensor& w2,
               const torch::Tensor& b2) {

@@ -36,6 +36,23 @@ int64_t launch_count();
 void set_enabled(bool on);
 bool enabled();
 
+// Which of cuBLASLt's heuristic algorithms the epilogue products run, per epilogue (fc1's GELU_AUX_BIAS,
+// the backward's DGELU; process-wide, default 0 and 0: the heuristic's first). Rank k takes the k-th entry
+// of the heuristic's list (best first) where the list has one, else the first. The choice is fixed per
+// rank, problem and machine (no timing), so every process runs the same kernels and gets the same bits;
+// benchmarks compare ranks (bench_mlp_epilogue --candidates, bench_fmdpo --lt-algo-ranks). Ranks: 0..15.
+void set_algo_ranks(int gelu_aux, int dgelu);
+std::pair<int, int> algo_ranks();
+// The algorithm of the last epilogue product set up in this process (for benchmark tables): the rank it took,
+// how many the heuristic offered, and its configuration (algorithm id, tile, stages, split-K, swizzle,
+// cluster ids as cuBLASLt numbers them). Empty before the first product or without cuBLASLt.
+struct AlgoInfo {
+  int rank = -1;
+  int found = 0;
+  std::string config;
+};
+AlgoInfo last_algo();
+
 // Whether mlp can take these operands: compiled, CUDA, x2: [rows >= 1, K] contiguous bf16/fp16; w1: [N, K],
 // b1: [N], w2: [C, N], b2: [C], all contiguous in x2's dtype on its device; K, N, C multiples of 8 (16-byte
 // rows, the aux leading dimension rule); every pointer 16-byte aligned.
