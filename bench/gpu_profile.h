@@ -228,6 +228,20 @@ inline void print_gpu_op_profile(const std::string& title, const std::function<v
     fmt::print("| {} | {} | {:.3f} | {:.1f}% |\n", k, rows[i].second.second, rows[i].second.first,
                total > 0 ? 100 * rows[i].second.first / total : 0.0);
   }
+  // The same rows by launches: where the many short kernels (and their gaps) come from.
+  int64_t launches = 0;
+  for (const auto& r : rows) launches += r.second.second;
+  std::sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.second.second > b.second.second; });
+  fmt::print("\nop launches: {}: {} GPU activities\n| call chain [input shapes] / kernel | calls | ms | us per call |\n"
+             "|---|---|---|---|\n",
+             title, launches);
+  for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
+    std::string k = rows[i].first;
+    for (auto& ch : k)
+      if (ch == '|') ch = '/';
+    fmt::print("| {} | {} | {:.3f} | {:.1f} |\n", k, rows[i].second.second, rows[i].second.first,
+               1000 * rows[i].second.first / std::max(1, rows[i].second.second));
+  }
 }
 
 // Whether a benchmark of the real-size model can run on `dev`: CUDA, or the CPU with --small (a smoke
