@@ -2,7 +2,8 @@
 # Prepares, on our Debian 12 machine, what the GPU machine's image lacks, as files under .carry/:
 #   .carry/prefix/usr/...  Debian packages unpacked (MuJoCo 2.2.2 + qhull, assimp, GoogleTest, the gloo
 #                          headers of libgloo-dev for c10d ProcessGroupGloo; never linked) and
-#                          the runtime libraries they need; CoACD's C library from its PyPI wheel
+#                          the runtime libraries they need; CoACD's C library from its PyPI wheel; the cuDNN
+#                          frontend's headers from its PyPI wheel (bench_cudnn_sdpa)
 #   .carry/shared/         the fixtures the GPU tests read, from ../shared/fixtures (the device gets only the
 #                          repository); the 55 MB preprocess_released_* fixtures are CPU-only and stay here
 # The GPU machine has LibTorch (its PyTorch 2.11.0+cu130), CUDA, Eigen, HDF5 1.10, yaml-cpp, CLI11,
@@ -27,6 +28,12 @@ coacd_lib="$(ls "$ROOT"/.deps/venv/lib/python3*/site-packages/coacd/lib_coacd.so
 if [ -n "$coacd_lib" ]; then
   mkdir -p "$CARRY/prefix/usr/lib/coacd" && cp -f "$coacd_lib" "$CARRY/prefix/usr/lib/coacd/"
   cp -f "$(dirname "$coacd_lib")"/../coacd.libs/*.so* "$CARRY/prefix/usr/lib/coacd/" 2>/dev/null || true  # its vendored libgomp
+fi
+# The cuDNN frontend's headers (PyPI nvidia-cudnn-frontend, header-only) for bench_cudnn_sdpa, found by CMake
+# under the prefix; cudnn.h itself comes with the image's torch (nvidia/cudnn/include).
+fe_inc="$(ls -d "$ROOT"/.deps/venv/lib/python3*/site-packages/include 2>/dev/null | head -1 || true)"
+if [ -n "$fe_inc" ] && [ -f "$fe_inc/cudnn_frontend.h" ]; then
+  mkdir -p "$CARRY/prefix/usr/include" && cp -r "$fe_inc"/cudnn_frontend* "$fe_inc"/cudnn_backend_base.h "$CARRY/prefix/usr/include/"
 fi
 # Fixtures.
 rm -rf "$CARRY/shared" && mkdir -p "$CARRY/shared/fixtures"

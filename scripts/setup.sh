@@ -60,6 +60,15 @@ if ! [ -f "$VENV/.coacd-$COACD_VERSION" ]; then
   touch "$VENV/.coacd-$COACD_VERSION"
 fi
 
+# PyPI nvidia-cudnn-frontend: cuDNN's header-only C++ frontend (its include/ lands in site-packages), for
+# bench_cudnn_sdpa, which builds cuDNN attention graphs against the libcudnn LibTorch loads.
+CUDNN_FE_VERSION="1.32.0"
+if ! [ -f "$VENV/.cudnn-frontend-$CUDNN_FE_VERSION" ]; then
+  log "installing nvidia-cudnn-frontend==$CUDNN_FE_VERSION into $VENV"
+  "$VENV/bin/python" -m pip install -q "nvidia-cudnn-frontend==$CUDNN_FE_VERSION"
+  touch "$VENV/.cudnn-frontend-$CUDNN_FE_VERSION"
+fi
+
 # PyPI mujoco: the scene.xml check runs the probe's output in the MuJoCo users open it in (tests/physics/mjcf_rest_check.py).
 MUJOCO_PY_VERSION="4.0.0"
 if ! [ -f "$VENV/.mujoco-$MUJOCO_PY_VERSION" ]; then
