@@ -81,6 +81,11 @@ TEST(GeneratorPolicyGpu, Fp8BaseCloseToBf16AndOffRestores) {
   st::set_policy_fp8_base(*policy, false, Fp8Backward::kFp8, "test");
   auto [again, g_again] = evaluate(*policy, in);
   EXPECT_TRUE(torch::equal(again.loss, bf16.loss));
-  // (Attention backward kernels may accumulate in a varying order: the gradients agree to rounding.)
-  EXPECT_NEAR((g_again - g_bf16).norm().item<double>() / g_bf16.norm().item<double>(), 0.0, 1e-3);
+  // cuDNN's attention backward accumulates dQ with fp32 atomics in a varying order, so the two bf16 backwards
+  // differ where a sum lands on the other side of a bf16 rounding: at most one bf16 step (2^-8 relative) per
+  // element, far below it in norm (1.0e-3 measured on an H100). An FP8 state left behind would show
+  // as a difference of the order of the FP8 rows above (cosine 0.999: several 1e-2).
+  const double again_rel = (g_again - g_bf16).norm().item<double>() / g_bf16.norm().item<double>();
+  std::printf("bf16 again after FP8 off: gradient relative difference %.3g (attention backward's atomics)\n", again_rel);
+  EXPECT_LT(again_rel, 1.0 / 256);
 }
