@@ -9,6 +9,8 @@
 //   train-cross   bf16 forward + backward, B 2, 8,192 queries (both members) x L condition tokens
 //   sample-self   fp16 inference forward, B 2, 4,096 x 4,096 (CFG rows)
 //   sample-cross  fp16 inference forward, B 1, 4,096 x L
+// --fp8: the training cases also through cuDNN's FP8 SDPA forward and backward (e4m3, unit scales, the
+// heuristic's first plan), timed against PyTorch's bf16: the attention an FP8 training mode could have.
 #include <fmt/format.h>
 
 #include <string>
@@ -54,6 +56,7 @@ struct Args {
   int iters = 20, warmup = 3;
   std::vector<std::string> modes = {"A", "B", "FALLBACK"};
   std::string implementation = "auto";
+  bool fp8 = false;  // the training cases also in FP8 (cuDNN's FP8 SDPA forward and backward)
 };
 
 constexpr int64_t kHeads = 16, kDim = 64;
@@ -175,6 +178,88 @@ void run_graph(cudnnHandle_t handle, const Case& c, bool backward, const std::st
   }
 }
 
+// The same attention in FP8 (e4m3 Q, K, V, O, dO and gradients, unit scales; cuDNN's FP8 SDPA nodes, the
+// heuristic's first plan): how much faster the opt-in FP8 training mode's attention could run. Timing and a
+// coarse output check only (the values are rounded to e4m3); bf16_*: PyTorch's bf16 times of the same shape.
+void run_fp8(cudnnHandle_t handle, const Case& c, const Tensors& t, double bf16_fwd_ms, double bf16_bwd_ms, const Args& a) {
+  using TA = fe::graph::Tensor_attributes;
+  using Map = std::unordered_map<std::shared_ptr<TA>, void*>;
+  const auto f8 = torch::kFloat8_e4m3fn;
+  auto q8 = t.q.to(f8), k8 = t.k.to(f8), v8 = t.v.to(f8), o8 = t.o.to(f8), do8 = t.d_o.to(f8);
+  auto one = torch::ones({1, 1, 1, 1}, t.q.options().dtype(torch::kFloat32));
+  std::vector<torch::Tensor> held;  // amax outputs and gradients
+  auto build = [&](fe::graph::Graph& g, Map& m, bool backward) {
+    g.set_io_data_type(fe::DataType_t::FP8_E4M3).set_intermediate_data_type(fe::DataType_t::FLOAT).set_compute_data_type(
+        fe::DataType_t::FLOAT);
+    auto tensor = [&](const char* name, int64_t s, void* p) {
+      auto x = g.tensor(TA().set_name(name).set_dim({c.b, kHeads, s, kDim}).set_stride(bshd_stride(s)));
+      m[x] = p;
+      return x;
+    };
+    auto scalar = [&](const char* name) {
+      auto x = g.tensor(TA().set_name(name).set_dim({1, 1, 1, 1}).set_stride({1, 1, 1, 1}).set_data_type(fe::DataType_t::FLOAT));
+      m[x] = one.data_ptr();
+      return x;
+    };
+    auto out = [&](const std::shared_ptr<TA>& x, const torch::Tensor& like, bool amax) {
+      auto buf = amax ? torch::empty({1, 1, 1, 1}, one.options()) : torch::empty_like(like);
+      held.push_back(buf);
+      x->set_output(true);
+      if (amax) x->set_dim({1, 1, 1, 1}).set_stride({1, 1, 1, 1}).set_data_type(fe::DataType_t::FLOAT);
+      m[x] = buf.data_ptr();
+    };
+    const float scale = 1.0f / std::sqrt(static_cast<float>(kDim));
+    auto Q = tensor("Q", c.sq, q8.data_ptr()), K = tensor("K", c.skv, k8.data_ptr()), V = tensor("V", c.skv, v8.data_ptr());
+    if (!backward) {
+      auto opts = fe::graph::SDPA_fp8_attributes().set_name("sdpa_fp8").set_generate_stats(true).set_attn_scale(scale);
+      auto [O, Stats, amax_s, amax_o] = g.sdpa_fp8(Q, K, V, scalar("dq"), scalar("dk"), scalar("dv"), scalar("ds"),
+                                                   scalar("ss"), scalar("so"), opts);
+      O->set_dim({c.b, kHeads, c.sq, kDim}).set_stride(bshd_stride(c.sq));
+      out(O, o8, false);
+      Stats->set_data_type(fe::DataType_t::FLOAT);
+      out(Stats, t.stats, false);
+      out(amax_s, one, true);
+      out(amax_o, one, true);
+      return;
+    }
+    auto O = tensor("O", c.sq, o8.data_ptr()), dO = tensor("dO", c.sq, do8.data_ptr());
+    auto Stats = g.tensor(TA().set_name("Stats").set_dim({c.b, kHeads, c.sq, 1}).set_stride({kHeads * c.sq, c.sq, 1, 1})
+                              .set_data_type(fe::DataType_t::FLOAT));
+    m[Stats] = t.stats.data_ptr();
+    auto opts = fe::graph::SDPA_fp8_backward_attributes().set_name("sdpa_fp8_backward").set_attn_scale(scale);
+    auto r = g.sdpa_fp8_backward(Q, K, V, O, dO, Stats, scalar("dq"), scalar("dk"), scalar("dv"), scalar("do"),
+                                 scalar("ddo"), scalar("ds"), scalar("ddp"), scalar("ss"), scalar("sdq"), scalar("sdk"),
+                                 scalar("sdv"), scalar("sdp"), opts);
+    r[0]->set_dim({c.b, kHeads, c.sq, kDim}).set_stride(bshd_stride(c.sq));
+    r[1]->set_dim({c.b, kHeads, c.skv, kDim}).set_stride(bshd_stride(c.skv));
+    r[2]->set_dim({c.b, kHeads, c.skv, kDim}).set_stride(bshd_stride(c.skv));
+    out(r[0], q8, false);
+    out(r[1], k8, false);
+    out(r[2], v8, false);
+    for (int i = 3; i < 7; ++i) out(r[i], one, true);
+  };
+  for (const bool backward : {false, true}) {
+    fe::graph::Graph g;
+    Map m;
+    build(g, m, backward);
+    const std::string what = fmt::format("{} FP8 {}", c.name, backward ? "backward" : "forward");
+    auto status = g.build(handle, {fe::HeurMode_t::A});
+    if (!status.is_good()) {
+      fmt::print("| {} | - | no plan: {} | | | |\n", what, status.get_message().substr(0, 160));
+      continue;
+    }
+    int64_t ws = 0;
+    check_fe(g.get_workspace_size(ws), what + " workspace");
+    auto workspace = torch::empty({std::max<int64_t>(ws, 1)}, t.q.options().dtype(torch::kUInt8));
+    auto run = [&] { check_fe(g.execute(handle, m, workspace.data_ptr()), what + " execute"); };
+    run();
+    torch::cuda::synchronize();
+    const double ms = time_ms(run, a.iters, a.warmup);
+    const double ref = backward ? bf16_bwd_ms : bf16_fwd_ms;
+    fmt::print("| {} | 0 | first plan | {:.3f} | {:.2f} (vs PyTorch bf16) | |\n", what, ms, ref / ms);
+  }
+}
+
 void run_case(cudnnHandle_t handle, const Case& c, const Args& a) {
   const auto o = torch::TensorOptions().device(torch::kCUDA).dtype(c.dtype);
   Tensors t;
@@ -216,6 +301,7 @@ void run_case(cudnnHandle_t handle, const Case& c, const Args& a) {
   std::vector<torch::Tensor> ref_grads;
   for (auto& gr : grads) ref_grads.push_back(perm(gr).contiguous());
   for (const auto& m : a.modes) run_graph(handle, c, true, m, "auto", t, ref_grads, bwd_ms, a);
+  if (a.fp8) run_fp8(handle, c, t, fwd_ms, bwd_ms, a);
 }
 
 void run(const Args& a) {
@@ -252,6 +338,7 @@ struct Args {
   std::vector<int64_t> cond_lens;
   int iters = 20, warmup = 3;
   std::string implementation = "auto";
+  bool fp8 = false;
 };
 void run(const Args&) {
   fmt::print("bench_cudnn_sdpa was built without the cuDNN frontend headers (pip install nvidia-cudnn-frontend, then "
@@ -269,6 +356,7 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--implementation", a.implementation, "forward SDPA node: auto | unified | composite")
       ->check(CLI::IsMember({"auto", "unified", "composite"}))->capture_default_str();
+  app.add_option("--fp8", a.fp8, "also time the training cases in FP8 (e4m3, cuDNN's FP8 SDPA nodes)")->capture_default_str();
   app.add_option("--iters", a.iters, "timed runs per plan")->capture_default_str();
   app.add_option("--warmup", a.warmup, "untimed runs first")->capture_default_str();
   simu::cli::CommonOptions common;
