@@ -218,16 +218,20 @@ inline void print_gpu_op_profile(const std::string& title, const std::function<v
     slot.second += 1;
   }
   std::vector<std::pair<std::string, std::pair<double, int>>> rows(by_key.begin(), by_key.end());
+  // The first `top` rows, the key made table-safe, the last column from `last` (ms, calls).
+  auto print_rows = [&](const std::function<std::string(double, int)>& last) {
+    for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
+      std::string k = rows[i].first;
+      for (auto& ch : k)
+        if (ch == '|') ch = '/';
+      fmt::print("| {} | {} | {:.3f} | {} |\n", k, rows[i].second.second, rows[i].second.first,
+                 last(rows[i].second.first, rows[i].second.second));
+    }
+  };
   std::sort(rows.begin(), rows.end(), [](const auto& a, const auto& b) { return a.second.first > b.second.first; });
   fmt::print("\nop profile: {}: GPU kernel time {:.2f} ms\n| call chain [input shapes] / kernel | calls | ms | % |\n|---|---|---|---|\n",
              title, total);
-  for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
-    std::string k = rows[i].first;
-    for (auto& ch : k)
-      if (ch == '|') ch = '/';
-    fmt::print("| {} | {} | {:.3f} | {:.1f}% |\n", k, rows[i].second.second, rows[i].second.first,
-               total > 0 ? 100 * rows[i].second.first / total : 0.0);
-  }
+  print_rows([&](double ms, int) { return fmt::format("{:.1f}%", total > 0 ? 100 * ms / total : 0.0); });
   // The same rows by launches: where the many short kernels (and their gaps) come from.
   int64_t launches = 0;
   for (const auto& r : rows) launches += r.second.second;
@@ -235,13 +239,7 @@ inline void print_gpu_op_profile(const std::string& title, const std::function<v
   fmt::print("\nop launches: {}: {} GPU activities\n| call chain [input shapes] / kernel | calls | ms | us per call |\n"
              "|---|---|---|---|\n",
              title, launches);
-  for (int i = 0; i < std::min<int>(top, static_cast<int>(rows.size())); ++i) {
-    std::string k = rows[i].first;
-    for (auto& ch : k)
-      if (ch == '|') ch = '/';
-    fmt::print("| {} | {} | {:.3f} | {:.1f} |\n", k, rows[i].second.second, rows[i].second.first,
-               1000 * rows[i].second.first / std::max(1, rows[i].second.second));
-  }
+  print_rows([](double ms, int calls) { return fmt::format("{:.1f}", 1000 * ms / std::max(1, calls)); });
 }
 
 // Whether a benchmark of the real-size model can run on `dev`: CUDA, or the CPU with --small (a smoke
