@@ -126,9 +126,9 @@ uint32_t alignment(const void* p) {
   return r;
 }
 
-// The heuristic's algorithm of the rank set_algo_ranks gives the product's epilogue (0: its first) per problem (shape, epilogue, dtype,
-// workspace, pointer alignments), kept for the process: a forward with a graph and one without run the
-// same algorithm. nullopt: none.
+// The heuristic's algorithm of the rank set_algo_ranks gives the product's epilogue (0: its first), per
+// problem (shape, epilogue, dtype, workspace, pointer alignments, rank), kept for the process: a forward
+// with a graph and one without run the same algorithm. nullopt: none.
 using AlgoKey = std::tuple<int, int, bool, int64_t, int64_t, int64_t, int, size_t, uint32_t, uint32_t, uint32_t, uint32_t,
                            uint32_t, int>;
 struct Chosen {
@@ -137,7 +137,7 @@ struct Chosen {
 };
 std::mutex g_algo_mutex;
 std::map<AlgoKey, Chosen> g_algos;
-AlgoInfo g_last_algo;  // under g_algo_mutex
+const AlgoInfo* g_last_algo = nullptr;  // the last product's entry of g_algos (nodes stay put); under g_algo_mutex
 
 // One algorithm's configuration as cuBLASLt reports it (for benchmark tables).
 std::string describe(const cublasLtMatmulAlgo_t& algo) {
@@ -162,7 +162,7 @@ std::optional<cublasLtMatmulAlgo_t> find_algo(cublasLtHandle_t handle, cublasLtM
                     p.bias ? alignment(p.bias) : 0u, alignment(p.aux), rank};
   std::lock_guard<std::mutex> lock(g_algo_mutex);
   if (auto it = g_algos.find(key); it != g_algos.end()) {
-    g_last_algo = it->second.info;
+    g_last_algo = &it->second.info;
     return it->second.algo;
   }
   cublasLtMatmulPreference_t raw = nullptr;
@@ -192,8 +192,9 @@ std::optional<cublasLtMatmulAlgo_t> find_algo(cublasLtHandle_t handle, cublasLtM
       break;
     }
   }
-  g_last_algo = c.info;
-  return (g_algos[key] = c).algo;
+  const auto& entry = g_algos[key] = c;
+  g_last_algo = &entry.info;
+  return entry.algo;
 }
 
 // Runs the product on the current stream with ATen's cuBLASLt handle and workspace; false (nothing run)
@@ -286,7 +287,7 @@ std::pair<int, int> algo_ranks() { return {g_rank_gelu_aux.load(), g_rank_dgelu.
 AlgoInfo last_algo() {
 #ifdef SIMU_HAVE_CUBLASLT
   std::lock_guard<std::mutex> lock(g_algo_mutex);
-  return g_last_algo;
+  return g_last_algo ? *g_last_algo : AlgoInfo{};
 #else
   return {};
 #endif

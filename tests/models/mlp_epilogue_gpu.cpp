@@ -110,6 +110,33 @@ TEST(MlpEpilogueGpu, DgeluProductMatchesFp64) {
   }
 }
 
+// Every rank the heuristic offers (set_algo_ranks) computes the same products: each rank's fc1 outputs and
+// DGELU product against fp64 at the tolerances above, and the rank actually run is the one asked for while
+// the heuristic has it (else its first).
+TEST(MlpEpilogueGpu, EveryHeuristicRankMatchesFp64) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(me::compiled());
+  torch::manual_seed(3);
+  const auto before = me::algo_ranks();
+  auto m = make(torch::kBFloat16, {903, 256}, 256, 1024, 256);
+  auto pre64 = torch::addmm(f64(m.b1), f64(m.x), f64(m.w1).t());
+  auto dy = torch::randn({903, 256}, torch::TensorOptions().device(torch::kCUDA)).to(torch::kBFloat16);
+  for (int r = 0; r < 8; ++r) {
+    me::set_algo_ranks(r, r);
+    auto [h, pre] = me::linear_gelu_aux(m.x, m.w1, m.b1);
+    const auto fwd = me::last_algo();
+    ASSERT_GT(fwd.found, 0) << "rank " << r;
+    EXPECT_EQ(fwd.rank, r < fwd.found ? r : 0) << fwd.config;
+    EXPECT_LE(rel_err(pre, pre64), ulp(torch::kBFloat16)) << "rank " << r << ": " << fwd.config;
+    EXPECT_LE(rel_err(h, gelu64(pre64)), 2 * ulp(torch::kBFloat16)) << "rank " << r << ": " << fwd.config;
+    auto dpre = me::linear_dgelu(dy, m.w2, pre);
+    const auto bwd = me::last_algo();
+    EXPECT_EQ(bwd.rank, r < bwd.found ? r : 0) << bwd.config;
+    EXPECT_LE(rel_err(dpre, torch::mm(f64(dy), f64(m.w2)) * dgelu64(f64(pre))), kGradTol) << "rank " << r << ": " << bwd.config;
+  }
+  me::set_algo_ranks(before.first, before.second);
+}
+
 // The whole MLP (autograd function): output and input gradient vs the ATen reference and fp64.
 TEST(MlpEpilogueGpu, ForwardAndInputGradientMatchReference) {
   SIMU_REQUIRE_CUDA();

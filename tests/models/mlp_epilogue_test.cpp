@@ -43,3 +43,19 @@ TEST(MlpEpilogue, NoEpilogueOnTheCpu) {
   EXPECT_EQ(me::launch_count(), n0);
   EXPECT_TRUE(torch::equal(y, ffn->fc2->forward(torch::gelu(ffn->fc1->forward(x), "tanh"))));
 }
+
+// The heuristic ranks of the epilogue products: kept as set, per epilogue; out-of-range ranks are refused
+// with the rank named; nothing is reported before a product has run on this (CPU-only) process.
+TEST(MlpEpilogue, AlgoRanksAreCheckedAndKept) {
+  const auto before = me::algo_ranks();
+  EXPECT_EQ(before, std::make_pair(0, 0));  // the default: the heuristic's first, both epilogues
+  me::set_algo_ranks(1, 3);
+  EXPECT_EQ(me::algo_ranks(), std::make_pair(1, 3));
+  const auto err = simu::testing::error_of([] { me::set_algo_ranks(16, 0); });
+  EXPECT_NE(err.find("16"), std::string::npos) << err;
+  EXPECT_NE(err.find("[0, 15]"), std::string::npos) << err;
+  EXPECT_EQ(me::algo_ranks(), std::make_pair(1, 3));  // unchanged by the refused call
+  EXPECT_THROW(me::set_algo_ranks(0, -1), std::exception);
+  me::set_algo_ranks(before.first, before.second);
+  EXPECT_EQ(me::last_algo().rank, -1);  // no product ran on the CPU
+}
