@@ -350,15 +350,16 @@ void run(const Args&) {
 int main(int argc, char** argv) {
   CLI::App app{"Every cuDNN execution plan for the flow model's attention shapes against PyTorch's SDPA"};
   Args a;
-  app.add_option("--cases", a.cases, "train-self | train-cross | sample-self | sample-cross")->capture_default_str();
+  app.add_option("--cases", a.cases, "train-self | train-cross | sample-self | sample-cross")
+      ->check(CLI::IsMember({"train-self", "train-cross", "sample-self", "sample-cross"}))->capture_default_str();
   app.add_option("--cond-lens", a.cond_lens, "condition lengths of the cross cases")->capture_default_str();
   app.add_option("--modes", a.modes, "cuDNN heuristic modes asked for plans: A | B | FALLBACK | OPENSOURCE")
-      ->capture_default_str();
+      ->check(CLI::IsMember({"A", "B", "FALLBACK", "OPENSOURCE"}))->capture_default_str();
   app.add_option("--implementation", a.implementation, "forward SDPA node: auto | unified | composite")
       ->check(CLI::IsMember({"auto", "unified", "composite"}))->capture_default_str();
   app.add_option("--fp8", a.fp8, "also time the training cases in FP8 (e4m3, cuDNN's FP8 SDPA nodes)")->capture_default_str();
-  app.add_option("--iters", a.iters, "timed runs per plan")->capture_default_str();
-  app.add_option("--warmup", a.warmup, "untimed runs first")->capture_default_str();
+  app.add_option("--iters", a.iters, "timed runs per plan")->capture_default_str()->check(CLI::PositiveNumber);
+  app.add_option("--warmup", a.warmup, "untimed runs first")->capture_default_str()->check(CLI::NonNegativeNumber);
   simu::cli::CommonOptions common;
   simu::cli::add_common_options(app, common);
   return simu::cli::run(app, argc, argv, [&] {
