@@ -281,6 +281,16 @@ int main(int argc, char** argv) {
   app.add_flag("--sampling-one-stream", sampling_one_stream,
                "run the pose stream on the shape stream's CUDA stream when the condition's keys/values are cached "
                "(sampling), as before the overlap was measured faster there");
+  std::string stream_lag = "default";
+  app.add_option("--stream-lag", stream_lag,
+                 "pose stream on one side CUDA stream joined once per forward (on) or at every block (off); "
+                 "default: the model's")
+      ->check(CLI::IsMember({"default", "on", "off"}))->capture_default_str();
+  std::string few_query = "default";
+  app.add_option("--side-few-query", few_query,
+                 "attention of the pose stream's few queries on the side stream: flash (keys split over thread blocks) | "
+                 "default (the model's: PyTorch's choice)")
+      ->check(CLI::IsMember({"flash", "default"}))->capture_default_str();
   app.add_option("--sdp-backend", sdp, "attention backend tried first: default | flash | cudnn | efficient")
       ->check(CLI::IsMember({"default", "flash", "cudnn", "efficient"}))->capture_default_str();
   app.add_option("--captures", captures, "graph capture schemes timed after eager sampling: overlap (default) | sync")
@@ -313,6 +323,8 @@ int main(int argc, char** argv) {
     const auto& mc = gen->config().backbone;
     if (one_stream) gen->backbone()->set_stream_overlap(false);
     if (sampling_one_stream) gen->backbone()->set_stream_overlap_cached(false);
+    if (few_query == "flash") gen->backbone()->set_side_few_query_flash(true);
+    if (stream_lag != "default") gen->backbone()->set_stream_lag(stream_lag == "on");
     if (fp32) precision = "fp32";
     const auto prec = dev.is_cuda() ? simu::models::parse_precision(precision, dev, "--precision") : simu::models::Precision::kFp32;
     fmt::print("device {}, config {}\nmodel: {} channels, {} blocks, {} heads, streams [{}], cond {} ch; {}\n", device,
@@ -320,6 +332,9 @@ int main(int argc, char** argv) {
                prec == simu::models::Precision::kFp32
                    ? std::string("fp32")
                    : simu::models::precision_name(prec) + " autocast (fp32 weights, fp32 norms/residual)");
+    fmt::print("pose stream: {}, {}, side few-query attention {}\n",
+               one_stream ? "same CUDA stream" : sampling_one_stream ? "side stream (not when sampling)" : "side stream",
+               gen->backbone()->stream_lag() ? "lagged (one join per forward)" : "joined at every block", few_query);
     fmt::print("FLOPs (2 per multiply-add, per sample, per block and stream of T tokens, C channels, Lc condition tokens):\n"
                "  self qkv 6TC^2 + out 2TC^2 + attention 4*T*Tk*C (Tk = T for shape, all tokens for pose)\n"
                "  + cross q 2TC^2 + kv 4*Lc*Cc*C + out 2TC^2 + attention 4*T*Lc*C + MLP 4*T*C*(ratio*C); + adaLN, latent io\n");

@@ -117,33 +117,55 @@ torch::Tensor CrossAttentionImpl::zero_condition_output(const torch::Tensor& lik
   return to_out->forward(v0.reshape({1, 1, -1}));  // [1, 1, C]
 }
 
-torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v,
-                                         const torch::Tensor& zero_out) {
+torch::Tensor CrossAttentionImpl::attended(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
   const int64_t B = x.size(0), L = x.size(1), Bk = k.size(0);
   auto q = to_q->forward(Bk < B ? x.narrow(0, 0, Bk) : x).reshape({Bk, L, num_heads, -1});  // [Bk, L, H, D]
   if (q_rms_norm) q = q_rms_norm->forward(q);
-  auto h = attention(q, k, v, inference_kernels).reshape({Bk, L, -1});  // [Bk, L, C]
+  return attention(q, k, v, inference_kernels).reshape({Bk, L, -1});  // [Bk, L, C]
+}
+
+bool CrossAttentionImpl::project_plain_into(const torch::Tensor& h, torch::Tensor& out) {
+  if ((to_out->adapter() && to_out->adapter_enabled()) || to_out->fp8_weight()) return false;
+  const auto [w, b] = to_out->product_weights(h);
+  if (w.scalar_type() != h.scalar_type() || (b.defined() && b.scalar_type() != h.scalar_type()) || h.requires_grad() ||
+      w.requires_grad())
+    return false;
+  // The product torch::linear makes of a contiguous [Bk, L, C] input, written into out's rows.
+  const int64_t rows = h.size(0) * h.size(1);
+  auto o = out.view({rows, -1});
+  auto h2 = h.reshape({rows, -1});
+  if (b.defined()) at::addmm_out(o, b, h2, w.t());
+  else at::mm_out(o, h2, w.t());
+  return true;
+}
+
+torch::Tensor CrossAttentionImpl::attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v,
+                                         const torch::Tensor& zero_out) {
+  const int64_t B = x.size(0), L = x.size(1), Bk = k.size(0);
+  auto h = attended(x, k, v);  // [Bk, L, C]
   if (Bk == B) return to_out->forward(h);
   // Rows Bk.. of x have an all-zero condition (ConditionCache::zero_from): to_out(v(0)) for every query.
   auto tail = zero_out.defined() ? zero_out : zero_condition_output(x);  // [1, 1, C]
-  const bool plain = !(to_out->adapter() && to_out->adapter_enabled()) && !to_out->fp8_weight();
-  if (plain) {
-    const auto [w, b] = to_out->product_weights(h);
-    if (w.scalar_type() == h.scalar_type() && (!b.defined() || b.scalar_type() == h.scalar_type()) && !h.requires_grad() &&
-        !w.requires_grad()) {
-      // The attended rows' projection straight into the output (the product torch::linear makes of a
-      // contiguous [Bk, L, C] input), the zero rows filled: no concatenation copy.
-      auto out = torch::empty({B, L, to_out->out_features}, h.options());  // [B, L, C]
-      auto head = out.narrow(0, 0, Bk).view({Bk * L, -1});
-      auto h2 = h.reshape({Bk * L, -1});
-      if (b.defined()) at::addmm_out(head, b, h2, w.t());
-      else at::mm_out(head, h2, w.t());
-      out.narrow(0, Bk, B - Bk).copy_(tail.expand({B - Bk, L, tail.size(2)}));
-      return out;
-    }
+  // The attended rows' projection straight into the output, the zero rows filled: no concatenation copy.
+  auto out = torch::empty({B, L, to_out->out_features}, h.options());  // [B, L, C]
+  auto head = out.narrow(0, 0, Bk);
+  if (project_plain_into(h, head)) {
+    out.narrow(0, Bk, B - Bk).copy_(tail.expand({B - Bk, L, tail.size(2)}));
+    return out;
   }
-  auto head = to_out->forward(h);  // [Bk, L, C]
-  return torch::cat({head, tail.to(head.scalar_type()).expand({B - Bk, L, tail.size(2)})}, 0);  // [B, L, C]
+  auto projected = to_out->forward(h);  // [Bk, L, C]
+  return torch::cat({projected, tail.to(projected.scalar_type()).expand({B - Bk, L, tail.size(2)})}, 0);  // [B, L, C]
+}
+
+std::pair<torch::Tensor, torch::Tensor> CrossAttentionImpl::attend_parts(const torch::Tensor& x, const torch::Tensor& k,
+                                                                         const torch::Tensor& v, const torch::Tensor& zero_out) {
+  const int64_t B = x.size(0), L = x.size(1), Bk = k.size(0);
+  auto h = attended(x, k, v);  // [Bk, L, C]
+  if (Bk == B) return {to_out->forward(h), torch::Tensor()};
+  auto head = torch::empty({Bk, L, to_out->out_features}, h.options());  // [Bk, L, C]
+  if (!project_plain_into(h, head)) head = to_out->forward(h);
+  auto tail = zero_out.defined() ? zero_out : zero_condition_output(x);  // [1, 1, C]
+  return {head, tail.to(head.scalar_type())};
 }
 
 torch::Tensor CrossAttentionImpl::attend_shared(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v) {
@@ -182,7 +204,15 @@ MOTSelfAttentionImpl::MOTSelfAttentionImpl(int64_t channels, int64_t heads, cons
   register_dict(*this, "to_out", names, to_out);
 }
 
+namespace {
+thread_local bool t_few_query_flash_off = false;
+}  // namespace
+
+detail::FewQueryFlashOff::FewQueryFlashOff(bool off) : previous_(t_few_query_flash_off) { t_few_query_flash_off = off; }
+detail::FewQueryFlashOff::~FewQueryFlashOff() { t_few_query_flash_off = previous_; }
+
 bool few_query_flash(const torch::Tensor& q, const torch::Tensor& k) {
+  if (t_few_query_flash_off) return false;
   const auto dt = q.scalar_type();
   const int64_t D = q.size(3);
   return q.is_cuda() && !at::GradMode::is_enabled() && (dt == at::kHalf || dt == at::kBFloat16) &&

@@ -54,6 +54,29 @@ std::vector<torch::Tensor> ResidualCarry::apply(const std::vector<torch::Tensor>
   return out;
 }
 
+// The lagged two-stream schedule of one wrapper forward: one side stream for every block's other
+// stream, and the main-stream tensors the side stream reads, kept alive (so the caching allocator
+// cannot hand their memory to later main-stream work) until join().
+struct StreamLag {
+#ifdef SIMU_HAVE_CUDA_KERNELS
+  c10::optional<c10::cuda::CUDAStream> side;
+#endif
+  std::vector<torch::Tensor> keep;
+  bool pending = false;
+  // The current (main) stream waits for everything issued on the side stream so far.
+  void join() {
+#ifdef SIMU_HAVE_CUDA_KERNELS
+    if (pending) {
+      at::cuda::CUDAEvent done;
+      done.record(*side);
+      done.block(c10::cuda::getCurrentCUDAStream(side->device_index()));
+    }
+#endif
+    pending = false;
+    keep.clear();
+  }
+};
+
 namespace {
 
 using BlockKV = std::vector<CrossKV>;
@@ -128,8 +151,27 @@ struct FusedBlock {
     const auto& n2w = b.norm2[i];
     auto [xa, n2] = residual_norm(xi, ha, gate_a, n2w->weight.unsqueeze(0), n2w->bias.unsqueeze(0), n2w->eps);
     auto& ca = b.cross_attn[i];
+    // CFG's zero-condition rows (cached keys/values for fewer rows, sampling): their output is one row,
+    // read by the residual kernel as a broadcast instead of being copied into every row.
+    if (kv && (*kv)[i].k.size(0) < n2.size(0) && !at::GradMode::is_enabled()) {
+      auto [head, tail] = ca->attend_parts(n2, (*kv)[i].k, (*kv)[i].v, (*kv)[i].zero_out);
+      if (fused::supports_residual_layer_norm_affine_tail(xa, head, tail)) {
+        auto [xb, n3] = fused::residual_layer_norm_affine_tail_bf16(xa, head, tail, torch::Tensor(), mlp.first, mlp.second,
+                                                                     b.norm3[i]->eps);
+        return mlp_rest(i, xb, n3);
+      }
+      const int64_t rest = n2.size(0) - head.size(0);
+      auto c = torch::cat({head, tail.expand({rest, head.size(1), tail.size(2)})}, 0);  // [B, L, C]
+      auto [xb, n3] = residual_norm(xa, c, torch::Tensor(), mlp.first, mlp.second, b.norm3[i]->eps);
+      return mlp_rest(i, xb, n3);
+    }
     auto c = kv ? ca->attend(n2, (*kv)[i].k, (*kv)[i].v, (*kv)[i].zero_out) : ca->forward(n2, cond);
     auto [xb, n3] = residual_norm(xa, c, torch::Tensor(), mlp.first, mlp.second, b.norm3[i]->eps);
+    return mlp_rest(i, xb, n3);
+  }
+  // Stream i's MLP on n3 after the cross attention's residual (xb); its gated residual left to the carry
+  // when leave_residual.
+  torch::Tensor mlp_rest(size_t i, const torch::Tensor& xb, const torch::Tensor& n3) {
     mlp_out[i] = b.mlp[i]->forward(n3);
     return leave_residual ? xb : torch::addcmul(xb, mlp_out[i], gate_m.unsqueeze(1));
   }
@@ -137,14 +179,18 @@ struct FusedBlock {
 
 #ifdef SIMU_HAVE_CUDA_KERNELS
 // The fused path with one protected stream (shape, on the current CUDA stream) and one other (pose, on
-// a side stream), joined at the end of the block. x: the block's input streams.
-std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::Tensor> x, int64_t head_dim) {
+// a side stream), joined at the end of the block; with `lag`, on lag's side stream and not joined
+// (StreamLag). x: the block's input streams.
+std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::Tensor> x, int64_t head_dim,
+                                             StreamLag* lag) {
   auto& sa = fb.b.self_attn;
   const size_t p = sa->is_protected[0] ? 0 : 1, o = 1 - p;
   const int64_t B = x[p].size(0), Lp = x[p].size(1), Lo = x[o].size(1), H = sa->num_heads;
   const auto dev = x[p].device().index();
   const auto main = c10::cuda::getCurrentCUDAStream(dev);
-  const auto side = c10::cuda::getStreamFromPool(false, dev);
+  if (lag && !lag->side) lag->side = c10::cuda::getStreamFromPool(false, dev);
+  const auto side = lag ? *lag->side : c10::cuda::getStreamFromPool(false, dev);
+  const auto x_other_in = x[o];
   // The side stream starts after everything issued so far (inputs, modulation).
   at::cuda::CUDAEvent inputs_ready, shape_kv_ready, other_done;
   inputs_ready.record(main);
@@ -161,6 +207,7 @@ std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::
   {
     // Other stream on the side stream: attends to every key once the protected ones are written.
     const c10::cuda::CUDAStreamGuard on_side(side);
+    const detail::FewQueryFlashOff few_query(!fb.b.side_few_query_flash);
     auto [xo, n1o] = fb.norm1_of(o, x[o]);
     torch::Tensor qo;
     sa->project_qkv_fused(o, n1o, qo, k_all.narrow(1, 0, Lo), v_all.narrow(1, 0, Lo));
@@ -173,6 +220,16 @@ std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::
   auto hp = sa->to_out[p]->forward(attention(qp, k_all.narrow(1, Lo, Lp), v_all.narrow(1, Lo, Lp), true).reshape({B, Lp, -1}));
   x[p] = fb.rest_of(p, xp, hp);
   x[o] = xo_out;
+  if (lag) {
+    // No join: what the side stream reads stays referenced until the wrapper's join (the side
+    // stream's own tensors are reused only by its later work, in its order).
+    for (const auto& t : {k_all, v_all, x_other_in, fb.msa.first, fb.msa.second, fb.mlp.first, fb.mlp.second, fb.gate_a,
+                          fb.gate_m, fb.incoming.gate})
+      if (t.defined()) lag->keep.push_back(t);
+    if (!fb.incoming.h.empty()) lag->keep.push_back(fb.incoming.h[o]);
+    lag->pending = true;
+    return x;
+  }
   // Join. Tensors the side stream used stay referenced until here, so their memory is not reused
   // by work that could run before the side stream is done.
   other_done.block(main);
@@ -183,7 +240,8 @@ std::vector<torch::Tensor> block_two_streams(FusedBlock& fb, std::vector<torch::
 }  // namespace
 
 std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor>& x_in, const torch::Tensor& mod,
-                                                 const torch::Tensor& cond, const BlockKV* kv, ResidualCarry* carry) {
+                                                 const torch::Tensor& cond, const BlockKV* kv, ResidualCarry* carry,
+                                                 StreamLag* lag) {
   // Modulation [B or 1, 6C]: shift/scale/gate for attention and MLP (mod is already the SiLU of the t
   // embedding, the first half of adaLN_modulation).
   auto m = share_mod ? mod : ada_linear->forward(mod);
@@ -199,6 +257,7 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
     // Six [B or 1, 1, C] chunks.
     std::vector<torch::Tensor> chunks;
     for (const auto& c : m.chunk(6, 1)) chunks.push_back(c.unsqueeze(1));
+    if (lag) lag->join();
     return block_reference(*this, incoming.apply(x_in), chunks, cond, kv);
   }
   // The streams share the modulation: its fp32 rows [6, 1 or B, C] (norm1/norm3 weight 1 + scale and
@@ -216,11 +275,12 @@ std::vector<torch::Tensor> MOTBlockImpl::forward(const std::vector<torch::Tensor
   // overlap faster on an H200: flow_model.h).
   if (stream_overlap && inference_only_ok(inference_kernels) && (!kv || stream_overlap_cached) && qkv_fused && S == 2 &&
       self_attn->is_protected[0] != self_attn->is_protected[1]) {
-    x = block_two_streams(fb, x, head_dim);
+    x = block_two_streams(fb, x, head_dim, lag);
     if (carry) *carry = ResidualCarry{fb.mlp_out, fb.gate_m};
     return x;
   }
 #endif
+  if (lag) lag->join();
   // Self attention on the modulated norm1 (all streams together).
   for (size_t i = 0; i < S; ++i) std::tie(x[i], h[i]) = fb.norm1_of(i, x[i]);
   h = self_attn->forward(h);
@@ -307,6 +367,10 @@ void SparseStructureFlowTdfyWrapperImpl::set_training_kernels(bool on) {
 
 void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap(bool on) {
   for (auto& block : block_list_) block->stream_overlap = on;
+}
+
+void SparseStructureFlowTdfyWrapperImpl::set_side_few_query_flash(bool on) {
+  for (auto& block : block_list_) block->side_few_query_flash = on;
 }
 
 void SparseStructureFlowTdfyWrapperImpl::set_stream_overlap_cached(bool on) {
@@ -407,9 +471,12 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
 
   // Transformer blocks; each leaves its last residual to the next one's first LayerNorm (fused path).
   ResidualCarry carry;
+  // Lagged two-stream schedule (set_stream_lag): joined after the last block.
+  StreamLag lag;
+  StreamLag* lag_ptr = stream_lag_ && cond.is_cuda() && !block_wrapper_ ? &lag : nullptr;
   for (size_t b = 0; b < block_list_.size(); ++b) {
     if (!block_wrapper_) {
-      h = block_list_[b]->forward(h, mod, cond32, cache ? &cache->kv[b] : nullptr, &carry);
+      h = block_list_[b]->forward(h, mod, cond32, cache ? &cache->kv[b] : nullptr, &carry, lag_ptr);
       continue;
     }
     // Wrapped: inputs = streams + [modulation, condition]; fn owns the block and the cached keys/values.
@@ -423,6 +490,7 @@ Latents SparseStructureFlowTdfyWrapperImpl::forward(const Latents& x, const torc
     };
     h = block_wrapper_(static_cast<int64_t>(b), *block_list_[b], inputs, fn);
   }
+  lag.join();
   h = carry.apply(h);
   for (auto& hi : h) hi = hi.to(input_dtype);
 

@@ -159,6 +159,12 @@ class CrossAttentionImpl : public torch::nn::Module {
   // writes straight into the output and only the zero rows are filled (no concatenation copy).
   torch::Tensor attend(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v,
                        const torch::Tensor& zero_out = {});
+  // attend() in two parts, without building the [B, L, C] output: {the attended rows' output
+  // [Bk, L, C] (the same product as attend's), the zero rows' output [1, 1, C] in its dtype, or
+  // undefined when k, v cover every row}. The fused block feeds both to one residual kernel
+  // (fused_ops.h residual_layer_norm_affine_tail_bf16).
+  std::pair<torch::Tensor, torch::Tensor> attend_parts(const torch::Tensor& x, const torch::Tensor& k,
+                                                       const torch::Tensor& v, const torch::Tensor& zero_out = {});
   // The cross-attention output of a token row whose condition is all zero, to_out(v(0)): [1, 1, C]
   // (computed on like's device, under the caller's autocast).
   torch::Tensor zero_condition_output(const torch::Tensor& like);
@@ -173,6 +179,13 @@ class CrossAttentionImpl : public torch::nn::Module {
   MultiHeadRMSNorm q_rms_norm{nullptr}, k_rms_norm{nullptr};
   int64_t num_heads;
   bool inference_kernels = true;  // the few-query flash kernel allowed (sdpa_blhd); see set_training_kernels
+
+ private:
+  // The attention of x's first k.size(0) rows over k, v, before to_out: [Bk, L, C].
+  torch::Tensor attended(const torch::Tensor& x, const torch::Tensor& k, const torch::Tensor& v);
+  // to_out of attended rows h [Bk, L, C] written into out ([Bk, L, C] rows, contiguous), when to_out is a
+  // plain product in h's dtype (no adapter, no FP8, no gradient); false (nothing written) otherwise.
+  bool project_plain_into(const torch::Tensor& h, torch::Tensor& out);
 };
 TORCH_MODULE(CrossAttention);
 
@@ -220,6 +233,10 @@ struct ConditionCache {
   int64_t zero_from = -1;
 };
 
+// The wrapper's lagged two-stream schedule (SparseStructureFlowTdfyWrapperImpl::set_stream_lag); defined
+// in flow_model.cpp.
+struct StreamLag;
+
 // One MOT block: adaLN-modulated self attention, cross attention, MLP; per-stream weights.
 // The fused path's deferred residual between blocks: a block leaves its last gated residual
 // (x + h * gate, the MLP's) to the next block, whose first LayerNorm kernel applies it on the way
@@ -244,10 +261,13 @@ class MOTBlockImpl : public torch::nn::Module {
   // this block's own last residual is left in it instead of applied (so the result is x minus that
   // residual; the caller applies carry at the end). Off the fused path the result is complete and
   // carry comes back empty.
+  // lag (optional, the wrapper's): on the two-stream path the other stream's part runs on lag's side
+  // stream and the main stream does not wait for it (the wrapper joins once after the last block); on
+  // any other path a pending lag is joined first.
   std::vector<torch::Tensor> forward(const std::vector<torch::Tensor>& x, const torch::Tensor& mod,
                                      const torch::Tensor& cond,
                                      const std::vector<CrossKV>* kv = nullptr,
-                                     ResidualCarry* carry = nullptr);
+                                     ResidualCarry* carry = nullptr, StreamLag* lag = nullptr);
   std::vector<LayerNorm32> norm1, norm2, norm3;
   MOTSelfAttention self_attn{nullptr};
   std::vector<CrossAttention> cross_attn;
@@ -264,6 +284,10 @@ class MOTBlockImpl : public torch::nn::Module {
   // 2,800 tokens 617.9 -> 596.3 ms; eager 751.4 -> 732.3 and 628.1 -> 607.0 ms.
   bool stream_overlap = true;
   bool stream_overlap_cached = true;
+  // The other stream's few-query attention on the side stream: the flash kernel (true), which splits the
+  // keys over thread blocks across the whole GPU, or PyTorch's choice (false, the default: cuDNN, one
+  // thread block per head), which leaves the SMs to the protected stream's kernels running beside it.
+  bool side_few_query_flash = false;
 };
 TORCH_MODULE(MOTBlock);
 
@@ -333,6 +357,17 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   void set_stream_overlap(bool on);
   // Overlap the two streams also when the condition's keys/values are cached (sampling); on by default.
   void set_stream_overlap_cached(bool on);
+  // Lagged overlap: with the two streams overlapped, the other (pose) stream's part of every block runs
+  // on one side CUDA stream that waits only for the protected (shape) stream's keys/values of that
+  // block, and the main stream waits for the side stream once, after the last block, instead of at
+  // the end of every block. The protected stream never reads the other, so the main stream runs the
+  // whole shape stack without stopping. Same kernels on the same inputs: the same numbers
+  // (tests/models/fused_ops_gpu.cpp). Costs the blocks' key/value buffers alive until the join.
+  // On by default (bench_stage1 --stream-lag).
+  void set_stream_lag(bool on) { stream_lag_ = on; }
+  bool stream_lag() const { return stream_lag_; }
+  // The few-query attention kernel of the stream on the side stream (MOTBlockImpl::side_few_query_flash).
+  void set_side_few_query_flash(bool on);
   // Latents later forwards must return (empty: all, the default). When they all live in leading
   // protected streams (shape: protected streams attend only to themselves, so they never read the
   // others), forward runs only those streams and returns only their latents; FM-DPO scores the shape
@@ -359,6 +394,7 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   BlockWrapper block_wrapper_;
   bool fused_kernels_ = true;
   bool training_kernels_ = false;
+  bool stream_lag_ = true;
 };
 TORCH_MODULE(SparseStructureFlowTdfyWrapper);
 

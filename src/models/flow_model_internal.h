@@ -24,6 +24,20 @@ void register_dict(torch::nn::Module& owner, const std::string& name, const std:
 // where allowed (not in training mode) and when no graph is recorded.
 inline bool inference_only_ok(bool inference_kernels) { return inference_kernels && !at::GradMode::is_enabled(); }
 
+// While alive (and `off`), few-query attention on this thread takes PyTorch's choice rather than the
+// flash kernel (few_query_flash is false): for work on a side stream beside the big kernels
+// (MOTBlockImpl::side_few_query_flash). Restores the previous state when destroyed.
+class FewQueryFlashOff {
+ public:
+  explicit FewQueryFlashOff(bool off);
+  ~FewQueryFlashOff();
+  FewQueryFlashOff(const FewQueryFlashOff&) = delete;
+  FewQueryFlashOff& operator=(const FewQueryFlashOff&) = delete;
+
+ private:
+  bool previous_;
+};
+
 // SDPA on [B, L, H, D] tensors (official scaled_dot_product_attention, "sdpa" backend; sdpa_blhd).
 // inference_kernels: the caller's permission for the few-query flash kernel (off in training mode, so
 // that a no-grad forward computes what the graph forward computes).

@@ -92,8 +92,9 @@ __global__ void layer_norm_affine_kernel(const float* __restrict__ x, const floa
 // layer_norm_affine_kernel with the residual update in front: x_out = x + h * gate (fp32), then
 // the LayerNorm + affine of x_out stored as bf16. One warp per row, VPL float4 per lane.
 template <typename T, int VPL>
-__global__ void residual_layer_norm_affine_kernel(const float* __restrict__ x, const T* __restrict__ h,
-                                                       const float* __restrict__ gate, int64_t rows_per_gate,
+__global__ void residual_layer_norm_affine_kernel(const float* __restrict__ x, const T* __restrict__ h, int64_t h_rows,
+                                                       const T* __restrict__ h_tail, const float* __restrict__ gate,
+                                                       int64_t rows_per_gate,
                                                        float* __restrict__ x_out, const float* __restrict__ w,
                                                        const float* __restrict__ b, T* __restrict__ y,
                                                        int64_t rows, int64_t rows_per_w, float eps) {
@@ -102,7 +103,8 @@ __global__ void residual_layer_norm_affine_kernel(const float* __restrict__ x, c
   const int64_t row = static_cast<int64_t>(blockIdx.x) * (blockDim.x / 32) + (threadIdx.x >> 5);
   if (row >= rows) return;
   const float4* xr = reinterpret_cast<const float4*>(x + row * C);
-  const typename Half2<T>::T2* hr = reinterpret_cast<const typename Half2<T>::T2*>(h + row * C);
+  // Rows past h's own read the broadcast tail row (CFG's zero-condition rows).
+  const typename Half2<T>::T2* hr = reinterpret_cast<const typename Half2<T>::T2*>(row < h_rows ? h + row * C : h_tail);
   const float4* gr = gate ? reinterpret_cast<const float4*>(gate + (row / rows_per_gate) * C) : nullptr;
   float4* xo = reinterpret_cast<float4*>(x_out + row * C);
   // Residual update (x + h * gate, as addcmul computes it), written out.
@@ -532,12 +534,13 @@ cudaError_t layer_norm_affine(const float* x, const float* w, const float* b, T*
 }
 
 template <typename T>
-cudaError_t residual_layer_norm_affine(const float* x, const T* h, const float* gate, int64_t rows_per_gate, float* x_out,
-                                       const float* w, const float* b, T* y, int64_t rows, int64_t rows_per_w, int C,
-                                       float eps, cudaStream_t stream) {
+cudaError_t residual_layer_norm_affine(const float* x, const T* h, int64_t h_rows, const T* h_tail, const float* gate,
+                                       int64_t rows_per_gate, float* x_out, const float* w, const float* b, T* y,
+                                       int64_t rows, int64_t rows_per_w, int C, float eps, cudaStream_t stream) {
+  if (h_rows < rows && !h_tail) return cudaErrorInvalidValue;
   return by_channels(C, [&](auto v) {
     residual_layer_norm_affine_kernel<T, decltype(v)::value><<<grid_for(rows), kBlock, 0, stream>>>(
-        x, h, gate, rows_per_gate, x_out, w, b, y, rows, rows_per_w, eps);
+        x, h, h_rows, h_tail, gate, rows_per_gate, x_out, w, b, y, rows, rows_per_w, eps);
   });
 }
 
@@ -618,8 +621,9 @@ template cudaError_t modulation_rows<float>(const float*, float*, int64_t, int64
 #define SIMU_INSTANTIATE(T)                                                                                              \
   template cudaError_t layer_norm_affine<T>(const float*, const float*, const float*, T*, int64_t, int64_t, int, float,  \
                                             cudaStream_t);                                                               \
-  template cudaError_t residual_layer_norm_affine<T>(const float*, const T*, const float*, int64_t, float*, const float*, \
-                                                     const float*, T*, int64_t, int64_t, int, float, cudaStream_t);      \
+  template cudaError_t residual_layer_norm_affine<T>(const float*, const T*, int64_t, const T*, const float*, int64_t,   \
+                                                     float*, const float*, const float*, T*, int64_t, int64_t, int,     \
+                                                     float, cudaStream_t);                                              \
   template cudaError_t split_qkv_rms_norm<T>(const T*, const float*, const float*, float, QkvOut, QkvOut, QkvOut, int,   \
                                              int, int, int, bool, cudaStream_t);                                         \
   template cudaError_t layer_norm_affine_backward<T>(const float*, const float*, int64_t, const T*, const float*,        \

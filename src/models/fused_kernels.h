@@ -19,11 +19,12 @@ cudaError_t layer_norm_affine(const float* x, const float* w, const float* b, T*
                               int C, float eps, cudaStream_t stream);
 
 // x_out[r, :] = x[r, :] + h[r, :] * gate[r / rows_per_gate, :] (gate null: + h) in fp32, then
-// y = layer_norm_affine(x_out, w, b). h: [rows, C] T contiguous; gate: [rows / rows_per_gate, C] fp32.
+// y = layer_norm_affine(x_out, w, b). h: [h_rows, C] T contiguous; rows r >= h_rows read h_tail [C]
+// instead (one row broadcast; null when h_rows = rows); gate: [rows / rows_per_gate, C] fp32.
 template <typename T>
-cudaError_t residual_layer_norm_affine(const float* x, const T* h, const float* gate, int64_t rows_per_gate, float* x_out,
-                                       const float* w, const float* b, T* y, int64_t rows, int64_t rows_per_w, int C,
-                                       float eps, cudaStream_t stream);
+cudaError_t residual_layer_norm_affine(const float* x, const T* h, int64_t h_rows, const T* h_tail, const float* gate,
+                                       int64_t rows_per_gate, float* x_out, const float* w, const float* b, T* y,
+                                       int64_t rows, int64_t rows_per_w, int C, float eps, cudaStream_t stream);
 
 // From a fused projection qkv [B, L, 3, H, D] (T, contiguous) writes, per token and head,
 //   q = T(q / max(|q|, 1e-12) * gq[h] * scale), k likewise with gk, v copied,

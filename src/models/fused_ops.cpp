@@ -220,11 +220,20 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_referenc
   return {x_new, layer_norm_affine_bf16_reference(x_new, w, b, eps, residual_output_dtype(h))};
 }
 
+bool supports_residual_layer_norm_affine_tail(const torch::Tensor& x, const torch::Tensor& head, const torch::Tensor& tail) {
+  return supports_layer_norm_affine(x) && head.is_cuda() && is_low_precision(head.scalar_type()) && head.is_contiguous() &&
+         head.dim() == 3 && head.size(0) <= x.size(0) && head.size(1) == x.size(1) && head.size(2) == x.size(2) &&
+         tail.defined() && tail.is_cuda() && tail.scalar_type() == head.scalar_type() && tail.is_contiguous() &&
+         tail.numel() == x.size(2) && reinterpret_cast<uintptr_t>(tail.data_ptr()) % 16 == 0;
+}
+
 namespace {
-// The forward kernel of residual_layer_norm_affine_bf16 (no autograd).
+// The forward kernel of residual_layer_norm_affine_bf16 (no autograd); with `tail`, h holds only the
+// leading rows and the others read tail (residual_layer_norm_affine_tail_bf16).
 std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_launch(const torch::Tensor& x, const torch::Tensor& h,
                                                                           const torch::Tensor& gate, const torch::Tensor& w,
-                                                                          const torch::Tensor& b, double eps) {
+                                                                          const torch::Tensor& b, double eps,
+                                                                          const torch::Tensor& tail = torch::Tensor()) {
   const int64_t B = x.size(0), L = x.size(1), C = x.size(2);
   SIMU_CHECK(w.dim() == 2 && w.size(1) == C && (w.size(0) == 1 || w.size(0) == B) && w.scalar_type() == torch::kFloat32,
              "residual_layer_norm_affine_bf16: weight must be [1 or {}, {}] float32, got [{}] {}", B, C,
@@ -233,9 +242,11 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_launch(const 
   SIMU_CHECK(!gate.defined() || (gate.dim() == 2 && gate.size(1) == C && (gate.size(0) == 1 || gate.size(0) == B)),
              "residual_layer_norm_affine_bf16: gate must be [1 or {}, {}], got [{}]", B, C, fmt::join(gate.sizes(), ", "));
 #ifdef SIMU_HAVE_CUDA_KERNELS
-  SIMU_CHECK(supports_residual_layer_norm_affine(x, h),
-             "residual_layer_norm_affine_bf16: unsupported inputs x [{}] {}, h [{}] {} on {}", fmt::join(x.sizes(), ", "),
-             c10::toString(x.scalar_type()), fmt::join(h.sizes(), ", "), c10::toString(h.scalar_type()), x.device().str());
+  SIMU_CHECK(tail.defined() ? supports_residual_layer_norm_affine_tail(x, h, tail) : supports_residual_layer_norm_affine(x, h),
+             "residual_layer_norm_affine_bf16: unsupported inputs x [{}] {}, h [{}] {}{} on {}", fmt::join(x.sizes(), ", "),
+             c10::toString(x.scalar_type()), fmt::join(h.sizes(), ", "), c10::toString(h.scalar_type()),
+             tail.defined() ? fmt::format(", tail [{}] {}", fmt::join(tail.sizes(), ", "), c10::toString(tail.scalar_type())) : "",
+             x.device().str());
   auto wc = w.contiguous();
   auto bc = b.defined() ? b.contiguous() : b;
   auto gc = gate.defined() ? gate.to(torch::kFloat32).contiguous() : gate;
@@ -245,7 +256,8 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_launch(const 
   by_dtype(h.scalar_type(), [&](auto t) {
     using T = decltype(t);
     check_cuda(kernels::residual_layer_norm_affine<T>(
-                   x.data_ptr<float>(), ptr<const T>(h), gc.defined() ? gc.data_ptr<float>() : nullptr,
+                   x.data_ptr<float>(), ptr<const T>(h), tail.defined() ? h.size(0) * L : B * L,
+                   tail.defined() ? ptr<const T>(tail) : nullptr, gc.defined() ? gc.data_ptr<float>() : nullptr,
                    gc.defined() && gc.size(0) == B ? L : B * L, x_new.data_ptr<float>(), wc.data_ptr<float>(),
                    bc.defined() ? bc.data_ptr<float>() : nullptr, ptr<T>(y), B * L, w.size(0) == 1 ? B * L : L,
                    static_cast<int>(C), static_cast<float>(eps), c10::cuda::getCurrentCUDAStream(x.device().index()).stream()),
@@ -253,6 +265,7 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_launch(const 
   });
   return {x_new, y};
 #else
+  SIMU_CHECK(!tail.defined(), "residual_layer_norm_affine_tail_bf16: needs the CUDA kernels");
   return residual_layer_norm_affine_bf16_reference(x, h, gate, w, b, eps);
 #endif
 }
@@ -298,6 +311,15 @@ std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const to
   }
 #endif
   return residual_layer_norm_affine_launch(x, h, gate, w, b, eps);
+}
+
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_tail_bf16(const torch::Tensor& x, const torch::Tensor& head,
+                                                                              const torch::Tensor& tail, const torch::Tensor& gate,
+                                                                              const torch::Tensor& w, const torch::Tensor& b,
+                                                                              double eps) {
+  SIMU_CHECK(!graph_through({x, head, tail, gate, w, b}),
+             "residual_layer_norm_affine_tail_bf16: inference only (no gradient), but an input requires one");
+  return residual_layer_norm_affine_launch(x, head, gate, w, b, eps, tail);
 }
 
 torch::Tensor multi_head_rms_norm_reference(const torch::Tensor& x, const torch::Tensor& gamma, double scale) {

@@ -50,6 +50,16 @@ bool supports_residual_layer_norm_affine(const torch::Tensor& x, const torch::Te
 std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16(const torch::Tensor& x, const torch::Tensor& h,
                                                                          const torch::Tensor& gate, const torch::Tensor& w,
                                                                          const torch::Tensor& b, double eps);
+// The same without autograd when h's rows from head.size(0) on are one broadcast row (CFG's
+// zero-condition rows after a cross attention, CrossAttentionImpl::attend_parts):
+//   residual_layer_norm_affine_bf16(x, cat(head, tail expanded to the other rows), gate, w, b, eps)
+// without making that concatenation. head: [Bh <= B, L, C] bf16/fp16 contiguous; tail: C elements of
+// head's dtype, contiguous, 16-byte aligned. CUDA kernels only (supports_..._tail); no gradient.
+bool supports_residual_layer_norm_affine_tail(const torch::Tensor& x, const torch::Tensor& head, const torch::Tensor& tail);
+std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_tail_bf16(const torch::Tensor& x, const torch::Tensor& head,
+                                                                              const torch::Tensor& tail, const torch::Tensor& gate,
+                                                                              const torch::Tensor& w, const torch::Tensor& b,
+                                                                              double eps);
 std::pair<torch::Tensor, torch::Tensor> residual_layer_norm_affine_bf16_reference(const torch::Tensor& x,
                                                                                    const torch::Tensor& h,
                                                                                    const torch::Tensor& gate,

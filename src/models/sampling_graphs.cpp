@@ -198,6 +198,7 @@ uint64_t graph_fingerprint(SparseStructureFlowTdfyWrapper& bb) {
   mix(bb->fused_kernels());
   mix(bb->training_kernels());
   mix(bb->is_training());
+  mix(bb->stream_lag());
   return h;
 }
 }  // namespace

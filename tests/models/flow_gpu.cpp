@@ -3,6 +3,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include "data/safetensors.h"
+#include "models/flow_model_internal.h"
 #include "models/generator.h"
 #include "models/precision.h"
 #include "test_util.h"
@@ -72,10 +73,14 @@ TEST(FlowModelGpu, CudaGraphSamplingMatchesEager) {
   auto o = simu::models::SampleOptions::from(gen->config());
   // Guided and unguided steps both occur (CFG interval) and each batch shape gets its own graph.
   o.cfg_interval = {0.0, 500.0};
-  for (const bool overlapped : {true, false})
+  // Capture schemes, with the lagged two-stream schedule (the default: the graph joins the side
+  // stream's branch once, at the end) and with a join at every block.
+  for (const int scheme : {0, 1, 2})
     for (const std::string solver : {"euler", "rk4"}) {
-      SCOPED_TRACE(overlapped ? "overlapped capture" : "synchronous capture");
+      const bool overlapped = scheme != 1;
+      SCOPED_TRACE(scheme == 0 ? "overlapped capture" : scheme == 1 ? "synchronous capture" : "overlapped, joined per block");
       simu::models::GraphedForward::set_overlapped_capture(overlapped);
+      gen->backbone()->set_stream_lag(scheme != 2);
       gen->reverse_fn->clear_graphs();
       o.solver = solver;
       auto run = [&](bool graphs) {
@@ -102,6 +107,7 @@ TEST(FlowModelGpu, CudaGraphSamplingMatchesEager) {
       }
     }
   simu::models::GraphedForward::set_overlapped_capture(true);
+  gen->backbone()->set_stream_lag(true);
   gen->reverse_fn->clear_graphs();
 }
 
@@ -197,4 +203,22 @@ TEST(FlowModelGpu, FewQueryAttentionTakesFlashAndMatchesMath) {
     torch::AutoGradMode on(true);
     EXPECT_FALSE(simu::models::few_query_flash(torch::randn({1, 4, 16, 64}, f16), k));
   }
+  // Not taken inside FewQueryFlashOff(true) (the pose stream's work on the side stream), nested scopes
+  // restoring the state they found; the result is then PyTorch's kernel's, the same attention.
+  torch::NoGradGuard ng;
+  auto q4 = torch::randn({1, 4, 16, 64}, f16);
+  auto v = torch::randn({1, 512, 16, 64}, f16);
+  const auto flash = simu::models::sdpa_blhd(q4, k, v).to(torch::kFloat32);
+  {
+    const simu::models::detail::FewQueryFlashOff off(true);
+    EXPECT_FALSE(simu::models::few_query_flash(q4, k));
+    {
+      const simu::models::detail::FewQueryFlashOff on(false);
+      EXPECT_TRUE(simu::models::few_query_flash(q4, k));
+    }
+    EXPECT_FALSE(simu::models::few_query_flash(q4, k));
+    const auto other = simu::models::sdpa_blhd(q4, k, v).to(torch::kFloat32);
+    EXPECT_TRUE(simu::testing::close(other, flash, 3e-3, "few-query attention, PyTorch's choice against flash"));
+  }
+  EXPECT_TRUE(simu::models::few_query_flash(q4, k));
 }

@@ -92,6 +92,52 @@ TEST(FusedOpsGpu, ResidualLayerNormAffineMatchesReference) {
   }
 }
 
+// The residual kernel with CFG's zero-condition rows as one broadcast row (tail): the same bits as the
+// kernel on the concatenated sublayer output, for 1 of 2 and 1 of 3 rows attended, shared or per-row
+// gates and none; no gradient allowed; the unsupported cases say so.
+TEST(FusedOpsGpu, ResidualLayerNormAffineTailMatchesConcatenation) {
+  SIMU_REQUIRE_CUDA();
+  ASSERT_TRUE(simu::models::fused::compiled());
+  torch::manual_seed(6);
+  const auto f32 = torch::TensorOptions().device(torch::kCUDA).dtype(torch::kFloat32);
+  const int64_t L = 517, C = 1024;
+  for (const auto dt : kLow)
+    for (const int64_t B : {2, 3}) {
+      auto x = torch::randn({B, L, C}, f32) * 3 + 0.5;
+      auto head = torch::randn({1, L, C}, f32).to(dt);  // the attended (conditional) row
+      auto tail = torch::randn({1, 1, C}, f32).to(dt);  // the zero-condition rows' output
+      auto full = torch::cat({head, tail.expand({B - 1, L, C})}, 0).contiguous();
+      auto w = 1 + 0.1 * torch::randn({1, C}, f32), b = torch::randn({1, C}, f32);
+      for (const auto& gate : {(0.3 * torch::randn({B, C}, f32)).to(dt), (0.3 * torch::randn({1, C}, f32)).to(dt), torch::Tensor()}) {
+        ASSERT_TRUE(simu::models::fused::supports_residual_layer_norm_affine_tail(x, head, tail));
+        const auto before = simu::models::fused::launch_count();
+        auto [x_new, y] = simu::models::fused::residual_layer_norm_affine_tail_bf16(x, head, tail, gate, w, b, 1e-6);
+        EXPECT_EQ(simu::models::fused::launch_count(), before + 1);
+        auto [x_want, y_want] = simu::models::fused::residual_layer_norm_affine_bf16(x, full, gate, w, b, 1e-6);
+        const auto what = fmt::format("{} B {} gate {}", name(dt), B, gate.defined() ? gate.size(0) : 0);
+        EXPECT_TRUE(torch::equal(x_new, x_want)) << what;
+        EXPECT_TRUE(torch::equal(y, y_want)) << what;
+        // Independent check of a zero-condition row's residual: x + tail * gate in fp64.
+        auto g64 = gate.defined() ? gate.to(torch::kFloat64).select(0, gate.size(0) - 1) : torch::ones({C}, f32.dtype(torch::kFloat64));
+        auto want_last = x.select(0, B - 1).to(torch::kFloat64) + tail.reshape({1, C}).to(torch::kFloat64) * g64;
+        EXPECT_LE(rel(x_new.select(0, B - 1).to(torch::kFloat64), want_last), 1e-6) << what;
+      }
+      // Not supported: a tail of another length or dtype; a head with more rows than x.
+      EXPECT_FALSE(simu::models::fused::supports_residual_layer_norm_affine_tail(x, head, tail.narrow(2, 0, C / 2)));
+      EXPECT_FALSE(simu::models::fused::supports_residual_layer_norm_affine_tail(x, head, tail.to(torch::kFloat32)));
+      EXPECT_FALSE(simu::models::fused::supports_residual_layer_norm_affine_tail(
+          x.narrow(0, 0, 1).contiguous(), torch::cat({head, head}, 0), tail));
+      // Inference only: an input that requires a gradient is refused with the function's name.
+      auto xg = x.clone().requires_grad_(true);
+      try {
+        (void)simu::models::fused::residual_layer_norm_affine_tail_bf16(xg, head, tail, torch::Tensor(), w, b, 1e-6);
+        ADD_FAILURE() << "no error for an input that requires a gradient";
+      } catch (const std::exception& e) {
+        EXPECT_NE(std::string(e.what()).find("residual_layer_norm_affine_tail_bf16"), std::string::npos) << e.what();
+      }
+    }
+}
+
 namespace {
 // The split shapes the tests run: (B, L, H, D). The real stream's 16 heads of 64 at 4,096 + 4 tokens, batch 2
 // and 1 (B*L*H a multiple of the 16-byte kernel's 4 heads per warp); odd item counts B*L*H, so that the last
@@ -292,12 +338,38 @@ TEST(FusedOpsGpu, FlowForwardWithFusedKernelsMatchesReference) {
   EXPECT_EQ(simu::models::fused::launch_count(), n0 + 3 * 2 * 5);
   EXPECT_EQ(simu::models::fused::modulation_launch_count(), m0 + 3);
   for (const auto& [k, v] : want) EXPECT_LE(rel(got.at(k), v), 2e-2) << k;
-  // The pose stream on a second CUDA stream (the default) or on the same one: the same kernels on
-  // the same inputs, so the same numbers.
+  // The pose stream on a second CUDA stream (the default) or on the same one. With the flash kernel for
+  // its few-query attention on the side stream as on the main one, the same kernels on the same inputs:
+  // the same numbers, with the side stream joined once after the last block (the default, lagged) or
+  // at every block.
+  ASSERT_TRUE(gen->backbone()->stream_lag());
+  gen->backbone()->set_side_few_query_flash(true);
+  auto overlapped = gen->backbone()->forward(x, t, cond, d);
   gen->backbone()->set_stream_overlap(false);
   auto serial = gen->backbone()->forward(x, t, cond, d);
   gen->backbone()->set_stream_overlap(true);
-  for (const auto& [k, v] : serial) EXPECT_TRUE(torch::equal(got.at(k), v)) << k;
+  for (const auto& [k, v] : serial) EXPECT_TRUE(torch::equal(overlapped.at(k), v)) << k;
+  gen->backbone()->set_stream_lag(false);
+  auto joined = gen->backbone()->forward(x, t, cond, d);
+  gen->backbone()->set_stream_lag(true);
+  for (const auto& [k, v] : serial) EXPECT_TRUE(torch::equal(joined.at(k), v)) << "joined per block " << k;
+  gen->backbone()->set_side_few_query_flash(false);
+  // The default (PyTorch's kernel for the side stream's few-query attention): the same attention up
+  // to the kernel's rounding, the shape stream untouched.
+  for (const auto& [k, v] : serial) {
+    const double e = rel(got.at(k), v);
+    EXPECT_LE(e, 2e-2) << "side few-query kernel " << k;
+    if (k == "shape") EXPECT_TRUE(torch::equal(got.at(k), v)) << "the shape stream never reads the pose stream";
+  }
+  // Lagged and joined with the condition cache (sampling): the same numbers.
+  {
+    auto kv_cache = gen->backbone()->condition_cache(cond);
+    gen->backbone()->set_stream_lag(false);
+    auto joined_cached = gen->backbone()->forward(x, t, cond, d, &kv_cache);
+    gen->backbone()->set_stream_lag(true);
+    auto lagged_cached = gen->backbone()->forward(x, t, cond, d, &kv_cache);
+    for (const auto& [k, v] : joined_cached) EXPECT_TRUE(torch::equal(lagged_cached.at(k), v)) << "lagged, cached " << k;
+  }
   // The condition-cache path (sampling) agrees with the uncached one.
   auto cache = gen->backbone()->condition_cache(cond);
   auto cached = gen->backbone()->forward(x, t, cond, d, &cache);
