@@ -278,7 +278,8 @@ class MOTBlockImpl : public torch::nn::Module {
   bool fused_kernels = true;  // fused LayerNorm + modulation (+ residual) -> bf16 (fused_ops.h) on the fused path
   bool inference_kernels = true;  // stream_overlap allowed (without a graph); see set_training_kernels
   // Fused path with one protected stream and one other: the other (the small pose stream) runs on a
-  // second CUDA stream, concurrently with the protected one, joining at the end of the block.
+  // second CUDA stream, concurrently with the protected one, joining at the end of the block (or once
+  // per forward: the wrapper's set_stream_lag).
   // stream_overlap_cached: also with the condition's cached keys/values (sampling). Measured (H200,
   // bench_stage1 --precision fp16, 25 CFG steps, persistent graphs): 7,528 tokens 744.6 -> 723.1 ms,
   // 2,800 tokens 617.9 -> 596.3 ms; eager 751.4 -> 732.3 and 628.1 -> 607.0 ms.
@@ -363,7 +364,9 @@ class SparseStructureFlowTdfyWrapperImpl : public torch::nn::Module {
   // the end of every block. The protected stream never reads the other, so the main stream runs the
   // whole shape stack without stopping. Same kernels on the same inputs: the same numbers
   // (tests/models/fused_ops_gpu.cpp). Costs the blocks' key/value buffers alive until the join.
-  // On by default (bench_stage1 --stream-lag).
+  // On by default: with the side stream's few-query attention on PyTorch's kernel
+  // (set_side_few_query_flash) and the zero rows broadcast, H100, 25 fp16 CFG steps with graphs,
+  // 7,528 / 2,800 tokens 702-709 / 577-580 -> 695-696 / 571-574 ms (docs/lift.md; bench_stage1 --stream-lag).
   void set_stream_lag(bool on) { stream_lag_ = on; }
   bool stream_lag() const { return stream_lag_; }
   // The few-query attention kernel of the stream on the side stream (MOTBlockImpl::side_few_query_flash).
