@@ -88,9 +88,7 @@ int main(int argc, char** argv) {
   app.add_option("--commit-every", cfg.commit_every, "pairs between commits of --out (0: only at the end)")
       ->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     if (dtype == "f16" || dtype == "float16")
       cfg.dtype = torch::kFloat16;
     else if (dtype == "f32" || dtype == "float32")

@@ -30,9 +30,7 @@ int main(int argc, char** argv) {
                  "run config whose lora: section gives r/alpha/targets when the checkpoint's train_state.json does not");
   app.add_option("--description", description, "base-model description written into adapter_config.json");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     SIMU_CHECK(common.sets.empty() || !run_config.empty(),
                "--set applies to the run config: pass --config run.yaml with it (got --set {})", common.sets.front());
     SIMU_CHECK(merge || weights.empty(), "--weights is only used with --merge (got --weights {})", weights);

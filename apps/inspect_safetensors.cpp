@@ -11,9 +11,7 @@ int main(int argc, char** argv) {
   app.add_option("file", path, "safetensors file")->required();
   app.add_option("--filter", filter, "only names containing this text");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const auto f = simu::data::SafeTensorsFile::open(path);
     int64_t total = 0;
     for (const auto& k : f.keys()) {

@@ -38,9 +38,7 @@ int main(int argc, char** argv) {
   app.add_flag("--overwrite", overwrite, "replace an existing output directory (atomically)");
   simu::resample::add_model_options(app, model);
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     if (!common.sets.empty())
       simu::fail_hint("use the --*-config files and flags", "lift reads no config file: --set {} would be ignored",
                       common.sets.front());

@@ -21,9 +21,7 @@ int main(int argc, char** argv) {
   app.add_flag("--bf16", bf16, "build the base model in bf16 (half the memory; the counts are the same)");
   app.add_flag("--list", list, "print every wrapped module path");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     if (!run_config.empty()) {
       auto root = simu::config::load_file(run_config, common.sets);
       simu::config::Reader reader(root, run_config);

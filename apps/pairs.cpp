@@ -149,7 +149,6 @@ int main(int argc, char** argv) {
   CLI::App app{"Make, inspect or validate an FM-DPO pair cache (HDF5; layout in docs/pair_cache.md)"};
   app.require_subcommand(1);
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
   MakeOptions mo;
   auto* make = add_make(app, mo);
   auto* inspect = app.add_subcommand("inspect", "Print counts, kinds, shapes, dtypes, storage, bytes per pair and attributes");
@@ -159,8 +158,7 @@ int main(int argc, char** argv) {
       "validate", "Full scan: structure, NaN/Inf, value ranges, shapes, dtypes, kinds, weights, ids; exit 1 on the first problem");
   std::string validate_path;
   validate->add_option("file", validate_path, "pair cache (.h5)")->required();
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     SIMU_CHECK(common.sets.empty(), "--set {}: pairs reads no config file, so nothing would take the value",
                common.sets.empty() ? std::string() : common.sets.front());
     if (*make)

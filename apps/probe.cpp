@@ -62,10 +62,8 @@ int main(int argc, char** argv) {
       ->capture_default_str()
       ->check(CLI::IsMember({"released", "default"}));
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
   app.footer(simu::physics::probe_config_help());
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     if (!scene_path.empty()) scenes.insert(scenes.begin(), scene_path);
     if (scenes.empty()) simu::fail_hint("pass --scene FILE or --scenes A B ...", "no scene given");
     std::vector<std::string> sets = common.sets;

@@ -47,10 +47,8 @@ int main(int argc, char** argv) {
   app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh in the probe");
   simu::resample::add_model_options(app, model);
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
   app.footer(simu::physics::probe_config_help());
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     simu::reconstruct::ReconstructOptions opt;
     std::vector<std::string> sets = common.sets;
     if (no_coacd) sets.push_back("collision.use_coacd=false");

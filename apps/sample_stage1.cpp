@@ -90,9 +90,7 @@ int main(int argc, char** argv) {
   app.add_option("--device", device, "cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--out", out, "output safetensors file (latent.<name> tensors)")->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const torch::Device dev(device);
     SIMU_CHECK(!dev.is_cuda() || torch::cuda::is_available(), "--device {}: no CUDA device here (use --device cpu)", device);
     auto gen = simu::models::load_generator(config, weights, dev, common.sets);

@@ -64,9 +64,7 @@ int main(int argc, char** argv) {
   app.add_option("--metrics-time", metrics_time, "evaluation settle for the physics metrics (s; paper: 5)")
       ->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     SyntheticConfig syn;
     CorrectionConfig corr;
     if (!config_path.empty() || !common.sets.empty()) {

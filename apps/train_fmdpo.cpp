@@ -26,10 +26,8 @@ int main(int argc, char** argv) {
   app.add_flag("--overwrite", overwrite, "start afresh in a run.out_dir that holds an earlier run (its outputs are removed)");
   app.add_option("--nproc-per-node", nproc, "start this many local ranks (one per GPU) and watch them");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
+  return simu::cli::run(app, argc, argv, common, [&] {
     using namespace simu::training;
-    simu::cli::apply_common_options(common);
     // Launcher mode: validate the config, then start and watch the ranks.
     if (nproc > 1 && !std::getenv("RANK")) {
       auto cfg = TrainConfig::load(config_path, common.sets);

@@ -361,9 +361,7 @@ int main(int argc, char** argv) {
   app.add_option("--iters", a.iters, "timed runs per plan")->capture_default_str()->check(CLI::PositiveNumber);
   app.add_option("--warmup", a.warmup, "untimed runs first")->capture_default_str()->check(CLI::NonNegativeNumber);
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     run(a);
     return 0;
   });

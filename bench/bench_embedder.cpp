@@ -67,9 +67,7 @@ int main(int argc, char** argv) {
   app.add_option("--iters", iters, "timed runs");
   app.add_option("--input-size", input_size, "side of the random input images and point maps");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     if (!torch::cuda::is_available())
       simu::fail_hint("run it on the GPU machine", "bench_embedder needs a CUDA device and none is available");
     const auto dt = dtype_name == "bf16" ? torch::kBFloat16 : dtype_name == "fp16" ? torch::kFloat16 : torch::kFloat32;

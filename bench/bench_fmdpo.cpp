@@ -398,9 +398,7 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"tokens", "inputs"}))
       ->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&]() -> int {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&]() -> int {
     SIMU_CHECK(common.sets.empty(), "bench_fmdpo: --set has no config to apply to (got --set {})", common.sets.front());
     if (!torch::cuda::is_available()) {
       fmt::print("bench_fmdpo: skipped: needs a CUDA device (none here)\n");

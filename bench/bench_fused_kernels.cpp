@@ -94,9 +94,7 @@ int main(int argc, char** argv) {
   app.add_option("--train-batch", train_batch, "training batch (micro 2 x both members = 4)")->capture_default_str();
   app.add_option("--device", device, "cuda only (a kernel benchmark)")->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const torch::Device dev(device);
     // A missing device or kernels is not an error for a benchmark: say so and stop.
     if (!dev.is_cuda() || !torch::cuda::is_available() || !fused::compiled()) {

@@ -183,9 +183,7 @@ int main(int argc, char** argv) {
                "also time the CPU stages alone, back to back (preprocessing of one object, logits -> mesh of one "
                "decoded grid): what they cost when caches and threads are warm");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const torch::Device dev(device);
     if (dev.is_cuda() && !torch::cuda::is_available()) {
       fmt::print("bench_lift: skipped: no CUDA device (use --device cpu --small for a smoke run)\n");

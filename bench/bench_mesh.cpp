@@ -55,9 +55,7 @@ int main(int argc, char** argv) {
   app.add_option("--threads", threads, "thread counts to run (0 = all cores, at::get_num_threads default)")
       ->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const int default_threads = at::get_num_threads();
     // Test grids.
     torch::manual_seed(0);

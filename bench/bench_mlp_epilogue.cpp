@@ -155,9 +155,7 @@ int main(int argc, char** argv) {
   app.add_option("--blocks", a.blocks, "transformer blocks per step (the real model: 24)")->capture_default_str()
       ->check(CLI::PositiveNumber);
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     run(a);
     return 0;
   });

@@ -42,9 +42,7 @@ int main(int argc, char** argv) {
   app.add_flag("--small", small, "small configs (configs/stage1_small.yaml, tiny decoder): CPU smoke run");
   app.add_flag("--fp32", fp32, "no bf16 autocast");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const torch::Device dev(device);
     if (!simu::bench::device_usable("bench_resample", dev, small)) return 0;
     simu::resample::ResamplerConfig cfg;  // official sampling defaults, real-size configs

@@ -297,9 +297,7 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"overlap", "sync"}))->capture_default_str();
   add_step_cache_options(app, cache_intervals, cache_opts);
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     const torch::Device dev(device);
     if (!simu::bench::device_usable("bench_stage1", dev, small)) return 0;
     if (small) {

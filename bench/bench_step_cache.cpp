@@ -181,9 +181,7 @@ int main(int argc, char** argv) {
   app.add_option("--tolerance", a.cache.tolerance, "error-adaptive refresh above this relative error (0 = off)")
       ->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     for (const int k : a.intervals) SIMU_CHECK(k >= 1, "--intervals: every k must be >= 1, got {}", k);
     a.cache.validate("step caching option ");
     torch::NoGradGuard ng;

@@ -187,9 +187,7 @@ int main(int argc, char** argv) {
   app.add_flag("--fp32", o.fp32, "also run the IEEE fp32 step (slow) to show bf16's own distance from fp32");
   app.add_option("--csv", o.csv, "write the per-tensor cosines here (written atomically)");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&]() -> int {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&]() -> int {
     SIMU_CHECK(common.sets.empty(), "fp8_fidelity: --set has no config to apply to (got --set {})", common.sets.front());
     if (!torch::cuda::is_available()) {
       fmt::print("fp8_fidelity: skipped: needs a CUDA device (none here)\n");

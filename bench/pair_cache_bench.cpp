@@ -65,9 +65,7 @@ int main(int argc, char** argv) {
   app.add_option("--batch", o.batch, "global batch of the stream")->capture_default_str();
   app.add_option("--dir", o.dir, "where to write the temporary caches")->capture_default_str();
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     SIMU_CHECK(o.n >= 1, "--n must be >= 1, got {}", o.n);
     fmt::print("| mode | storage | pairs | MB | MB/pair | write pairs/s | random read pairs/s | stream pairs/s |\n");
     fmt::print("|---|---|---|---|---|---|---|---|\n");

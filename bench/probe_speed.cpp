@@ -148,9 +148,7 @@ int main(int argc, char** argv) {
                  "meshes decomposed in parallel (0 = one per core; 1 for the one-core figure, with OMP_NUM_THREADS=1 "
                  "and taskset -c 0)");
   simu::cli::CommonOptions common;
-  simu::cli::add_common_options(app, common);
-  return simu::cli::run(app, argc, argv, [&] {
-    simu::cli::apply_common_options(common);
+  return simu::cli::run(app, argc, argv, common, [&] {
     simu::fs::remove_tree(dir);
     std::filesystem::create_directories(dir);
     const Scene scene = make_scene(dir, 7);

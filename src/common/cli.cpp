@@ -45,4 +45,12 @@ int run(CLI::App& app, int argc, char** argv, const std::function<int()>& body) 
   }
 }
 
+int run(CLI::App& app, int argc, char** argv, CommonOptions& common, const std::function<int()>& body) {
+  add_common_options(app, common);
+  return run(app, argc, argv, [&] {
+    apply_common_options(common);
+    return body();
+  });
+}
+
 }  // namespace simu::cli
