@@ -11,7 +11,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "common/progress.h"
-#include "resample/pair_builder.h"
+#include "pipeline/resample/pair_builder.h"
 
 namespace {
 std::atomic<bool> g_stop{false};

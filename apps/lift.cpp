@@ -12,8 +12,8 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "data/depth_io.h"
-#include "resample/lift.h"
-#include "resample/model_options.h"
+#include "pipeline/resample/lift.h"
+#include "pipeline/resample/model_options.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"lift: SAM 3D Objects Stage 1 (shape + pose) on the objects of one photo -> meshes, 64^3 occupancy, "

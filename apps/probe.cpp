@@ -11,9 +11,9 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "physics/probe.h"
-#include "physics/probe_batch.h"
-#include "resample/probe_resampler.h"
+#include "pipeline/physics/probe.h"
+#include "pipeline/physics/probe_batch.h"
+#include "pipeline/resample/probe_resampler.h"
 
 namespace {
 // Seed of torch's global generator for the random initialisation of --random-weights.

@@ -13,10 +13,10 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "resample/lift.h"
-#include "resample/model_options.h"
-#include "physics/probe_batch.h"
-#include "reconstruct/run.h"
+#include "pipeline/resample/lift.h"
+#include "pipeline/resample/model_options.h"
+#include "pipeline/physics/probe_batch.h"
+#include "pipeline/reconstruct/run.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"reconstruct: photo (image, masks + sidecar, depth + K or point map) -> aligned objects, floor and walls, "

@@ -13,9 +13,9 @@
 #include "common/log.h"
 #include "common/parallel.h"
 #include "common/timing.h"
-#include "physics/probe.h"
-#include "physics/synth_bench.h"
-#include "physics/synthetic.h"
+#include "pipeline/physics/probe.h"
+#include "pipeline/physics/synth_bench.h"
+#include "pipeline/physics/synthetic.h"
 
 #include <unistd.h>
 

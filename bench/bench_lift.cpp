@@ -24,8 +24,8 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "data/depth_io.h"
-#include "resample/lift.h"
-#include "resample/marching_cubes.h"
+#include "pipeline/resample/lift.h"
+#include "pipeline/resample/marching_cubes.h"
 #include "data/preprocess.h"
 
 namespace {

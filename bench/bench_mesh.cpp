@@ -13,8 +13,8 @@
 #include <functional>
 
 #include "common/cli.h"
-#include "resample/marching_cubes.h"
-#include "resample/resampler.h"
+#include "pipeline/resample/marching_cubes.h"
+#include "pipeline/resample/resampler.h"
 
 using namespace simu::physics;
 using namespace simu::resample;

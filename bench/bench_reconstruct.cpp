@@ -28,11 +28,11 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/fs.h"
-#include "reconstruct/run.h"
-#include "reconstruct/synthetic_camera.h"
-#include "reconstruct/synthetic_inputs.h"
-#include "resample/lift.h"
-#include "resample/model_options.h"
+#include "pipeline/reconstruct/run.h"
+#include "pipeline/reconstruct/synthetic_camera.h"
+#include "pipeline/reconstruct/synthetic_inputs.h"
+#include "pipeline/resample/lift.h"
+#include "pipeline/resample/model_options.h"
 
 namespace sr = simu::reconstruct;
 namespace sp = simu::physics;

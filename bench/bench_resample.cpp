@@ -17,7 +17,7 @@
 #include "gpu_profile.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "resample/resampler.h"
+#include "pipeline/resample/resampler.h"
 
 namespace {
 double peak_gib(const torch::Device& d) {

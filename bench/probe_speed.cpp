@@ -15,8 +15,8 @@
 #include "common/fs.h"
 #include "common/parallel.h"
 #include "common/timing.h"
-#include "physics/mesh.h"
-#include "physics/probe.h"
+#include "pipeline/physics/mesh.h"
+#include "pipeline/physics/probe.h"
 
 using namespace simu::physics;
 using simu::seconds_since;

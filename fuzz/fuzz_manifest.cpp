@@ -1,4 +1,4 @@
-// libFuzzer target: a build_pairs manifest (src/resample/pair_manifest.cpp parse_manifest: JSON lines,
+// libFuzzer target: a build_pairs manifest (src/pipeline/resample/pair_manifest.cpp parse_manifest: JSON lines,
 // comments, blank lines, keys per kind, weights, duplicate ids, paths resolved against the manifest's
 // folder). Input: the manifest text. Checks beyond "no crash": every good record and every issue
 // carries a line number inside the text, ids are unique, and each issue has a message.
@@ -9,7 +9,7 @@
 #include <string>
 
 #include "common/error.h"
-#include "resample/pair_builder.h"
+#include "pipeline/resample/pair_builder.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   const std::string text(reinterpret_cast<const char*>(data), size);

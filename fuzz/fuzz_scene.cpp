@@ -1,4 +1,4 @@
-// libFuzzer target: a probe scene file (src/physics/scene.cpp load_scene: JSON, camera, gravity,
+// libFuzzer target: a probe scene file (src/pipeline/physics/scene.cpp load_scene: JSON, camera, gravity,
 // planes, objects, bases) and the meshes it names (read_mesh through assimp: OBJ, PLY).
 // Input: first byte selects what the rest is: 0-127 scene JSON, 128-191 an OBJ mesh, 192-255 a PLY.
 // (assimp 5.2's PLY reader loops forever on some malformed headers; read_mesh checks PLY headers
@@ -11,8 +11,8 @@
 #include <string>
 
 #include "common/error.h"
-#include "physics/mesh.h"
-#include "physics/scene.h"
+#include "pipeline/physics/mesh.h"
+#include "pipeline/physics/scene.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (size < 1) return 0;

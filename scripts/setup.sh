@@ -69,7 +69,7 @@ if ! [ -f "$VENV/.cudnn-frontend-$CUDNN_FE_VERSION" ]; then
   touch "$VENV/.cudnn-frontend-$CUDNN_FE_VERSION"
 fi
 
-# PyPI mujoco: the scene.xml check runs the probe's output in the MuJoCo users open it in (tests/physics/mjcf_rest_check.py).
+# PyPI mujoco: the scene.xml check runs the probe's output in the MuJoCo users open it in (tests/pipeline/physics/mjcf_rest_check.py).
 MUJOCO_PY_VERSION="4.0.0"
 if ! [ -f "$VENV/.mujoco-$MUJOCO_PY_VERSION" ]; then
   log "installing mujoco==$MUJOCO_PY_VERSION into $VENV"

@@ -11,7 +11,7 @@
 
 #include "data/safetensors.h"
 #include "models/generator.h"
-#include "resample/resampler.h"
+#include "pipeline/resample/resampler.h"
 #include "test_util.h"
 
 namespace sm = simu::models;

@@ -14,7 +14,7 @@
 #include "data/pair_cache.h"
 #include "data/safetensors.h"
 #include "models/cond_embedder.h"
-#include "resample/pair_builder.h"
+#include "pipeline/resample/pair_builder.h"
 #include "test_util.h"
 #include "training/cond_inputs.h"
 #include "training/generator_policy.h"

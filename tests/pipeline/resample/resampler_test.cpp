@@ -1,0 +1,224 @@
+// Resampler on the small fixture generator + decoder: batching, seeding, decode chain, pose, meshes.
+#include <ATen/CPUGeneratorImpl.h>
+
+#include <fstream>
+
+#ifdef SIMU_HAVE_OPENCV
+#include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
+#endif
+
+#include "common/error.h"
+#include "data/safetensors.h"
+#include "pipeline/resample/probe_resampler.h"
+#include "pipeline/resample/resampler.h"
+#include "test_util.h"
+
+using namespace simu::physics;
+using namespace simu::resample;
+
+namespace {
+ResamplerConfig small_config() {
+  ResamplerConfig c;
+  c.generator_config = simu::testing::fixture("ss_generator_small.json");
+  c.generator_weights = simu::testing::fixture("ss_generator_small.safetensors");
+  c.decoder_config = simu::testing::fixture("ss_decoder_small.json");
+  c.decoder_weights = simu::testing::fixture("ss_decoder_small.safetensors");
+  c.device = "cpu";
+  c.steps = 2;  // official defaults otherwise (rescale_t 3, CFG 7 on [0, 500])
+  c.num_samples = 2;
+  c.decode_batch = 3;
+  return c;
+}
+std::vector<ResampleRequest> small_requests() {
+  torch::manual_seed(11);
+  std::vector<ResampleRequest> reqs(3);
+  for (auto& r : reqs) r.cond = torch::randn({10, 48});
+  reqs[2].cond = torch::randn({6, 48});  // a second condition length -> second group
+  return reqs;
+}
+}  // namespace
+
+// Every (object, sample) equals an unbatched sampling of that object with the same noise row, then the
+// decoder, the official threshold, and the pose decode; meshes are closed and canonical.
+TEST(Resampler, BatchedMatchesPerObjectChain) {
+  Resampler rs(small_config());
+  EXPECT_EQ(rs.config().rescale_t, 3.0);
+  EXPECT_EQ(rs.config().cfg_strength, 7.0);
+  const auto reqs = small_requests();
+  const auto res = rs.resample(reqs, 1234);
+  ASSERT_EQ(res.objects.size(), 3u);
+  EXPECT_EQ(res.sampling_calls, 2);  // two condition lengths
+  std::printf("resample: sample %.3f s, decode %.3f s, mesh %.3f s\n", res.seconds_sample, res.seconds_decode, res.seconds_mesh);
+
+  // Reference noise: the same seeded CPU generator, all rows in request order.
+  auto rng = at::make_generator<at::CPUGeneratorImpl>(1234);
+  const auto noise = rs.generator()->noise(3 * 2, rng, torch::kCPU);
+  auto opt = rs.sample_options();
+  EXPECT_EQ(opt.steps, 2);
+  EXPECT_DOUBLE_EQ(opt.cfg_interval.second, 500.0);
+  torch::NoGradGuard ng;
+  for (int r = 0; r < 3; ++r)
+    for (int s = 0; s < 2; ++s) {
+      const auto& got = res.objects[r][s];
+      simu::models::Latents x0;
+      for (const auto& [k, v] : noise) x0[k] = v.slice(0, r * 2 + s, r * 2 + s + 1);
+      const auto want = rs.generator()->sample(reqs[r].cond.unsqueeze(0), x0, opt);
+      for (const auto& [k, v] : want)
+        EXPECT_TRUE(simu::testing::close(got.latents.at(k), v, 1e-4, fmt::format("obj {} sample {} {}", r, s, k)));
+      // Decode chain: tokens -> grid -> decoder -> coords (logit > 0).
+      const auto logits = rs.decoder()->forward(simu::models::shape_tokens_to_grid(want.at("shape")));
+      const auto coords = simu::models::occupied_coords(logits).slice(1, 1, 4);
+      if (coords.size(0) > 0) {
+        ASSERT_TRUE(got.ok) << got.message;
+        EXPECT_TRUE(torch::equal(got.coords, coords)) << "obj " << r << " sample " << s;
+        EXPECT_EQ(mesh_closedness_problem(got.mesh), "");
+        const Eigen::Vector3d lo = got.mesh.V.colwise().minCoeff(), hi = got.mesh.V.colwise().maxCoeff();
+        EXPECT_NEAR((hi - lo).maxCoeff(), 1.0, 1e-9);
+        EXPECT_NEAR((hi + lo).norm(), 0.0, 1e-9);
+        EXPECT_GT(mesh_signed_volume(got.mesh), 0.0);
+      } else {
+        EXPECT_FALSE(got.ok);
+      }
+      // Pose: proper rotation, and the canonical pose maps canonical points where the voxel-frame pose does.
+      EXPECT_NEAR(got.rotation.determinant(), 1.0, 1e-5);
+      EXPECT_LT((got.rotation.transpose() * got.rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-5);
+      const Eigen::Vector3d pc(0.1, -0.3, 0.25);
+      const Eigen::Vector3d pv = pc / got.canonical.factor + got.canonical.centre;
+      const Eigen::Vector3d a = got.rotation * got.scale.cwiseProduct(pv) + got.translation;
+      const Eigen::Vector3d b = got.rotation * got.scale_canonical.cwiseProduct(pc) + got.translation_canonical;
+      EXPECT_LT((a - b).norm(), 1e-9 * (1 + a.norm()));
+    }
+  // The two samples of one object differ (different noise rows).
+  EXPECT_FALSE(torch::allclose(res.objects[0][0].latents.at("shape"), res.objects[0][1].latents.at("shape")));
+}
+
+// Same seed -> same result; another seed -> another result.
+TEST(Resampler, Seeded) {
+  auto cfg = small_config();
+  cfg.num_samples = 1;
+  Resampler rs(cfg);
+  const auto reqs = small_requests();
+  const auto a = rs.resample(reqs, 7), b = rs.resample(reqs, 7), c = rs.resample(reqs, 8);
+  EXPECT_TRUE(torch::equal(a.objects[1][0].latents.at("shape"), b.objects[1][0].latents.at("shape")));
+  EXPECT_FALSE(torch::equal(a.objects[1][0].latents.at("shape"), c.objects[1][0].latents.at("shape")));
+}
+
+// Adapter: the PEFT fixture loads through the default loader (simu::lora::load_peft) and changes the
+// shape; a custom loader receives the generator tree.
+TEST(Resampler, AdapterLoads) {
+  auto cfg = small_config();
+  cfg.num_samples = 1;
+  const auto reqs = small_requests();
+  Resampler base(cfg);
+  cfg.adapter_dir = simu::testing::fixture("lora_small");
+  Resampler tuned(cfg);
+  EXPECT_FALSE(base.has_adapter());
+  EXPECT_TRUE(tuned.has_adapter());
+  const auto a = base.resample({reqs[0]}, 5), b = tuned.resample({reqs[0]}, 5);
+  EXPECT_GT(simu::testing::rel_err(b.objects[0][0].latents.at("shape"), a.objects[0][0].latents.at("shape")), 1e-3);
+  std::string seen_dir;
+  bool has_backbone = false;
+  Resampler custom(cfg, [&](const std::string& dir, torch::nn::Module& gen) {
+    seen_dir = dir;
+    for (const auto& p : gen.named_parameters())
+      if (p.key().rfind("reverse_fn.backbone.blocks.0.", 0) == 0) has_backbone = true;
+  });
+  EXPECT_EQ(seen_dir, cfg.adapter_dir);
+  EXPECT_TRUE(has_backbone);
+}
+
+// Requests given as embedder inputs give the same result as requests carrying the embedder's tokens.
+TEST(Resampler, EmbedsConditionInputs) {
+  ResamplerConfig cfg = small_config();
+  cfg.generator_config = simu::testing::source_dir() + "/configs/stage1_small.yaml";
+  cfg.generator_weights = "";  // random init (fixture embedder gives 64 channels)
+  cfg.random_weights = true;
+  cfg.generator_overrides = {"flow_model.cond_channels=64"};
+  cfg.embedder_config = simu::testing::fixture("cond_embedder_small.json");
+  cfg.embedder_weights = simu::testing::fixture("cond_embedder_small.safetensors");
+  cfg.num_samples = 1;
+  Resampler rs(cfg);
+  auto io = simu::data::SafeTensorsFile::open(simu::testing::fixture("cond_embedder_small_io.safetensors"));
+  std::vector<ResampleRequest> by_inputs(2), by_tokens(2);
+  const auto fused = io.get("out.fused").clone();  // [2, L, 64], the official embedder output
+  for (int i = 0; i < 2; ++i) {
+    for (const auto& name : rs.embedder()->input_names()) by_inputs[i].inputs[name] = io.get("in." + name)[i].clone();
+    by_tokens[i].cond = fused[i];
+  }
+  const auto conds = rs.conditions(by_inputs);
+  for (int i = 0; i < 2; ++i) EXPECT_TRUE(simu::testing::close(conds[i], fused[i], 1e-4, "embedded condition"));
+  const auto a = rs.resample(by_inputs, 3), b = rs.resample(by_tokens, 3);
+  for (int i = 0; i < 2; ++i)
+    EXPECT_TRUE(simu::testing::close(a.objects[i][0].latents.at("shape"), b.objects[i][0].latents.at("shape"), 1e-3,
+                                     "shape from inputs vs tokens"));
+}
+
+// Bad requests are reported with their index.
+TEST(Resampler, RejectsWrongConditionWidth) {
+  Resampler rs(small_config());
+  std::vector<ResampleRequest> reqs(2);
+  reqs[0].cond = torch::randn({10, 48});
+  reqs[1].cond = torch::randn({10, 47});
+  try {
+    rs.resample(reqs, 0);
+    FAIL();
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("request 1"), std::string::npos) << e.what();
+  }
+}
+
+// probe --resample with an unreadable depth file: every object fails with the file named (and the
+// call returns normally), instead of a later "too few results".
+TEST(Resampler, ProbeBadDepthFileIsAPerObjectErrorNamingTheFile) {
+#ifndef SIMU_HAVE_OPENCV
+  GTEST_SKIP() << "needs OpenCV";
+#else
+  Resampler rs(small_config());
+  // A missing file is refused when the resampling function is made, naming it.
+  Scene missing;
+  missing.image_path = "/nonexistent/image.png";
+  missing.depth_path = "/nonexistent/depth.png";
+  try {
+    (void)make_probe_resample_fn(rs, missing);
+    ADD_FAILURE() << "no error for a missing image/depth file";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("/nonexistent/"), std::string::npos) << e.what();
+  }
+  // A depth file that exists but cannot be read fails every object with the file's and the object's name.
+  const std::string dir = simu::testing::temp_dir("bad_depth");
+  Scene scene;
+  scene.image_path = dir + "/image.png";
+  scene.depth_path = dir + "/depth.png";
+  ASSERT_TRUE(cv::imwrite(scene.image_path, cv::Mat(8, 8, CV_8UC3, cv::Scalar(10, 20, 30))));
+  std::ofstream(scene.depth_path) << "not a png";
+  ProbeResampleRequest rq;
+  rq.object_id = "cup";
+  rq.modal_mask = cv::Mat::zeros(8, 8, CV_8UC1);
+  auto fn = make_probe_resample_fn(rs, scene);
+  const auto out = fn({rq, rq});
+  ASSERT_EQ(out.size(), 2u);
+  for (const auto& r : out) {
+    EXPECT_FALSE(r.ok);
+    EXPECT_NE(r.message.find(scene.depth_path), std::string::npos) << r.message;
+    EXPECT_NE(r.message.find("cup"), std::string::npos) << r.message;
+  }
+#endif
+}
+
+// Missing weight files are an error naming the flag unless random weights are asked for (with a banner).
+TEST(Resampler, MissingWeightsNameTheFlag) {
+  ResamplerConfig c = small_config();
+  c.decoder_weights = "";
+  try {
+    Resampler rs(c);
+    FAIL() << "expected an error";
+  } catch (const simu::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("--decoder-weights"), std::string::npos) << e.what();
+  }
+  c.random_weights = true;
+  Resampler rs(c);
+  EXPECT_NE(rs.random_weights_banner().find("RANDOM WEIGHTS"), std::string::npos);
+  EXPECT_NE(rs.random_weights_banner().find("--decoder-weights"), std::string::npos);
+  EXPECT_TRUE(Resampler(small_config()).random_weights_banner().empty());
+}
