@@ -42,7 +42,7 @@ struct LoopConfig {
   bool activation_checkpointing = false;  // recompute each transformer block in backward (per-block checkpointing)
   // Opt-in FP8 frozen base (models/fp8_linear.h): the LoRA-wrapped base projections run as e4m3 GEMMs
   // (weights quantised once after loading, inputs per call; adapters, loss and optimizer unchanged).
-  // Faster, costs fidelity (README "FP8 frozen base" has the measured figures). Needs device cuda with
+  // Faster, costs fidelity (docs/benchmarks.md "FP8 frozen base" has the measured figures). Needs device cuda with
   // compute capability >= 8.9 and precision bf16.
   bool fp8_base = false;
   std::string fp8_base_backward = "fp8";  // the base's input gradients: "fp8" (e4m3) or "bf16"

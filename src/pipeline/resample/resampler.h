@@ -77,8 +77,8 @@ struct ResamplerConfig {
   // call of a fresh process (one `lift` run) measured slower with graphs (docs/lift.md). Pays in a
   // long-lived process at shorter conditions (2,800 tokens: 663 vs 681-832 ms per sampling).
   bool cuda_graphs = false;
-  // Opt-in step caching of the Stage-1 sampling (models::StepCacheOptions; README "Stage-1 step
-  // caching"): off by default. Keys under `step_cache:` (enabled, interval, order, warmup, tail,
+  // Opt-in step caching of the Stage-1 sampling (models::StepCacheOptions; docs/step_cache.md):
+  // off by default. Keys under `step_cache:` (enabled, interval, order, warmup, tail,
   // pose_momentum, tolerance).
   models::StepCacheOptions step_cache;
   int num_samples = 1;    // shapes drawn per object
