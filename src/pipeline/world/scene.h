@@ -111,6 +111,8 @@ struct WorldScene {
   double light = 0.8, ambient = 0.3;
   std::vector<WorldObject> objects;
   std::vector<int> removed;       // objects left out of the render (render_without), ascending
+  double min_visible = 0.05;      // WorldObject::usable thresholds (SceneConfig::min_visible, min_pixels)
+  int min_pixels = 64;
   // Render.
   std::vector<uint8_t> rgb;       // [H, W, 3] sRGB-ish uint8
   std::vector<int32_t> labels;    // [H, W] label values (see kLabel*)
