@@ -106,10 +106,12 @@ Mesh cup_body(double h, double taper, double wall) {
 Mesh build_mug(Rng& r) {
   const double h = r.uniform(1.6, 3.0), wall = r.uniform(0.06, 0.1);
   const Mesh body = cup_body(h, r.uniform(0.85, 1.0), wall);
-  const double Rh = r.uniform(0.25, 0.42) * h, rh = r.uniform(0.07, 0.13);
-  // Handle arc in the xy plane: torus about y rotated to about z; its ends sit in the wall at x = 1 - wall / 2.
+  const double Rh = r.uniform(0.22, 0.36) * h, rh = r.uniform(0.07, 0.13);
+  // Handle arc in the xy plane: torus about y rotated to about z; its ends sit in the wall at x = 1 - wall / 2,
+  // between the rim and the floor (the mug stands on its bottom).
+  const double room = std::max(0.0, 0.5 * h - 2 * wall - Rh - rh);
   const Mesh arc = torus_part(Rh, rh, -0.5 * kPi, 0.5 * kPi, 20, 10);
-  const Mesh handle = transformed(arc, rotation(-0.5 * kPi, Vec3::UnitX()), Vec3(1 - 0.5 * wall, r.uniform(-0.1, 0.1) * h, 0));
+  const Mesh handle = transformed(arc, rotation(-0.5 * kPi, Vec3::UnitX()), Vec3(1 - 0.5 * wall, r.uniform(-room, room), 0));
   return merge({body, handle});
 }
 

@@ -75,20 +75,26 @@ std::optional<Oriented> orient_as(const ShapeInstance& inst, const RestAnalysis&
     }
     case Rest::Lean: {
       if (a.stand < 0) return std::nullopt;
-      // Standing with a quarter-turn yaw (a straight bottom edge parallel to the wall), then tipped
-      // towards the wall (+z) about x past its tipping angle: the centre of mass passes the bottom edge
-      // nearest the wall, so gravity holds it against the wall. Too squat (tipping angle > 30 deg): no lean.
-      const Mat3 up = rotation(0.5 * kPi * rng.below(4), Vec3::UnitY()) * put_down(a.faces[a.stand].normal);
-      const physics::Mesh standing = transformed(inst.mesh, up * Mat3(inst.scale().asDiagonal()), Vec3::Zero());
-      const Vec3 com = up * inst.scale().cwiseProduct(a.com);
-      const double bottom = standing.V.col(1).maxCoeff();
-      double edge_z = -1e300;  // the bottom's edge nearest the wall
-      for (Eigen::Index i = 0; i < standing.V.rows(); ++i)
-        if (standing.V(i, 1) >= bottom - 1e-9 * inst.size_m) edge_z = std::max(edge_z, standing.V(i, 2));
-      const double tip = std::atan2(edge_z - com.z(), bottom - com.y());
+      // Standing, turned by the quarter yaw whose side towards the wall gives the smallest tipping
+      // angle (a straight bottom edge parallel to the wall), then tipped towards the wall (+z) about x
+      // past that angle: the centre of mass passes the bottom edge nearest the wall, so gravity holds
+      // it against the wall. Too squat (tipping angle > 35 deg): no lean.
+      Mat3 best_up = Mat3::Identity();
+      double tip = 1e300;
+      for (int q = 0; q < 4; ++q) {
+        const Mat3 up = rotation(0.5 * kPi * q, Vec3::UnitY()) * put_down(a.faces[a.stand].normal);
+        const physics::Mesh standing = transformed(inst.mesh, up * Mat3(inst.scale().asDiagonal()), Vec3::Zero());
+        const Vec3 com = up * inst.scale().cwiseProduct(a.com);
+        const double bottom = standing.V.col(1).maxCoeff();
+        double edge_z = -1e300;  // the bottom's edge nearest the wall
+        for (Eigen::Index i = 0; i < standing.V.rows(); ++i)
+          if (standing.V(i, 1) >= bottom - 1e-9 * inst.size_m) edge_z = std::max(edge_z, standing.V(i, 2));
+        const double angle = std::atan2(edge_z - com.z(), bottom - com.y());
+        if (angle < tip - 1e-9) tip = angle, best_up = up;
+      }
+      if (tip > 35.0 * kPi / 180) return std::nullopt;
       const double tilt = tip + rng.uniform(4.0, 12.0) * kPi / 180;
-      if (tip > 30.0 * kPi / 180) return std::nullopt;
-      return make_oriented(inst, rest, rotation(-tilt, Vec3::UnitX()) * up);
+      return make_oriented(inst, rest, rotation(-tilt, Vec3::UnitX()) * best_up);
     }
   }
   return std::nullopt;
@@ -117,7 +123,7 @@ Vec3 position_at(const Oriented& o, double x, double z, bool floor, const Table&
 }
 
 bool footprint_ok(const Oriented& o, const Vec3& t, bool floor, const Table& table, const physics::Camera& cam,
-                  const std::vector<Footprint>& taken) {
+                  const std::vector<Footprint>& taken, bool whole_in_view) {
   const Eigen::Vector2d c(t.x() + o.centre.x(), t.z() + o.centre.y());
   const double r = o.radius;
   // On the support (a leaning object's disc may reach the wall).
@@ -133,11 +139,19 @@ bool footprint_ok(const Oriented& o, const Vec3& t, bool floor, const Table& tab
   if (t.z() + o.wall_reach > 0) return false;
   for (const auto& f : taken)
     if (f.floor == floor && (f.centre - c).norm() < f.radius + r + kGap) return false;
-  // Seen: the centre projects inside the image (5% margin) in front of the camera, and for floor
-  // objects the line of sight misses the table.
-  const physics::Projection p = physics::project(cam, t);
-  const double mu = 0.05 * cam.width, mv = 0.05 * cam.height;
-  if (p.z < 0.1 || p.u < mu || p.u > cam.width - mu || p.v < mv || p.v > cam.height - mv) return false;
+  // Seen: the centre (whole_in_view: every corner of the world AABB) projects inside the image in
+  // front of the camera, and for floor objects the line of sight to the centre misses the table.
+  auto in_view = [&](const Vec3& p, double margin) {
+    const physics::Projection q = physics::project(cam, p);
+    return q.z > 0.1 && q.u >= margin * cam.width && q.u <= (1 - margin) * cam.width && q.v >= margin * cam.height &&
+           q.v <= (1 - margin) * cam.height;
+  };
+  if (!in_view(t, 0.05)) return false;
+  if (whole_in_view) {
+    const Vec3 lo = t + o.offsets.V.colwise().minCoeff().transpose(), hi = t + o.offsets.V.colwise().maxCoeff().transpose();
+    for (int k = 0; k < 8; ++k)
+      if (!in_view(Vec3(k & 1 ? hi.x() : lo.x(), k & 2 ? hi.y() : lo.y(), k & 4 ? hi.z() : lo.z()), 0.02)) return false;
+  }
   if (floor && !segment_misses_box(physics::camera_center(cam), t, Vec3(table.x0, -table.height, -table.depth),
                                    Vec3(table.x1, 0, 0)))
     return false;

@@ -48,11 +48,25 @@ std::optional<std::pair<Vec3, Footprint>> place_on_support(const Oriented& o, bo
                                                            const physics::Camera& cam,
                                                            const std::vector<Footprint>& taken, Rng& rng,
                                                            int attempts);
-// Whether an oriented instance at t fits on its support free of `taken` and is seen by the camera.
+// Whether an oriented instance at t fits on its support free of `taken` and is seen by the camera:
+// whole_in_view, its world AABB's corners project into the image (2% margin); else its centre does.
 bool footprint_ok(const Oriented& o, const Vec3& t, bool floor, const Table& table, const physics::Camera& cam,
-                  const std::vector<Footprint>& taken);
+                  const std::vector<Footprint>& taken, bool whole_in_view = true);
 
 // The world position of an object whose footprint centre is at (x, z) on the support.
 Vec3 position_at(const Oriented& o, double x, double z, bool floor, const Table& table);
+
+// A random instance of the split from the families (sizes above max_size_m redrawn, at most 8 times).
+ShapeInstance draw_instance(const std::vector<std::string>& families, Split split, const SceneConfig& cfg, Rng& rng);
+// Appends an object at pose (o, t) to the scene (id "obj<k>_<family or external name>").
+void add_object(WorldScene& s, ShapeInstance inst, const Oriented& o, const Vec3& t, bool floor);
+
+// occlusion.cpp: puts an occluder between the camera and object `ti` (footprint taken[ti]) so that a
+// visible fraction near `goal` (and within cfg's [visible_min, visible_max]) of it stays visible: a new
+// instance of the split, standing (or lying) on the same support in front of the target along the
+// line of sight, shifted sideways by a bisection on the visible fraction. Appends it (and its
+// footprint) and returns true; false when no instance fits within 12 draws.
+bool place_occluder(WorldScene& s, int ti, double goal, const std::vector<std::string>& families, Split split,
+                    const SceneConfig& cfg, const Table& table, std::vector<Footprint>& taken, Rng& rng);
 
 }  // namespace simu::world::detail

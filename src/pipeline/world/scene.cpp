@@ -149,30 +149,6 @@ Table make_room(WorldScene& s, const SceneConfig& cfg, Rng& rng) {
   return t;
 }
 
-// A random instance of the split from the families (sizes above max_size_m redrawn, at most 8 times).
-ShapeInstance draw_instance(const std::vector<std::string>& fams, Split split, const SceneConfig& cfg, Rng& rng) {
-  ShapeInstance inst;
-  for (int k = 0; k < 8; ++k) {
-    const std::string& f = fams[size_t(rng.below(int(fams.size())))];
-    inst = make_shape(f, next_instance_seed(f, split, rng.next()));
-    if (inst.size_m <= cfg.max_size_m) break;
-  }
-  return inst;
-}
-
-// Adds an object to the scene at pose (o, t).
-void add_object(WorldScene& s, ShapeInstance inst, const Oriented& o, const Vec3& t, bool floor) {
-  WorldObject w;
-  w.id = fmt::format("obj{:02d}_{}", s.objects.size(), inst.family == "external" ? inst.name : inst.family);
-  w.shape = std::move(inst);
-  w.rest = o.rest;
-  w.on_floor = floor;
-  w.R = o.R;
-  w.scale = w.shape.scale();
-  w.t = t;
-  s.objects.push_back(std::move(w));
-}
-
 // Places one instance: a rest orientation, then a support (floor with probability p_floor, the other
 // as the fallback). Returns false when it fits nowhere.
 bool place_instance(WorldScene& s, ShapeInstance inst, const SceneConfig& cfg, const Table& table,
@@ -185,68 +161,7 @@ bool place_instance(WorldScene& s, ShapeInstance inst, const SceneConfig& cfg, c
   for (const bool floor : {first, !first}) {
     if (auto placed = detail::place_on_support(*o, floor, table, s.camera, taken, rng, cfg.placement_attempts)) {
       taken.push_back(placed->second);
-      add_object(s, std::move(inst), *o, placed->first, floor);
-      return true;
-    }
-  }
-  return false;
-}
-
-// The silhouette pixel count of a world mesh and how much of `target` it leaves visible.
-double visible_after(const physics::Camera& cam, const physics::BinaryMask& target, int64_t target_pixels,
-                     const physics::Mesh& occluder_world) {
-  const physics::BinaryMask occ = physics::render_silhouette(cam, occluder_world);
-  int64_t left = 0;
-  for (size_t i = 0; i < target.data.size(); ++i) left += target.data[i] && !occ.data[i];
-  return target_pixels > 0 ? double(left) / double(target_pixels) : 0.0;
-}
-
-// Puts an occluder between the camera and object `ti` so that about `goal` of it stays visible: a new
-// instance standing (or lying) on the same support, in front of the target along the line of sight,
-// shifted sideways by a bisection on the visible fraction. Returns false when no instance fits.
-bool place_occluder(WorldScene& s, int ti, double goal, const std::vector<std::string>& fams, Split split,
-                    const SceneConfig& cfg, const Table& table, std::vector<Footprint>& taken, Rng& rng) {
-  const WorldObject target = s.objects[size_t(ti)];
-  const physics::Mesh tw = object_world_mesh(target);
-  const physics::BinaryMask amodal = physics::render_silhouette(s.camera, tw);
-  const int64_t tp = amodal.count();
-  if (tp < cfg.min_pixels) return false;
-  const Footprint& tf = taken[size_t(ti)];
-  const Vec3 cam = physics::camera_center(s.camera);
-  Eigen::Vector2d towards(cam.x() - tf.centre.x(), cam.z() - tf.centre.y());
-  towards.normalize();
-  const Eigen::Vector2d side(-towards.y(), towards.x());
-  for (int tries = 0; tries < 6; ++tries) {
-    ShapeInstance inst = draw_instance(fams, split, cfg, rng);
-    const RestAnalysis a = analyse_rest(inst.mesh, inst.closed);
-    auto o = detail::orient_as(inst, a, Rest::Stand, rng);
-    if (!o) o = detail::orient_as(inst, a, Rest::Lie, rng);
-    if (!o) continue;
-    const double ahead = tf.radius + o->radius + rng.uniform(0.02, 0.12);
-    auto pose_at = [&](double lateral) {
-      const Eigen::Vector2d c = tf.centre + ahead * towards + lateral * side;
-      return detail::position_at(*o, c.x(), c.y(), tf.floor, table);
-    };
-    auto vis = [&](double lateral) {
-      return visible_after(s.camera, amodal, tp, transformed(o->offsets, Mat3::Identity(), pose_at(lateral)));
-    };
-    if (vis(0.0) > goal) continue;  // too small to hide enough of the target
-    const double sign = rng.chance(0.5) ? 1.0 : -1.0;
-    for (const double sg : {sign, -sign}) {
-      double lo = 0, hi = 2.0 * (tf.radius + o->radius);
-      if (vis(sg * hi) < goal) continue;
-      for (int it = 0; it < 10; ++it) {
-        const double mid = 0.5 * (lo + hi);
-        (vis(sg * mid) < goal ? lo : hi) = mid;
-      }
-      const Vec3 t = pose_at(sg * 0.5 * (lo + hi));
-      if (!detail::footprint_ok(*o, t, tf.floor, table, s.camera, taken)) continue;
-      Footprint f;
-      f.floor = tf.floor;
-      f.centre = Eigen::Vector2d(t.x() + o->centre.x(), t.z() + o->centre.y());
-      f.radius = o->radius;
-      taken.push_back(f);
-      add_object(s, std::move(inst), *o, t, tf.floor);
+      detail::add_object(s, std::move(inst), *o, placed->first, floor);
       return true;
     }
   }
@@ -266,7 +181,10 @@ int attempt_scene(WorldScene& s, const SceneConfig& cfg, Split split, const std:
                   "give it a smaller size (make_external_shape size_m) or a larger image / field of view");
   }
   const int n = cfg.min_objects + rng.below(cfg.max_objects - cfg.min_objects + 1);
-  for (int i = int(extra.size()); i < n; ++i) place_instance(s, draw_instance(fams, split, cfg, rng), cfg, table, taken, rng);
+  // Each slot draws up to 3 instances until one fits (large ones often do not in a close view).
+  for (int i = int(extra.size()); i < n; ++i)
+    for (int k = 0; k < 3; ++k)
+      if (place_instance(s, detail::draw_instance(fams, split, cfg, rng), cfg, table, taken, rng)) break;
   // Occluders for the targets: objects in random order, one occluder each, until enough are hidden.
   std::vector<int> targets;
   if (cfg.targets > 0) {
@@ -276,7 +194,7 @@ int attempt_scene(WorldScene& s, const SceneConfig& cfg, Split split, const std:
     for (int i : order) {
       if (int(targets.size()) >= cfg.targets) break;
       const double goal = rng.uniform(cfg.visible_min, cfg.visible_max);
-      if (place_occluder(s, i, goal, fams, split, cfg, table, taken, rng)) targets.push_back(i);
+      if (detail::place_occluder(s, i, goal, fams, split, cfg, table, taken, rng)) targets.push_back(i);
     }
   }
   if (cfg.settle) settle_scene(s, cfg.settle_seconds, true);

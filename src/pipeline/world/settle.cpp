@@ -22,6 +22,7 @@ SettleReport settle_scene(WorldScene& s, double seconds, bool apply) {
   const size_t n = s.objects.size();
   rep.displacement.assign(n, 0.0);
   rep.rotation_deg.assign(n, 0.0);
+  rep.simulated.assign(n, false);
 #ifndef SIMU_HAVE_MUJOCO
   rep.message = "built without MuJoCo (SIMU_WITH_MUJOCO=OFF)";
   return rep;
@@ -79,6 +80,7 @@ SettleReport settle_scene(WorldScene& s, double seconds, bool apply) {
   for (size_t k = 0; k < index.size(); ++k) {
     WorldObject& o = s.objects[size_t(index[k])];
     if (ev.objects[k].physics_disabled) continue;
+    rep.simulated[size_t(index[k])] = true;
     rep.displacement[size_t(index[k])] = (ev.t[k] - o.t).norm();
     rep.rotation_deg[size_t(index[k])] = Eigen::AngleAxisd(ev.R[k] * o.R.transpose()).angle() * 180.0 / 3.14159265358979323846;
     if (apply) o.t = ev.t[k], o.R = ev.R[k];

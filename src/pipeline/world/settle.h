@@ -14,6 +14,7 @@ struct SettleReport {
   bool ran = false;                   // false without MuJoCo (SIMU_HAVE_MUJOCO) or when nothing could settle
   std::vector<double> displacement;   // per object: |t_after - t_before| (m); 0 for removed objects
   std::vector<double> rotation_deg;   // per object: angle of R_after R_before^T
+  std::vector<bool> simulated;        // per object: took part (false: removed, or the probe disabled it)
   double seconds = 0;                 // wall time
   std::string message;                // why it did not run, when it did not
 };
