@@ -4,6 +4,8 @@
 //       point map `lift --pointmap` reads; corrupted with --corrupt, the clean one beside it),
 //       intrinsics.json, gt.json, meshes/; with --edited also edited/<target id>/image.png (the scene
 //       with that target's occluders removed).
+//   world scenes --objects DIR --out OUT   one test scene per mesh file of DIR (OBJ/PLY/STL/GLB/glTF, any
+//       units: normalised to the canonical convention, size read in m / cm / mm), placed first.
 //   world shapes [--count N] [--seed S]   a family x split table of N instances per family.
 //   world sheet --out FILE [--per-family K] [--cell PX]   a contact sheet of every family.
 #include "common/cli.h"
@@ -21,6 +23,7 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <cctype>
 #include <filesystem>
 #include <mutex>
 
@@ -30,7 +33,7 @@ namespace {
 
 // `world scenes` settings.
 struct ScenesOptions {
-  std::string split = "train", out, config, visible, families;
+  std::string split = "train", out, config, visible, families, objects;
   int count = 10, threads = 1, targets = -1, width = 0, height = 0;
   uint64_t seed = 0;
   bool corrupt = false, edited = false, overwrite = false;
@@ -79,15 +82,32 @@ void run_scenes(const ScenesOptions& o, const std::vector<std::string>& sets) {
   }
   simu::fs::check_overwrite(o.out, o.overwrite, "--out");
   std::filesystem::create_directories(o.out);
-  // Scene seeds: the first `count` seeds of the split from --seed on.
+  // External meshes (--objects): one test scene each, the mesh placed first.
+  std::vector<std::string> meshes;
+  if (!o.objects.empty()) {
+    SIMU_CHECK(split == Split::Test, "--objects places external meshes in test scenes: use --split test (got {})", o.split);
+    SIMU_CHECK(std::filesystem::is_directory(o.objects), "--objects {}: not a folder", o.objects);
+    for (const auto& e : std::filesystem::directory_iterator(o.objects)) {
+      std::string ext = e.path().extension().string();
+      std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return char(std::tolower(c)); });
+      if (e.is_regular_file() && (ext == ".obj" || ext == ".ply" || ext == ".stl" || ext == ".glb" || ext == ".gltf"))
+        meshes.push_back(e.path().string());
+    }
+    std::sort(meshes.begin(), meshes.end());
+    SIMU_CHECK(!meshes.empty(), "--objects {}: no .obj, .ply, .stl, .glb or .gltf file", o.objects);
+  }
+  // Scene seeds: the first `count` seeds of the split from --seed on (one per mesh with --objects).
+  const int count = meshes.empty() ? o.count : int(meshes.size());
   std::vector<uint64_t> seeds;
-  for (uint64_t s = o.seed; int(seeds.size()) < o.count; ++s) seeds.push_back(s = next_scene_seed(split, s));
+  for (uint64_t s = o.seed; int(seeds.size()) < count; ++s) seeds.push_back(s = next_scene_seed(split, s));
   simu::Progress progress{"world scenes", "scenes"};
   std::mutex mu;
   int64_t done = 0;
   simu::parallel_for_each(int64_t(seeds.size()), o.threads, [&](int64_t k) {
-    const WorldScene s = make_scene(cfg, seeds[size_t(k)], split);
-    const std::string dir = o.out + "/" + s.name;
+    std::vector<ShapeInstance> extra;
+    if (!meshes.empty()) extra.push_back(load_external_shape(meshes[size_t(k)]));
+    const WorldScene s = make_scene(cfg, seeds[size_t(k)], split, extra);
+    const std::string dir = o.out + "/" + (extra.empty() ? s.name : s.name + "_" + extra[0].name);
     CorruptionRecord rec;
     if (o.corrupt) {
       write_pointmap(dir + "/pointmap.npy", corrupt_pointmap(s.pointmap, ccfg, s.seed, &rec));
@@ -148,6 +168,7 @@ int main(int argc, char** argv) {
   scenes->add_option("--targets", so.targets, "objects per scene with a visible fraction in --visible (default: config, else 0)");
   scenes->add_option("--visible", so.visible, "target visible range LO-HI (default 0.2-0.6)");
   scenes->add_option("--families", so.families, "comma-separated families (default: all of the split; the held-out one in test only)");
+  scenes->add_option("--objects", so.objects, "folder of meshes: one test scene per file with it placed first (eval_lift --objects)");
   scenes->add_option("--width", so.width, "image width (default 320)");
   scenes->add_option("--height", so.height, "image height (default 240)");
   scenes->add_flag("--edited", so.edited, "also write edited/<target>/image.png: each target with its occluders removed");

@@ -1,5 +1,6 @@
 // bench_world: how fast the shape world makes training data on the CPU. Times (median and 90th
-// percentile over --scenes scenes, one thread): make_scene (room, instances, rest analysis, placement,
+// percentile over --scenes scenes, one thread; the thread's CPU time beside the wall time, since a
+// shared machine's wall time counts other processes' turns): make_scene (room, instances, rest analysis, placement,
 // render), render_scene alone (the z-buffer pass, shading, amodal masks), render_without (the edited
 // image), make_scene with occlusion targets, corrupt_pointmap, and voxelize_filled at --resolution per
 // family (median over --instances instances); then scenes per second with --threads threads.
@@ -12,6 +13,8 @@
 
 #include <fmt/format.h>
 
+#include <time.h>
+
 #include <algorithm>
 #include <vector>
 
@@ -19,11 +22,27 @@ using namespace simu::world;
 
 namespace {
 
+// Wall and this thread's CPU time of a call (seconds).
+struct Timed {
+  std::vector<double> wall, cpu;
+  template <class Fn>
+  void operator()(Fn&& fn) {
+    timespec c0{}, c1{};
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &c0);
+    const auto t0 = simu::Clock::now();
+    fn();
+    wall.push_back(simu::seconds_since(t0));
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &c1);
+    cpu.push_back(double(c1.tv_sec - c0.tv_sec) + 1e-9 * double(c1.tv_nsec - c0.tv_nsec));
+  }
+};
+
 // Median and 90th percentile (ms) of a list of seconds.
 std::string stats(std::vector<double> s) {
   std::sort(s.begin(), s.end());
-  return fmt::format("median {:7.2f} ms  p90 {:7.2f} ms  (n {})", 1e3 * s[s.size() / 2], 1e3 * s[s.size() * 9 / 10], s.size());
+  return fmt::format("median {:7.2f} ms  p90 {:7.2f} ms", 1e3 * s[s.size() / 2], 1e3 * s[s.size() * 9 / 10]);
 }
+std::string stats(const Timed& t) { return fmt::format("cpu {}  | wall {}  (n {})", stats(t.cpu), stats(t.wall), t.cpu.size()); }
 
 }  // namespace
 
@@ -41,27 +60,18 @@ int main(int argc, char** argv) {
     cfg.width = width, cfg.height = height;
     SceneConfig occl = cfg;
     occl.targets = 1;
-    std::vector<double> t_make, t_render, t_without, t_occl, t_corrupt;
+    Timed t_make, t_render, t_without, t_occl, t_corrupt;
     size_t objects = 0;
     uint64_t seed = 0;
     for (int k = 0; k < scenes; ++k) {
       seed = next_scene_seed(Split::Train, seed + 1);
-      auto t0 = simu::Clock::now();
-      WorldScene s = make_scene(cfg, seed, Split::Train);
-      t_make.push_back(simu::seconds_since(t0));
+      WorldScene s;
+      t_make([&] { s = make_scene(cfg, seed, Split::Train); });
       objects += s.objects.size();
-      t0 = simu::Clock::now();
-      render_scene(s);
-      t_render.push_back(simu::seconds_since(t0));
-      t0 = simu::Clock::now();
-      const WorldScene e = render_without(s, {0});
-      t_without.push_back(simu::seconds_since(t0));
-      t0 = simu::Clock::now();
-      const PointMap c = corrupt_pointmap(s.pointmap, CorruptionConfig{}, seed);
-      t_corrupt.push_back(simu::seconds_since(t0));
-      t0 = simu::Clock::now();
-      const WorldScene o = make_scene(occl, seed, Split::Train);
-      t_occl.push_back(simu::seconds_since(t0));
+      t_render([&] { render_scene(s); });
+      t_without([&] { const WorldScene e = render_without(s, {0}); });
+      t_corrupt([&] { const PointMap c = corrupt_pointmap(s.pointmap, CorruptionConfig{}, seed); });
+      t_occl([&] { const WorldScene o = make_scene(occl, seed, Split::Train); });
     }
     fmt::print("{}x{}, {:.1f} objects per scene on average\n", width, height, double(objects) / scenes);
     fmt::print("make_scene             {}\n", stats(t_make));
@@ -69,17 +79,15 @@ int main(int argc, char** argv) {
     fmt::print("render_without         {}\n", stats(t_without));
     fmt::print("make_scene, 1 target   {}\n", stats(t_occl));
     fmt::print("corrupt_pointmap       {}\n", stats(t_corrupt));
-    std::vector<double> t_vox;
+    Timed t_vox;
     for (const auto& f : families()) {
-      std::vector<double> tf;
+      Timed tf;
       for (int k = 0; k < instances; ++k) {
         const ShapeInstance s = make_shape(f, uint64_t(k));
-        const auto t0 = simu::Clock::now();
-        const auto g = voxelize_filled(s.mesh, resolution);
-        tf.push_back(simu::seconds_since(t0));
+        tf([&] { const auto g = voxelize_filled(s.mesh, resolution); });
+        t_vox([&] { const auto g = voxelize_filled(s.mesh, resolution); });
       }
       fmt::print("voxelize_filled R={} {:<11} {}\n", resolution, f, stats(tf));
-      t_vox.insert(t_vox.end(), tf.begin(), tf.end());
     }
     fmt::print("voxelize_filled R={} all         {}\n", resolution, stats(t_vox));
     // Throughput: independent scenes on `threads` threads.

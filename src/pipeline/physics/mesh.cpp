@@ -450,6 +450,15 @@ Mesh prism_mesh(const std::vector<Eigen::Vector2d>& poly, double hh) {
   return m;
 }
 
+Mesh quad_mesh(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
+  Mesh m;
+  m.V.resize(4, 3);
+  m.V << a.transpose(), b.transpose(), c.transpose(), d.transpose();
+  m.F.resize(2, 3);
+  m.F << 0, 1, 2, 0, 2, 3;
+  return m;
+}
+
 Mesh revolve_mesh(const std::vector<std::pair<double, double>>& prof, int S) {
   const int P = static_cast<int>(prof.size());
   SIMU_CHECK(P >= 2 && S >= 3, "revolve_mesh: need >= 2 profile points and >= 3 segments (got {}, {})", P, S);

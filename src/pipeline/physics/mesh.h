@@ -44,6 +44,8 @@ Mesh box_mesh(const Vec3& half_extents);
 // A closed prism: a simple counter-clockwise polygon in the xy plane (star-shaped about its first
 // vertex) extruded over z in [-half_height, half_height], wound outward.
 Mesh prism_mesh(const std::vector<Eigen::Vector2d>& polygon, double half_height);
+// A planar quadrilateral a, b, c, d as two triangles (a, b, c), (a, c, d) (floors and walls of pictures).
+Mesh quad_mesh(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d);
 // A closed surface of revolution about the y axis from a profile of (y, radius) pairs: a polyline
 // from one end to the other, drawn from the top (smaller y; the world is y-down) down the outside. An
 // end with radius 0 is a pole on the axis; an end with radius > 0 is closed by a flat cap around a

@@ -278,23 +278,6 @@ void inject_error(SyntheticObject& o, const Shape& shape, const SyntheticConfig&
   }
 }
 
-// Whether the segment from the camera centre to p misses the box [lo, hi] (slab test).
-bool segment_misses_box(const Vec3& c, const Vec3& p, const Vec3& lo, const Vec3& hi) {
-  double t0 = 0, t1 = 1;
-  for (int k = 0; k < 3; ++k) {
-    const double d = p[k] - c[k];
-    if (std::abs(d) < 1e-12) {
-      if (c[k] < lo[k] || c[k] > hi[k]) return true;
-      continue;
-    }
-    double a = (lo[k] - c[k]) / d, b = (hi[k] - c[k]) / d;
-    if (a > b) std::swap(a, b);
-    t0 = std::max(t0, a), t1 = std::min(t1, b);
-    if (t0 > t1) return true;
-  }
-  return false;
-}
-
 // A floor placement the camera sees: the object's top centre and mid-height centre project inside the
 // image (5% margin) and no base's box lies between them and the camera.
 bool floor_visible(const SyntheticScene& s, double x, double z, double support_y, double height) {

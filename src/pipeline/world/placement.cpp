@@ -2,6 +2,7 @@
 #include "pipeline/world/placement.h"
 
 #include "pipeline/physics/camera.h"
+#include "pipeline/physics/geometry.h"
 #include "pipeline/world/families.h"
 #include "pipeline/world/parts.h"
 
@@ -35,23 +36,6 @@ Oriented make_oriented(const ShapeInstance& inst, Rest rest, const Mat3& R) {
   for (Eigen::Index i = 0; i < V.rows(); ++i) r2 = std::max(r2, (Eigen::Vector2d(V(i, 0), V(i, 2)) - o.centre).squaredNorm());
   o.radius = std::sqrt(r2);
   return o;
-}
-
-// Whether the segment from c to p misses the box [lo, hi] (slab test).
-bool segment_misses_box(const Vec3& c, const Vec3& p, const Vec3& lo, const Vec3& hi) {
-  double t0 = 0, t1 = 1;
-  for (int k = 0; k < 3; ++k) {
-    const double d = p[k] - c[k];
-    if (std::abs(d) < 1e-12) {
-      if (c[k] < lo[k] || c[k] > hi[k]) return true;
-      continue;
-    }
-    double a = (lo[k] - c[k]) / d, b = (hi[k] - c[k]) / d;
-    if (a > b) std::swap(a, b);
-    t0 = std::max(t0, a), t1 = std::min(t1, b);
-    if (t0 > t1) return true;
-  }
-  return false;
 }
 
 // Whether a disc meets the rectangle [x0, x1] x [z0, z1].
@@ -152,7 +136,7 @@ bool footprint_ok(const Oriented& o, const Vec3& t, bool floor, const Table& tab
     for (int k = 0; k < 8; ++k)
       if (!in_view(Vec3(k & 1 ? hi.x() : lo.x(), k & 2 ? hi.y() : lo.y(), k & 4 ? hi.z() : lo.z()), 0.02)) return false;
   }
-  if (floor && !segment_misses_box(physics::camera_center(cam), t, Vec3(table.x0, -table.height, -table.depth),
+  if (floor && !physics::segment_misses_box(physics::camera_center(cam), t, Vec3(table.x0, -table.height, -table.depth),
                                    Vec3(table.x1, 0, 0)))
     return false;
   return true;

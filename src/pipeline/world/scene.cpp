@@ -3,6 +3,7 @@
 
 #include "common/error.h"
 #include "pipeline/physics/camera.h"
+#include "pipeline/physics/mesh.h"
 #include "pipeline/world/families.h"
 #include "pipeline/world/placement.h"
 #include "pipeline/world/settle.h"
@@ -95,15 +96,6 @@ std::vector<std::string> scene_families(const SceneConfig& c, Split split) {
   return c.families;
 }
 
-physics::Mesh quad(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
-  physics::Mesh m;
-  m.V.resize(4, 3);
-  m.V << a.transpose(), b.transpose(), c.transpose(), d.transpose();
-  m.F.resize(2, 3);
-  m.F << 0, 1, 2, 0, 2, 3;
-  return m;
-}
-
 // Room (floor, wall), the table, the camera and the light of one attempt.
 Table make_room(WorldScene& s, const SceneConfig& cfg, Rng& rng) {
   Table t;
@@ -113,8 +105,8 @@ Table make_room(WorldScene& s, const SceneConfig& cfg, Rng& rng) {
   t.height = rng.uniform(0.68, 0.78);
   s.floor_y = 0, s.wall_z = 0, s.table_top_y = -t.height;
   s.environment.clear();
-  s.environment.push_back(quad(Vec3(-6, 0, -8), Vec3(6, 0, -8), Vec3(6, 0, 0), Vec3(-6, 0, 0)));
-  s.environment.push_back(quad(Vec3(-6, -4, 0), Vec3(6, -4, 0), Vec3(6, 0, 0), Vec3(-6, 0, 0)));
+  s.environment.push_back(physics::quad_mesh(Vec3(-6, 0, -8), Vec3(6, 0, -8), Vec3(6, 0, 0), Vec3(-6, 0, 0)));
+  s.environment.push_back(physics::quad_mesh(Vec3(-6, -4, 0), Vec3(6, -4, 0), Vec3(6, 0, 0), Vec3(-6, 0, 0)));
   // Table: a top 4 cm thick and four legs 5 cm square, inset 5 cm.
   const double top = 0.04, leg = 0.05, inset = 0.05;
   std::vector<physics::Mesh> parts = {box_part(Vec3(width, top, t.depth), Vec3(xc, -t.height + 0.5 * top, -0.5 * t.depth))};

@@ -138,9 +138,9 @@ ShapeInstance make_external_shape(const Mesh& mesh, const std::string& name, dou
   if (size_m > 0) {
     inst.size_m = size_m;
   } else {
-    // The file's units: metres, centimetres, millimetres or inches, whichever gives a plausible size.
+    // The file's units: metres, centimetres or millimetres, whichever gives a plausible size.
     inst.size_m = std::clamp(longest, 0.02, 0.6);
-    for (const double unit : {1.0, 0.01, 0.001, 0.0254})
+    for (const double unit : {1.0, 0.01, 0.001})
       if (longest * unit >= 0.02 && longest * unit <= 0.6) {
         inst.size_m = longest * unit;
         break;

@@ -89,8 +89,8 @@ ShapeInstance make_shape(const std::string& family, uint64_t instance_seed);
 // An external mesh (eval_lift --objects DIR) as an instance: the mesh is normalised to the canonical
 // convention (AABB-centred, longest side 1) with its axes kept (no up axis is assumed: the scene
 // generator puts it in a stable rest pose of its convex hull). Its metric size: size_m when > 0, else the
-// file's longest side read in metres, centimetres, millimetres or inches, whichever lands in [0.02,
-// 0.6] first (a file in none of them is clamped into that range). Split Test, held_out true.
+// file's longest side read in metres, centimetres or millimetres, whichever lands in [0.02, 0.6]
+// first (a file in none of them is clamped into that range: a normalised mesh of side 1 gets 0.6 m). Split Test, held_out true.
 ShapeInstance make_external_shape(const Mesh& mesh, const std::string& name, double size_m = 0);
 // Reads a mesh file through physics::read_mesh (OBJ/PLY/STL/GLB) and calls make_external_shape with
 // the file's stem as its name. Throws simu::Error naming the file.

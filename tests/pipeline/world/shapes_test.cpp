@@ -111,6 +111,6 @@ TEST(WorldShapes, ExternalUnits) {
   EXPECT_TRUE(s.closed);
   EXPECT_NEAR((s.mesh.V.colwise().maxCoeff() - s.mesh.V.colwise().minCoeff()).maxCoeff(), 1.0, 1e-15);
   EXPECT_EQ(make_external_shape(mm, "brick", 0.3).size_m, 0.3);
-  // 80 km read in m, cm, mm or inches is no plausible size: clamped to 60 cm.
+  // 80 km read in m, cm or mm is no plausible size: clamped to 60 cm.
   EXPECT_EQ(make_external_shape(simu::physics::box_mesh(Vec3(4e4, 1, 1)), "huge").size_m, 0.6);
 }
