@@ -1,6 +1,6 @@
 // The shape world's random numbers: a SplitMix64 stream with its own uniform and normal draws, so
-// every generated mesh, pose and pixel is bit-identical on every standard library and machine
-// (std::uniform_real_distribution's algorithm is implementation-defined).
+// the draws are the same on every standard library (std::uniform_real_distribution's algorithm is
+// implementation-defined; meshes and poses also go through libm's sin / cos / exp / log).
 #pragma once
 
 #include "common/random.h"

@@ -27,9 +27,9 @@ using physics::Vec3;
 
 // ---- Families -------------------------------------------------------------------------------------
 
-// Every family name, in a fixed order (the order of the shapes table and the contact sheet):
-// box, cylinder, sphere, cone, capsule, torus, bowl, bottle, mug, l_bracket, stool, table, book_stack,
-// can, wedge, ... (at least 10; see docs/world.md for the list and pictures).
+// Every family name, in a fixed order (the order of the shapes table and the contact sheet): box,
+// cylinder, sphere, cone, capsule, torus, bowl, bottle, mug, cup, vase, wedge, l_bracket, book_stack,
+// stool, table, chair (docs/world.md has their pictures).
 const std::vector<std::string>& families();
 // The family never used in train or val (its instances are all Test; scenes of other splits never
 // contain it): "mug" (a composite of body and handle whose handle no other family has).
@@ -82,7 +82,7 @@ struct ShapeInstance {
 };
 
 // Makes instance `instance_seed` of a family: proportions, size, albedo and mesh are deterministic
-// functions of (family, seed) (bit-identical on every machine). Throws simu::Error naming the family
+// functions of (family, seed) (bit-identical wherever libm's sin / cos / exp / log agree). Throws simu::Error naming the family
 // when it is unknown (the hint lists families()).
 ShapeInstance make_shape(const std::string& family, uint64_t instance_seed);
 
