@@ -349,7 +349,7 @@ torch::Tensor read_mask(const std::string& path) {
 
 torch::Tensor rgb_from_uint8(const torch::Tensor& image, const std::string& what) {
   SIMU_CHECK(image.dim() == 3 && image.size(2) == 3 && image.scalar_type() == torch::kUInt8,
-             "{}: expected an RGB image [H, W, 3] uint8, got {} {}", what, image.sizes(), image.scalar_type());
+             "{}: expected an RGB image [H, W, 3] uint8, got {} {}", what, image.sizes(), c10::toString(image.scalar_type()));
 #ifdef SIMU_HAVE_OPENCV
   const auto c = image.contiguous().cpu();
   const cv::Mat m(static_cast<int>(c.size(0)), static_cast<int>(c.size(1)), CV_8UC3, const_cast<uint8_t*>(c.data_ptr<uint8_t>()));
@@ -363,7 +363,7 @@ torch::Tensor rgb_from_uint8(const torch::Tensor& image, const std::string& what
 
 torch::Tensor mask_from_uint8(const torch::Tensor& mask, const std::string& what) {
   SIMU_CHECK(mask.dim() == 2 && mask.scalar_type() == torch::kUInt8, "{}: expected a mask [H, W] uint8, got {} {}", what,
-             mask.sizes(), mask.scalar_type());
+             mask.sizes(), c10::toString(mask.scalar_type()));
 #ifdef SIMU_HAVE_OPENCV
   const auto c = mask.contiguous().cpu();
   const cv::Mat m(static_cast<int>(c.size(0)), static_cast<int>(c.size(1)), CV_8UC1, const_cast<uint8_t*>(c.data_ptr<uint8_t>()));
