@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import Tuple
 
 import mujoco
 import numpy as np
@@ -26,7 +27,8 @@ import simuscene as ss
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def synthetic_photo(h: int = 120, w: int = 160, f: float = 150.0):
+def synthetic_photo(h: int = 120, w: int = 160, f: float = 150.0) -> Tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                       np.ndarray, ss.Plane, np.ndarray]:
     """What SAM (a label map) and MoGe (an OpenCV point map, inf where invalid) would give for a camera
     1 m above a floor looking down at 30 degrees, with a box standing on it."""
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -45,7 +47,7 @@ def synthetic_photo(h: int = 120, w: int = 160, f: float = 150.0):
     rgb[box] = (200, 60, 40)
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
     floor = ss.Plane("floor", point=down * 1.0, normal=-down)  # 1 m below the camera, normal up
-    return rgb, labels, points.astype(np.float32), K, floor, -down
+    return rgb, labels, points.astype(np.float32), K, floor, down
 
 
 def main() -> int:

@@ -65,7 +65,7 @@ def _override_strings(overrides: Union[Mapping[str, Any], Sequence[str], None]) 
     if overrides is None:
         return []
     if isinstance(overrides, Mapping):
-        out = []
+        out: List[str] = []
         for k, v in overrides.items():
             text = ("true" if v else "false") if isinstance(v, bool) else v if isinstance(v, str) else json.dumps(v)
             out.append(f"{k}={text}")

@@ -38,13 +38,15 @@ at::Tensor as_tensor(py::handle obj, const std::string& what) {
     raise(ErrorKind::Input, "{}: not a numeric array (dtype object)", what);
   try {
     return torch::utils::tensor_from_numpy(arr.ptr(), /*warn_if_not_writeable=*/false);
-  } catch (const c10::Error&) {
+  } catch (const std::exception&) {
     // Negative strides (a flipped view) or an odd byte order: one contiguous native copy.
+    PyErr_Clear();
     py::object c = np.attr("ascontiguousarray")(arr, py::arg("dtype") = arr.attr("dtype").attr("newbyteorder")("="));
     try {
       return torch::utils::tensor_from_numpy(c.ptr(), false);
-    } catch (const c10::Error& e) {
-      raise(ErrorKind::Input, "{}: unsupported array ({})", what, e.what_without_backtrace());
+    } catch (const std::exception& e) {
+      PyErr_Clear();
+      raise(ErrorKind::Input, "{}: unsupported array ({})", what, e.what());
     }
   }
 }
@@ -156,6 +158,15 @@ std::string py_to_json_text(py::handle obj) {
 
 namespace {
 
+// Whether the interpreter is shutting down (no more calls into Python).
+bool finalizing() {
+#if PY_VERSION_HEX >= 0x030D0000
+  return Py_IsFinalizing() != 0;
+#else
+  return _Py_IsFinalizing() != 0;
+#endif
+}
+
 // Raises the simuscene.errors class of `kind` with the message, the hint and the file.
 void set_python_error(ErrorKind kind, const char* message, const std::string& hint, const std::string& filename) {
   static const char* names[] = {"Error", "ConfigError", "InputError", "MissingFileError"};
@@ -181,7 +192,7 @@ int python_level(log::Level l) {
 void install_hooks() {
   // Log lines -> logging.getLogger("simuscene"), from whichever thread logs (GIL taken for the call).
   log::set_sink([](log::Level level, const std::string& line) {
-    if (!Py_IsInitialized() || _Py_IsFinalizing() != 0) return;
+    if (!Py_IsInitialized() || finalizing()) return;
     py::gil_scoped_acquire gil;
     try {
       py::module_::import("logging").attr("getLogger")("simuscene").attr("log")(python_level(level), line);
@@ -192,7 +203,7 @@ void install_hooks() {
   // Ctrl-C: the long loops call check_cancel(); a pending SIGINT (Python's handler set its flag while the
   // GIL was released) stops the call with Cancelled, raised into Python as KeyboardInterrupt.
   set_cancel_hook([] {
-    if (!Py_IsInitialized() || _Py_IsFinalizing() != 0) return;
+    if (!Py_IsInitialized() || finalizing()) return;
     py::gil_scoped_acquire gil;
     if (PyErr_CheckSignals() != 0) {
       PyErr_Clear();

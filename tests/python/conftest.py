@@ -13,7 +13,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Dict, List
+from typing import Any, Dict, List
 
 import numpy as np
 import pytest
@@ -66,7 +66,7 @@ def full_decoder(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 
 @pytest.fixture(scope="session")
-def model_files(full_decoder: str) -> Dict[str, str]:
+def model_files(full_decoder: str) -> Dict[str, Any]:
     return {
         "generator_config": fixture("ss_generator_small.json"),
         "generator_weights": fixture("ss_generator_small.safetensors"),
@@ -76,7 +76,7 @@ def model_files(full_decoder: str) -> Dict[str, str]:
     }
 
 
-def model_flags(files: Dict[str, str]) -> List[str]:
+def model_flags(files: Dict[str, Any]) -> List[str]:
     """The same models as command-line flags (random embedder weights, CPU, STEPS steps)."""
     out = ["--device", "cpu", "--steps", str(STEPS), "--random-weights"]
     for key, value in files.items():
@@ -85,7 +85,7 @@ def model_flags(files: Dict[str, str]) -> List[str]:
 
 
 @pytest.fixture(scope="session")
-def stage1(model_files: Dict[str, str]) -> ss.Stage1:
+def stage1(model_files: Dict[str, Any]) -> ss.Stage1:
     return ss.Stage1(**model_files, random_weights=True, device="cpu", steps=STEPS)
 
 

@@ -11,7 +11,7 @@ import resource
 import signal
 import threading
 from pathlib import Path
-from typing import Dict, List
+from typing import Any, Dict, List
 
 import numpy as np
 import pytest
@@ -41,7 +41,7 @@ def test_tensors_and_numpy_cross_without_copies(stage1: ss.Stage1, photo: Photo)
 # ---- errors ----
 
 def test_bad_inputs_raise_typed_errors_and_the_next_call_works(stage1: ss.Stage1, photo: Photo,
-                                                              model_files: Dict[str, str], tmp_path: Path) -> None:
+                                                              model_files: Dict[str, Any], tmp_path: Path) -> None:
     with pytest.raises(ss.MissingFileError) as e:
         ss.Stage1(**{**model_files, "generator_weights": str(tmp_path / "nope.safetensors")}, random_weights=True)
     assert isinstance(e.value, FileNotFoundError) and e.value.filename == str(tmp_path / "nope.safetensors")
@@ -99,7 +99,7 @@ def test_log_lines_go_to_python_logging(stage1: ss.Stage1, photo: Photo, caplog:
     assert any("fitted to the point map" in r.getMessage() for r in caplog.records if r.name == "simuscene")
 
 
-def test_ctrl_c_stops_a_long_call(model_files: Dict[str, str], photo: Photo) -> None:
+def test_ctrl_c_stops_a_long_call(model_files: Dict[str, Any], photo: Photo) -> None:
     # A SIGINT that arrives while C++ samples (GIL released) is seen at the next sampling step and raised
     # as KeyboardInterrupt; the same object then works again.
     long = ss.Stage1(**model_files, random_weights=True, device="cpu", steps=5000)
@@ -203,7 +203,7 @@ def test_pair_cache_both_modes(tmp_path: Path) -> None:
     assert rec["cond"] is None and all(torch.equal(rec["inputs"][k], inputs[k].float()) for k in inputs)
 
 
-def test_train_export_and_the_ecosystem(stage1: ss.Stage1, model_files: Dict[str, str], photo: Photo,
+def test_train_export_and_the_ecosystem(stage1: ss.Stage1, model_files: Dict[str, Any], photo: Photo,
                                        tmp_path: Path) -> None:
     trimesh = pytest.importorskip("trimesh")
     peft = pytest.importorskip("peft")
@@ -262,7 +262,7 @@ def test_train_export_and_the_ecosystem(stage1: ss.Stage1, model_files: Dict[str
     mesh = trimesh.Trimesh(lifted.vertices, lifted.faces, process=False)
     # Canonical: longest side 1, computed in float64 (error ~1e-15; 1e-9 leaves room for the AABB sums).
     assert mesh.is_watertight and abs(mesh.extents.max() - 1.0) < 1e-9
-    res = stage1.lift(photo.rgb, photo.labels, pointmap=photo.pointmap)
-    res.write(tmp_path / "lift")
+    again = stage1.lift(photo.rgb, photo.labels, pointmap=photo.pointmap)
+    again.write(tmp_path / "lift")
     glb = trimesh.load(tmp_path / "lift" / "objects" / "label_1" / "sample_0" / "mesh.glb", force="mesh")
-    assert len(glb.faces) == len(res[0].samples[0].faces)
+    assert len(glb.faces) == len(again[0].samples[0].faces)

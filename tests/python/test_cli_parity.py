@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import simuscene as ss
-from conftest import ROOT, STEPS, Photo, model_flags, program, run_cli
+from conftest import ROOT, Photo, model_flags, program, run_cli
 
 
 def without_timings(x: Any) -> Any:
@@ -31,7 +31,7 @@ def tree(folder: Path) -> List[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
 
 
-def test_lift_matches_the_lift_program(stage1: ss.Stage1, model_files: Dict[str, str], photo: Photo,
+def test_lift_matches_the_lift_program(stage1: ss.Stage1, model_files: Dict[str, Any], photo: Photo,
                                        tmp_path: Path) -> None:
     cli_out, py_out = tmp_path / "cli", tmp_path / "py"
     run_cli([program("lift"), "--image", photo.rgb_path, "--masks", photo.labels_path, "--pointmap",
@@ -111,14 +111,13 @@ def test_probe_matches_the_probe_program(tmp_path: Path) -> None:
     assert all(p.dtype == np.uint8 and p.ndim == 3 and p.shape[2] == 3 for p in res.pictures.values())
 
 
-def test_probe_with_resampling_matches_the_program(stage1: ss.Stage1, model_files: Dict[str, str],
+def test_probe_with_resampling_matches_the_program(stage1: ss.Stage1, model_files: Dict[str, Any],
                                                    tmp_path: Path) -> None:
     cli_out = tmp_path / "cli"
-    flags = model_flags(model_files)
-    flags[flags.index("--steps") + 1] = str(STEPS)
+    flags = model_flags(model_files)  # --steps STEPS, as the stage1 fixture
     run_cli([program("probe"), "--config", str(ROOT / "configs" / "probe.yaml"), "--scene", str(SCENE), "--out",
              str(cli_out), "--cache-dir", str(tmp_path / "hulls"), "--resample", "--seed", "1", "--num-samples", "1"]
-            + [f for f in flags] + sets(FAST))
+            + flags + sets(FAST))
     res = ss.probe(ss.Scene.load(SCENE), config=ROOT / "configs" / "probe.yaml",
                    overrides={**FAST, "collision.cache_dir": str(tmp_path / "hulls")}, out=tmp_path / "py",
                    resampler=stage1, seed=1)
