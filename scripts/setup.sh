@@ -28,7 +28,7 @@ APT_PKGS=(
   libre2-dev
   libnanoflann-dev
   clang libclang-rt-dev
-  python3-venv
+  python3-venv python3-dev
 )
 missing=()
 for p in "${APT_PKGS[@]}"; do
@@ -75,6 +75,16 @@ if ! [ -f "$VENV/.mujoco-$MUJOCO_PY_VERSION" ]; then
   log "installing mujoco==$MUJOCO_PY_VERSION into $VENV"
   "$VENV/bin/python" -m pip install -q "mujoco==$MUJOCO_PY_VERSION"
   touch "$VENV/.mujoco-$MUJOCO_PY_VERSION"
+fi
+
+# The Python module's test and type-check tools, and the packages its tests hand results to (tests/python,
+# docs/python.md); scikit-build-core builds the wheel (pip install --no-build-isolation .).
+PY_TEST_PINS=("pytest==9.2.0" "mypy==2.4.1" "trimesh==5.2.0" "peft==0.21.2" "scikit-build-core==1.1.2")
+PY_TEST_STAMP="$VENV/.pytools-$(printf '%s' "${PY_TEST_PINS[*]}" | md5sum | cut -c1-12)"
+if ! [ -f "$PY_TEST_STAMP" ]; then
+  log "installing ${PY_TEST_PINS[*]} into $VENV"
+  "$VENV/bin/python" -m pip install -q "${PY_TEST_PINS[@]}"
+  touch "$PY_TEST_STAMP"
 fi
 
 [ "${1:-}" = "--deps" ] && exit 0

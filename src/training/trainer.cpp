@@ -15,6 +15,7 @@
 
 #include <fmt/ranges.h>
 
+#include "common/cancel.h"
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
@@ -554,6 +555,7 @@ void Trainer::run() {
                     cfg_.data.global_batch / (cfg_.data.micro_batch * comm_.world_size()), comm_.world_size());
   }
   while (step_ < cfg_.train.steps) {
+    simu::check_cancel();  // an embedding program's interrupt (common/cancel.h), between steps
     auto m = step();
     if (lead) {
       const auto sc = m.scalars();
