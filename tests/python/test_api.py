@@ -157,7 +157,7 @@ def test_repeated_lift_and_probe_do_not_leak(model_files: Dict[str, Any], photo:
     stage1 = ss.Stage1(**model_files, random_weights=True, device="cpu", steps=1)
     labels = (photo.labels == 1).astype(np.uint8)
     scene = small_scene(tmp_path)
-    overrides = {**FAST, "evaluate_input": False, "collision.cache_dir": str(tmp_path / "hulls")}
+    overrides = {**FAST, "evaluation.evaluate_input": False, "collision.cache_dir": str(tmp_path / "hulls")}
 
     def once() -> None:
         res = stage1.lift(photo.rgb, labels, pointmap=photo.pointmap, K=photo.K)
