@@ -26,4 +26,16 @@ inline constexpr double gamma(double n, double u = kFp32Unit) { return n * u / (
 // Two evaluations of the same algebra, each within gamma(n) of the exact value.
 inline constexpr double two_paths(double n, double u = kFp32Unit) { return 2 * gamma(n, u); }
 
+// float64 geometry of the physics and reconstruct suites, on metre-scale values (kernel-independent:
+// no ATen there, fixed compiler flags; the bounds still follow the model above):
+// a handful of operations in series;
+inline constexpr double kFp64Short = gamma(9, kFp64Unit);  // 1.0e-15
+// a closed-form chain of up to ~9,000 roundings (poses and transforms applied over meshes of a few
+// thousand vertices, sums of areas or volumes over their faces);
+inline constexpr double kFp64Chain = gamma(9000, kFp64Unit);  // 1.0e-12
+// such a chain amplified up to 1,000 times by a solve or fit (Eigen's symmetric eigen-solver for OBB
+// axes: vectors within u |C| / gap, gaps >= 1e-3 |C| for the boxes tested; least squares with
+// condition numbers up to 1e3).
+inline constexpr double kFp64Solve = gamma(9e6, kFp64Unit);  // 1.0e-9
+
 }  // namespace simu::testing

@@ -1,5 +1,6 @@
 // The training loop on a small stand-in policy: objective vs independent math, activation
 // checkpointing, accumulation, 2 ranks == 1 rank, interrupted-and-resumed == uninterrupted, configs.
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <thread>
