@@ -1,9 +1,9 @@
-// Rounding bounds of the Stage-1 models in fp32 (the flow model, the condition embedder before it and
-// the decoder after it), from their configs (the model of tests/tolerance.h):
-// how many roundings a token's value passes through in series in one backbone forward, what guidance
-// and sampling make of it, and the FM-DPO objective and first optimizer step built on it. The suites
-// that compare flow outputs (models, lora, training) derive their bounds from these, so a fixture
-// regenerated at other sizes gets its own bound.
+// Rounding bounds of the Stage-1 models in fp32 (the flow model, the condition embedder before it, the
+// decoder after it), from their configs, in the model of tests/tolerance.h: how many roundings a value
+// passes through in series in one forward, what guidance and sampling make of it, and the FM-DPO
+// objective and first optimizer step built on it. The suites that compare these models' outputs
+// (models, lora, training, resample) derive their bounds from here, so a fixture regenerated at other
+// sizes gets its own bound. docs/testing.md has the table.
 #pragma once
 
 #include <gtest/gtest.h>

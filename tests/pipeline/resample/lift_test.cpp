@@ -19,6 +19,8 @@
 #include "common/fs.h"
 #include "data/depth_io.h"
 #include "data/safetensors.h"
+#include "models/generator.h"
+#include "models/ss_decoder.h"
 #include "pipeline/resample/lift.h"
 #include "pipeline/physics/mesh.h"
 #include "pipeline/physics/scene.h"
@@ -93,6 +95,13 @@ Photo make_photo(const std::string& dir) {
   return p;
 }
 #endif
+
+// The occupancy grid's side: the fixture generator's shape grid times its decoder's upsampling.
+int64_t fixture_resolution() {
+  const auto g = simu::models::GeneratorConfig::from_official_file(simu::testing::fixture("ss_generator_small.json"));
+  const auto d = simu::models::load_ss_decoder(simu::testing::fixture("ss_decoder_small.json"), "");
+  return g.backbone.latent("shape").resolution * d->config().upsample_factor();
+}
 
 // The fixture decoder with random weights occupies no voxel: a copy whose output layer is 0 * x + 2
 // occupies the whole grid (every shape then meshes to the canonical cube; poses still come from the
@@ -223,7 +232,7 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
   EXPECT_EQ(o2.at("id"), "label_2");
   EXPECT_GE(o1.at("crop_box").at("x1").get<int>(), 0);
   EXPECT_LT(o2.at("crop_box").at("x1").get<int>(), 0);
-  for (const auto& o : report.at("objects")) check_object_files(out, o, 8);
+  for (const auto& o : report.at("objects")) check_object_files(out, o, fixture_resolution());
   // The scene file: the probe's reader loads it, poses equal pose.json's scene block.
   const auto scene = sph::load_scene(out + "/scene.json");
   ASSERT_EQ(scene.objects.size(), 2u);
@@ -243,10 +252,12 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
     const Eigen::Vector3d t_file = vec(pose.at("scene").at("t"));
     EXPECT_LT((so.t - t_file).cwiseAbs().maxCoeff(), simu::testing::gamma(8, simu::testing::kFp64Unit) * (1 + t_file.norm()));
   }
-  // Numpy opens the occupancy as uint8 [8, 8, 8].
+  // Numpy opens the occupancy as uint8 [R, R, R].
   const std::string occ = out + "/" + o1.at("samples").at(0).at("dir").get<std::string>() + "/occupancy.npy";
+  const int64_t R = fixture_resolution();
   const auto [prc, plog] = run(std::string(SIMU_PYTHON) + " -c \"import numpy as np; a = np.load('" + occ +
-                                   "'); assert a.dtype == np.uint8 and a.shape == (8, 8, 8), (a.dtype, a.shape)\"",
+                                   "'); assert a.dtype == np.uint8 and a.shape == (" + std::to_string(R) + ", " +
+                                   std::to_string(R) + ", " + std::to_string(R) + "), (a.dtype, a.shape)\"",
                                dir + "/numpy.log");
   EXPECT_EQ(prc, 0) << plog;
   // The probe reads scene.json directly and runs on it.
@@ -307,7 +318,7 @@ TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   for (const char* good : {"a_box", "b_border"}) {
     ASSERT_TRUE(by_id[good].at("ok").get<bool>()) << by_id[good].dump();
     EXPECT_EQ(by_id[good].at("samples").size(), 2u);
-    check_object_files(out, by_id[good], 8);
+    check_object_files(out, by_id[good], fixture_resolution());
   }
   const std::map<std::string, std::string> want = {{"c_empty", "the mask is empty"},
                                                    {"d_wrongsize", "mask is 160x60 (W x H) but the image is 160x120"},

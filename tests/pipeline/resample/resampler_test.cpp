@@ -11,6 +11,7 @@
 #include "common/error.h"
 #include "data/safetensors.h"
 #include "pipeline/resample/probe_resampler.h"
+#include "models/cond_embedder.h"
 #include "models/pose.h"
 #include "pipeline/resample/resampler.h"
 #include "flow_rounding.h"
@@ -42,11 +43,16 @@ double gram_schmidt_bound(const torch::Tensor& latent) {
   return simu::testing::gamma(20) / sin_min + simu::testing::gamma(3);
 }
 
+// The fixture generator's condition width (ss_generator_small.json).
+int64_t cond_width() {
+  return simu::models::GeneratorConfig::from_official_file(simu::testing::fixture("ss_generator_small.json"))
+      .backbone.cond_channels;
+}
 std::vector<ResampleRequest> small_requests() {
   torch::manual_seed(11);
   std::vector<ResampleRequest> reqs(3);
-  for (auto& r : reqs) r.cond = torch::randn({10, 48});
-  reqs[2].cond = torch::randn({6, 48});  // a second condition length -> second group
+  for (auto& r : reqs) r.cond = torch::randn({10, cond_width()});
+  reqs[2].cond = torch::randn({6, cond_width()});  // a second condition length -> second group
   return reqs;
 }
 }  // namespace
@@ -168,9 +174,11 @@ TEST(Resampler, AdapterLoads) {
 TEST(Resampler, EmbedsConditionInputs) {
   ResamplerConfig cfg = small_config();
   cfg.generator_config = simu::testing::source_dir() + "/configs/stage1_small.yaml";
-  cfg.generator_weights = "";  // random init (fixture embedder gives 64 channels)
+  cfg.generator_weights = "";  // random init, as wide as the fixture embedder's tokens
   cfg.random_weights = true;
-  cfg.generator_overrides = {"flow_model.cond_channels=64"};
+  cfg.generator_overrides = {fmt::format(
+      "flow_model.cond_channels={}",
+      simu::models::CondEmbedderConfig::load(simu::testing::fixture("cond_embedder_small.json")).embed_dims())};
   cfg.embedder_config = simu::testing::fixture("cond_embedder_small.json");
   cfg.embedder_weights = simu::testing::fixture("cond_embedder_small.safetensors");
   cfg.num_samples = 1;
@@ -201,8 +209,8 @@ TEST(Resampler, EmbedsConditionInputs) {
 TEST(Resampler, RejectsWrongConditionWidth) {
   Resampler rs(small_config());
   std::vector<ResampleRequest> reqs(2);
-  reqs[0].cond = torch::randn({10, 48});
-  reqs[1].cond = torch::randn({10, 47});
+  reqs[0].cond = torch::randn({10, cond_width()});
+  reqs[1].cond = torch::randn({10, cond_width() - 1});
   try {
     rs.resample(reqs, 0);
     FAIL();
