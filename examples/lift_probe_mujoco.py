@@ -87,6 +87,13 @@ def main() -> int:
     scene = lifted.to_scene(out / "lift", overwrite=True)
     scene.gravity = gravity
     scene.floor = floor
+    # A pipeline step of your own on the Scene: place each object on its observed points (centre and
+    # extent of the point map under its mask; the random-weights pose alone would put it anywhere).
+    for obj in scene.objects:
+        k = int(obj.id.split("_")[-1])
+        pts = points[(labels == k) & np.isfinite(points).all(-1)]
+        obj.t = 0.5 * (pts.min(0) + pts.max(0)) - 0.05 * gravity
+        obj.scale = float(np.ptp(pts, axis=0).max())
     result = ss.probe(scene, config=ROOT / "configs" / "probe.yaml", overrides={"collision.use_coacd": False},
                       out=out / "probe", overwrite=True, resampler=stage1)
     print(result.summary)

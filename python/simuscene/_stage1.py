@@ -83,11 +83,24 @@ class LiftResult:
     def to_scene(self, out: Optional[PathLike] = None, *, overwrite: bool = False,
                  image_path: Optional[PathLike] = None, depth_path: Optional[PathLike] = None) -> Scene:
         """The lifted objects as a probe Scene: the lift program's files written to ``out`` (or a temp
-        folder removed at exit) and its scene.json read back (camera, gravity +y, the ok objects)."""
+        folder removed at exit) and its scene.json read back (camera, gravity +y, the ok objects). The
+        scene's image and point map (what the probe's resampler reads) are the given files, else the
+        arrays used, saved to a temp folder (uint8 image: exact for 8-bit inputs)."""
         if out is None:
             parent = tempfile.mkdtemp(prefix="simuscene-lift-")
             _temp_dirs.append(parent)
             out = os.path.join(parent, "lift")
+        if image_path is None or depth_path is None:
+            # The probe's resampler reads the photo from files: the arrays used, saved once.
+            keep = tempfile.mkdtemp(prefix="simuscene-photo-")
+            _temp_dirs.append(keep)
+            if image_path is None:
+                image_path = os.path.join(keep, "image.png")
+                rgb = (self._run.image.permute(1, 2, 0) * 255).round().to(torch.uint8).numpy()
+                _core.write_image(image_path, rgb)
+            if depth_path is None:
+                depth_path = os.path.join(keep, "pointmap.npy")
+                np.save(depth_path, self._run.pointmap.numpy())
         self.write(out, overwrite=overwrite, image_path=image_path, depth_path=depth_path)
         return Scene.load(os.path.join(os.fspath(out), "scene.json"))
 

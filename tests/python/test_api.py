@@ -81,7 +81,7 @@ def test_bad_inputs_raise_typed_errors_and_the_next_call_works(stage1: ss.Stage1
         ss.probe(scene, overrides={"physics.no_such_key": 1})
     with pytest.raises(ss.ConfigError, match="timestep"):
         ss.probe(scene, overrides={"physics.timestep": -1.0})
-    with pytest.raises(ss.InputError, match="object 'x'.*faces"):
+    with pytest.raises(ss.InputError, match="object 'x': a face index"):
         ss.SceneObject("x", vertices=np.zeros((4, 3)), faces=np.array([[0, 1, 9]]))
     with pytest.raises(ss.InputError, match="dof must be"):
         ss.SceneObject("x", vertices=np.eye(3), faces=np.array([[0, 1, 2]]), dof="sideways")
@@ -151,16 +151,20 @@ def rss_mib() -> float:
         return int(f.read().split()[1]) * resource.getpagesize() / 2**20
 
 
-def test_repeated_lift_and_probe_do_not_leak(stage1: ss.Stage1, photo: Photo, tmp_path: Path) -> None:
+def test_repeated_lift_and_probe_do_not_leak(model_files: Dict[str, Any], photo: Photo, tmp_path: Path) -> None:
+    # One object, one sampling step: the loop exercises every allocation of a lift and a probe at the
+    # lowest cost (the embedder's 518-pixel forward dominates either way).
+    stage1 = ss.Stage1(**model_files, random_weights=True, device="cpu", steps=1)
+    labels = (photo.labels == 1).astype(np.uint8)
     scene = small_scene(tmp_path)
-    overrides = {**FAST, "evaluate_input": False, "collision.cache_dir": str(tmp_path / "hulls")}
+    overrides = {**FAST, "evaluation.evaluate_input": False, "collision.cache_dir": str(tmp_path / "hulls")}
 
     def once() -> None:
-        res = stage1.lift(photo.rgb, photo.labels, pointmap=photo.pointmap)
-        assert res.failed == 0
-        ss.probe(scene, overrides=overrides)
+        res = stage1.lift(photo.rgb, labels, pointmap=photo.pointmap, K=photo.K)
+        assert res.failed == 0 and len(res[0].samples[0].faces) > 0
+        assert ss.probe(scene, overrides=overrides).decisions[0].id == "cube"
 
-    for _ in range(20):  # warm-up: allocator pools, caches, lazily built state
+    for _ in range(10):  # warm-up: allocator pools, caches, lazily built state
         once()
     gc.collect()
     before = rss_mib()
@@ -168,9 +172,10 @@ def test_repeated_lift_and_probe_do_not_leak(stage1: ss.Stage1, photo: Photo, tm
         once()
     gc.collect()
     grown = rss_mib() - before
-    # Bound: 20 MiB over 200 calls (100 KiB per call). One lift's result alone is ~1 MiB (its meshes,
+    # Bound: 20 MiB over 200 calls (100 KiB per call). One lift's result alone holds ~1 MiB (its mesh,
     # latents, 64^3 occupancy coordinates), so a result kept per call would exceed it 10 times over.
     assert grown < 20, f"RSS grew by {grown:.1f} MiB over 200 lift + probe calls"
+    print(f"RSS growth over 200 lift + probe calls: {grown:.2f} MiB")
 
 
 # ---- pair cache, training, export, and the ecosystem ----
