@@ -92,5 +92,9 @@ struct TrainConfig {
 // and what is there); with overwrite the lead process removes them first. Also refuses an empty
 // data.cache (naming the config file and key).
 void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead);
+// The same for any training program: `outputs` (names under out_dir) of an earlier run are refused
+// unless overwrite (then removed by the lead process); nothing is checked when resuming.
+void prepare_run_dir(const std::string& config_file, const std::string& out_dir, const std::vector<std::string>& outputs,
+                     bool resuming, bool overwrite, bool lead);
 
 }  // namespace simu::training

@@ -175,3 +175,23 @@ TEST(SSDecoder, RealConfigLayout) {
   EXPECT_LT(bytes, 147591972);
   EXPECT_GT(bytes, 147591972 - 64 * 1024);
 }
+
+// The official constructor builds ResBlock3d(ch, ch) without norm_type, so every residual block uses
+// ChannelLayerNorm32 and only the output head follows norm_type ("group": a GroupNorm32 head).
+TEST(SSDecoder, ResidualBlocksUseLayerNormWhateverTheHead) {
+  SSDecoderConfig cfg;
+  cfg.channels = {32, 32};
+  cfg.num_res_blocks = 1;
+  cfg.num_res_blocks_middle = 1;
+  cfg.norm_type = "group";
+  SparseStructureDecoder dec(cfg);
+  int res_norms = 0;
+  for (const auto& m : dec->named_modules()) {
+    if (auto* n = m.value()->as<ChannelNorm32Impl>()) {
+      const bool head = m.key() == "out_layer.0";
+      EXPECT_EQ(n->group, head) << m.key();
+      res_norms += head ? 0 : 1;
+    }
+  }
+  EXPECT_EQ(res_norms, 6);  // middle_block.0, blocks.0, blocks.2: norm1 and norm2 each
+}
