@@ -49,7 +49,7 @@ struct SceneConfig {
   double floor_fraction = 0.25;                  // share of objects placed on the floor (the rest on the table)
   double max_size_m = 0.6;                       // instances larger than this are redrawn (table top space)
   // Camera: distance to the look-at point on the table top, elevation above it, yaw about the vertical.
-  double cam_distance_min = 0.9, cam_distance_max = 1.6;
+  double cam_distance_min = 0.7, cam_distance_max = 1.5;
   double cam_elevation_min_deg = 20, cam_elevation_max_deg = 45;
   double cam_yaw_max_deg = 25;
   // Lighting: a directional light from a random upper-front direction, intensity in [light_min,
@@ -111,6 +111,8 @@ struct WorldScene {
   double light = 0.8, ambient = 0.3;
   std::vector<WorldObject> objects;
   std::vector<int> removed;       // objects left out of the render (render_without), ascending
+  double min_visible = 0.05;      // WorldObject::usable thresholds (SceneConfig::min_visible, min_pixels)
+  int min_pixels = 64;
   // Render.
   std::vector<uint8_t> rgb;       // [H, W, 3] sRGB-ish uint8
   std::vector<int32_t> labels;    // [H, W] label values (see kLabel*)
