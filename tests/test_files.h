@@ -11,6 +11,7 @@
 #include <string>
 
 #include "common/error.h"
+#include "tolerance.h"  // the derived bounds every suite uses (simu::testing::kFp64Chain, gamma)
 
 namespace simu::testing {
 
