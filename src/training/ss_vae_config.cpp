@@ -69,6 +69,7 @@ SsVaeLoopConfig SsVaeLoopConfig::from(simu::config::Reader& r) {
   r.field("seed", c.seed);
   choice_field(r, "device", c.device, {"cuda", "cpu"});
   r.field("ema_rate", c.ema_rate);
+  r.field("cudnn_benchmark", c.cudnn_benchmark);
   check_in(r, "ema_rate", c.ema_rate, 0.0, 1.0, false, "[0, 1)");
   SIMU_CHECK(c.ema_rate < 1.0, "{}: key '{}': expected a rate in [0, 1) (0 = no EMA), got 1", r.file(), r.full("ema_rate"));
   return c;

@@ -61,6 +61,9 @@ struct SsVaeLoopConfig {
   uint64_t seed = 0;               // initial weights and the posterior noise
   std::string device = "cuda";     // "cuda" (rank's local GPU) or "cpu"
   double ema_rate = 0.0;           // EMA of the weights (e.g. 0.999; 0 = none): evaluated and exported when on
+  // CUDA: cuDNN times its convolution algorithms for the run's fixed shapes and keeps the fastest
+  // (the choice may differ between runs; GPU runs are not bit-reproducible anyway: atomics in backward).
+  bool cudnn_benchmark = true;
   static SsVaeLoopConfig from(simu::config::Reader& r);
 };
 

@@ -69,6 +69,7 @@ SsVaeTrainer::SsVaeTrainer(SsVaeConfig cfg, std::shared_ptr<const ShapeSet> shap
     fail_hint("choose data.global_batch as a multiple of the number of ranks",
               "{}: data.global_batch {} is not divisible by the world size {}", cfg_.file, cfg_.data.global_batch,
               comm_.world_size());
+  if (device_.is_cuda()) at::globalContext().setBenchmarkCuDNN(cfg_.train.cudnn_benchmark);
   // Both networks from one seed (every rank alike), the official init, then to the device.
   torch::manual_seed(cfg_.train.seed);
   encoder_ = models::SparseStructureEncoder(cfg_.model.encoder);
