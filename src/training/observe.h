@@ -56,8 +56,11 @@ class MetricsWriter {
 // Progress display: a redrawn bar on a terminal, one plain line per `every` steps otherwise.
 class Progress {
  public:
-  Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every = 1);
-  // Shows step (1-based count of finished steps), loss, accuracy, lr, pairs/s and the ETA.
+  // accuracy_label and items name the accuracy and the rate's unit on the line ("acc", "pairs": FM-DPO;
+  // "iou", "shapes": the sparse-structure VAE).
+  Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every = 1, std::string accuracy_label = "acc",
+           std::string items = "pairs");
+  // Shows step (1-based count of finished steps), loss, accuracy, lr, items/s and the ETA.
   void update(int64_t step, double loss, double accuracy, double lr, double pairs_per_s);
   void finish();
   // True when stderr is a terminal.
@@ -66,6 +69,7 @@ class Progress {
  private:
   int64_t total_, start_, every_;
   bool tty_;
+  std::string accuracy_label_, items_;
   std::chrono::steady_clock::time_point began_;
 };
 
