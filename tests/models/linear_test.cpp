@@ -256,6 +256,16 @@ TEST(LinearComputeCopy, FlowForwardUnderCpuAutocastIsBitIdentical) {
     CpuAutocast ac(torch::kBFloat16);
     return bb->forward(x, t, cond, d);
   };
+  // LibTorch 2.11's CPU bf16 attention picks its VNNI packing from the hardware (AMX/AVX-512 BF16), not
+  // from ATEN_CPU_CAPABILITY: with the capability forced below AVX-512 on such a CPU it throws "pack_vnni2
+  // is only supported when avx512 is supported" (seen on the H200 host under the avx2 pass). That is a
+  // limit of the override, not of this code: the test skips naming it (it runs in the machine's own pass).
+  try {
+    (void)forward(false);
+  } catch (const c10::Error& e) {
+    if (std::string(e.what()).find("only supported when avx512") == std::string::npos) throw;
+    GTEST_SKIP() << "CPU bf16 attention unavailable under this ATEN_CPU_CAPABILITY on this CPU: " << e.msg();
+  }
   auto check = [&](const std::string& what) {
     const auto on = forward(true), off = forward(false);
     for (const auto& [k, v] : off) EXPECT_TRUE(torch::equal(on.at(k), v)) << what << " " << k;
