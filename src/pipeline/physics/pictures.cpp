@@ -342,6 +342,76 @@ std::string write_candidates(const Pictures& p, size_t i, const std::string& dir
 
 }  // namespace
 
+void write_object_comparison_png(const std::string& path, const Camera& cam, const std::vector<uint8_t>& rgb,
+                                 const BinaryMask& modal, const std::vector<MeshPanel>& panels,
+                                 const std::vector<const Mesh*>& environment, const std::string& title) {
+  SIMU_CHECK(cam.valid(), "picture {}: invalid camera", path);
+  SIMU_CHECK(rgb.size() == size_t(cam.width) * cam.height * 3, "picture {}: the image has {} bytes, not {} x {} x 3",
+             path, rgb.size(), cam.height, cam.width);
+  SIMU_CHECK(modal.width == cam.width && modal.height == cam.height, "picture {}: the mask is {} x {}, the camera {} x {}",
+             path, modal.width, modal.height, cam.width, cam.height);
+  // The crop: the mask's and every silhouette's bounds, padded by a fifth (at least 8 pixels).
+  std::array<int, 4> box = modal.bbox();
+  auto grow = [&](const std::array<int, 4>& b) {
+    if (b[0] < 0) return;
+    if (box[0] < 0) box = b;
+    box = {std::min(box[0], b[0]), std::min(box[1], b[1]), std::max(box[2], b[2]), std::max(box[3], b[3])};
+  };
+  for (const auto& p : panels)
+    if (p.world_mesh && !p.world_mesh->empty()) grow(render_silhouette(cam, *p.world_mesh).bbox());
+  if (box[0] < 0) box = {0, 0, cam.width - 1, cam.height - 1};
+  // Square (as far as the image allows) so that captions fit: the shorter side grows about the centre,
+  // shifted back inside the image.
+  const int pad = std::max(8, std::max(box[2] - box[0], box[3] - box[1]) / 5);
+  const int side = std::min(std::max(box[2] - box[0], box[3] - box[1]) + 1 + 2 * pad, std::min(cam.width, cam.height));
+  auto span = [&](int lo, int hi, int limit) {
+    const int len = std::max(hi - lo + 1 + 2 * pad, side);
+    int a = (lo + hi + 1) / 2 - len / 2;
+    a = std::clamp(a, 0, std::max(0, limit - len));
+    return std::make_pair(a, std::min(limit - 1, a + len - 1));
+  };
+  const auto [c0, c1] = span(box[0], box[2], cam.width);
+  const auto [r0, r1] = span(box[1], box[3], cam.height);
+  const int k = std::clamp(int(std::ceil(240.0 / (r1 - r0 + 1))), 1, 6);
+  const Camera view = scaled(cam, k);
+  const cv::Rect crop(c0 * k, r0 * k, (c1 - c0 + 1) * k, (r1 - r0 + 1) * k);
+  const double fs = std::max(0.45, crop.height / 480.0);
+  std::vector<cv::Mat> tiles;
+  // The input: the image (nearest-neighbour upscaled), the modal mask's outline in white.
+  cv::Mat input(view.height, view.width, CV_8UC3);
+  for (int y = 0; y < view.height; ++y)
+    for (int x = 0; x < view.width; ++x) {
+      const size_t p = (size_t(y / k) * cam.width + x / k) * 3;
+      input.at<cv::Vec3b>(y, x) = cv::Vec3b(rgb[p + 2], rgb[p + 1], rgb[p]);  // RGB -> BGR
+    }
+  cv::Mat mask(view.height, view.width, CV_8UC1, cv::Scalar(0));
+  for (int y = 0; y < view.height; ++y)
+    for (int x = 0; x < view.width; ++x) mask.at<uchar>(y, x) = modal.at(y / k, x / k) ? 255 : 0;
+  std::vector<std::vector<cv::Point>> contours;
+  cv::findContours(mask, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+  cv::drawContours(input, contours, -1, cv::Scalar(255, 255, 255), std::max(1, k / 2));
+  tiles.push_back(input(crop).clone());
+  label(tiles.back(), "input", cv::Point(6, int(26 * fs)), cv::Scalar(255, 255, 255), fs);
+  for (size_t i = 0; i < panels.size(); ++i) {
+    std::vector<const Mesh*> one;
+    if (panels[i].world_mesh && !panels[i].world_mesh->empty()) one.push_back(panels[i].world_mesh);
+    const cv::Mat full = shaded_view(view, one, {int(i)}, environment, cv::Scalar(70, 60, 50));
+    tiles.push_back(full(crop).clone());
+    label(tiles.back(), panels[i].caption, cv::Point(6, int(26 * fs)), cv::Scalar(255, 255, 255), fs);
+  }
+  cv::Mat row;
+  cv::hconcat(tiles, row);
+  // The title line, the row widened (dark) when the title is longer.
+  int base = 0;
+  const int text_w = cv::getTextSize(title, cv::FONT_HERSHEY_SIMPLEX, fs, std::max(1, int(std::lround(2 * fs))), &base).width + 16;
+  if (text_w > row.cols) cv::copyMakeBorder(row, row, 0, 0, 0, text_w - row.cols, cv::BORDER_CONSTANT, cv::Scalar(30, 30, 30));
+  cv::Mat head(int(40 * fs) + 8, row.cols, CV_8UC3, cv::Scalar(30, 30, 30));
+  label(head, title, cv::Point(6, int(30 * fs)), cv::Scalar(240, 240, 240), fs);
+  cv::Mat out;
+  cv::vconcat(head, row, out);
+  write_png(path, out);
+}
+
 std::vector<std::string> write_probe_pictures(const ProbeResult& r, const std::string& dir) {
   SIMU_CHECK(r.scene.camera.valid(), "pictures need a valid camera");
   const Pictures p(r);
@@ -357,6 +427,11 @@ std::vector<std::string> write_probe_pictures(const ProbeResult& r, const std::s
 
 std::vector<std::string> write_probe_pictures(const ProbeResult&, const std::string&) {
   fail("pictures need OpenCV (built with SIMU_WITH_OPENCV=OFF)");
+}
+
+void write_object_comparison_png(const std::string& path, const Camera&, const std::vector<uint8_t>&, const BinaryMask&,
+                                 const std::vector<MeshPanel>&, const std::vector<const Mesh*>&, const std::string&) {
+  fail("picture {}: pictures need OpenCV (built with SIMU_WITH_OPENCV=OFF)", path);
 }
 
 #endif

@@ -1,0 +1,353 @@
+// eval_lift: choosing objects in world scenes, lifting them per depth kind and model, scoring them.
+#include "pipeline/resample/eval_lift.h"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cctype>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <map>
+#include <thread>
+
+#include "common/error.h"
+#include "common/parallel.h"
+#include "common/progress.h"
+#include "common/random.h"
+#include "pipeline/physics/pictures.h"
+#include "pipeline/resample/lift.h"
+#include "pipeline/world/shapes.h"
+
+namespace simu::resample {
+
+namespace {
+
+using physics::PlacedShape;
+using Clock = std::chrono::steady_clock;
+
+double since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+// Seeds derived from the run's seed: one stream per purpose, mixed with the scene seed where per scene.
+uint64_t derive(uint64_t seed, uint64_t purpose, uint64_t key = 0) {
+  return splitmix64(splitmix64(seed ^ (purpose * 0x9E3779B97F4A7C15ULL)) ^ key);
+}
+enum Purpose : uint64_t { kScenes = 1, kNoise = 2, kCorruption = 3, kInstances = 4 };
+
+// A file-name-safe version of an id.
+std::string safe_name(const std::string& id) {
+  std::string s;
+  for (char c : id) s += (std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_' || c == '.') ? c : '_';
+  return s;
+}
+
+// The scene's image and a point map as lift's inputs, with one modal mask per chosen object.
+LiftInputs lift_inputs(const world::WorldScene& s, const world::PointMap& pm, const std::vector<int>& chosen,
+                       const std::vector<std::string>& ids) {
+  const int H = s.camera.height, W = s.camera.width;
+  LiftInputs in;
+  in.rgb = torch::from_blob(const_cast<uint8_t*>(s.rgb.data()), {H, W, 3}, torch::kUInt8)
+               .permute({2, 0, 1})
+               .to(torch::kFloat32)
+               .div(255.0)
+               .contiguous();
+  in.pointmap = torch::from_blob(const_cast<float*>(pm.xyz.data()), {H, W, 3}, torch::kFloat32).clone();
+  in.camera = s.camera;
+  for (size_t k = 0; k < chosen.size(); ++k) {
+    const auto& m = s.objects[chosen[k]].modal;
+    LiftObjectInput o;
+    o.id = ids[k];
+    o.mask = torch::from_blob(const_cast<uint8_t*>(m.data.data()), {m.height, m.width}, torch::kUInt8).to(torch::kFloat32);
+    in.objects.push_back(o);
+  }
+  return in;
+}
+
+// The placed prediction of a lifted object: its first usable sample at its scene pose.
+bool prediction(const LiftedObject& o, PlacedShape& out) {
+  for (size_t k = 0; k < o.samples.size(); ++k)
+    if (o.samples[k].ok && k < o.scene_poses.size()) {
+      out.canonical = o.samples[k].mesh;
+      out.scale = o.scene_poses[k].scale;
+      out.R = o.scene_poses[k].R;
+      out.t = o.scene_poses[k].t;
+      return true;
+    }
+  return false;
+}
+
+// Where the objects come from: scenes of a split (every object in range) or one given instance per
+// object placed among random ones (held-out family, external meshes).
+struct Source {
+  world::Split split = world::Split::Test;
+  bool placed = false;                           // one extra instance per object
+  std::vector<std::string> files;                // external meshes (placed)
+  std::map<std::string, world::ShapeInstance> loaded;
+  uint64_t next_seed = 0;                        // scene seed search position
+  int target = 0;                                // objects wanted
+};
+
+// The next scene seed of the split.
+uint64_t take_scene_seed(Source& src) {
+  const uint64_t s = world::next_scene_seed(src.split, src.next_seed);
+  src.next_seed = s + 1;
+  return s;
+}
+
+// The instance the k-th placed object evaluates.
+world::ShapeInstance placed_instance(Source& src, const EvalLiftOptions& opt, int k) {
+  if (src.files.empty()) {
+    const std::string& fam = world::held_out_family();
+    const uint64_t seed = world::next_instance_seed(fam, world::Split::Test, derive(opt.seed, kInstances, k) >> 2);
+    return world::make_shape(fam, seed);
+  }
+  const std::string& file = src.files[k % src.files.size()];
+  auto it = src.loaded.find(file);
+  if (it == src.loaded.end()) it = src.loaded.emplace(file, world::load_external_shape(file, opt.object_size)).first;
+  return it->second;
+}
+
+}  // namespace
+
+std::vector<std::string> depth_kinds(const std::string& depth) {
+  if (depth == "clean") return {"clean"};
+  if (depth == "corrupted") return {"corrupted"};
+  if (depth == "both") return {"clean", "corrupted"};
+  fail_hint("--depth clean | corrupted | both", "--depth: unknown value '{}'", depth);
+}
+
+std::pair<double, double> parse_visible_range(const std::string& text) {
+  const auto dash = text.find('-', 1);
+  double lo = 0, hi = 0;
+  try {
+    SIMU_CHECK(dash != std::string::npos, "no dash");
+    size_t used = 0;
+    lo = std::stod(text.substr(0, dash), &used);
+    SIMU_CHECK(used == dash, "trailing text");
+    const std::string rest = text.substr(dash + 1);
+    hi = std::stod(rest, &used);
+    SIMU_CHECK(used == rest.size(), "trailing text");
+  } catch (const std::exception&) {
+    fail_hint("e.g. --visible 40-70 (percent) or --visible 0.4-0.7", "--visible '{}': expected LO-HI", text);
+  }
+  if (lo > 1 || hi > 1) lo /= 100, hi /= 100;
+  SIMU_CHECK(lo >= 0 && hi <= 1 && lo <= hi, "--visible '{}': need 0 <= LO <= HI <= 1 (or 100 in percent)", text);
+  return {lo, hi};
+}
+
+const std::vector<std::string>& visibility_buckets() {
+  static const std::vector<std::string> b{"unoccluded", "70-100%", "40-70%", "<40%"};
+  return b;
+}
+
+std::string visibility_bucket(double v) {
+  if (v >= 0.999) return "unoccluded";
+  if (v >= 0.7) return "70-100%";
+  if (v >= 0.4) return "40-70%";
+  return "<40%";
+}
+
+std::vector<std::string> list_mesh_files(const std::string& dir) {
+  namespace fs = std::filesystem;
+  SIMU_CHECK(fs::is_directory(dir), "--objects {}: not a folder", dir);
+  std::vector<std::string> files;
+  for (const auto& e : fs::directory_iterator(dir)) {
+    std::string ext = e.path().extension().string();
+    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (e.is_regular_file() && (ext == ".obj" || ext == ".ply" || ext == ".stl" || ext == ".glb" || ext == ".gltf"))
+      files.push_back(e.path().string());
+  }
+  std::sort(files.begin(), files.end());
+  if (files.empty()) fail_hint("OBJ, PLY, STL, GLB or glTF files", "--objects {}: no mesh files in the folder", dir);
+  return files;
+}
+
+void validate_eval_options(const EvalLiftOptions& opt) {
+  if (opt.world.empty() == opt.objects_dir.empty())
+    fail_hint("--world test | heldout | val | train, or --objects DIR", "give exactly one of --world and --objects");
+  if (!opt.objects_dir.empty()) list_mesh_files(opt.objects_dir);
+  if (!opt.world.empty() && opt.world != "heldout") world::parse_split(opt.world, "--world (train | val | test | heldout)");
+  SIMU_CHECK(opt.visible_lo >= 0 && opt.visible_hi <= 1 && opt.visible_lo <= opt.visible_hi,
+             "--visible: [{}, {}] is not a range in [0, 1]", opt.visible_lo, opt.visible_hi);
+  depth_kinds(opt.depth);
+  SIMU_CHECK(opt.count >= 0, "--count {} must not be negative", opt.count);
+  SIMU_CHECK(opt.object_size >= 0, "--object-size {} must not be negative", opt.object_size);
+  SIMU_CHECK(opt.attempts >= 1, "eval_lift: attempts {} must be >= 1", opt.attempts);
+  SIMU_CHECK(opt.bootstrap_resamples >= 1, "--bootstrap {} must be >= 1", opt.bootstrap_resamples);
+  SIMU_CHECK(opt.metrics.fscore_thresholds == std::vector<double>({0.01, 0.02}),
+             "eval_lift: the F-score thresholds are 1 and 2 cm (summary keys fscore_1cm, fscore_2cm)");
+}
+
+EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& models, const std::string& out_dir) {
+  validate_eval_options(opt);
+  SIMU_CHECK(opt.gt_as_prediction || models.base, "eval_lift: no model to lift with");
+  EvalLiftResult res;
+  res.depths = depth_kinds(opt.depth);
+  res.models = {"base"};
+  if (models.compare && !opt.gt_as_prediction) res.models.push_back("compare");
+
+  Source src;
+  if (!opt.objects_dir.empty()) {
+    src.placed = true;
+    src.files = list_mesh_files(opt.objects_dir);
+    src.target = opt.count > 0 ? opt.count : static_cast<int>(src.files.size());
+  } else if (opt.world == "heldout") {
+    src.placed = true;
+    src.target = opt.count > 0 ? opt.count : 20;
+  } else {
+    src.split = world::parse_split(opt.world, "--world (train | val | test | heldout)");
+    src.target = opt.count > 0 ? opt.count : 20;
+  }
+  src.next_seed = derive(opt.seed, kScenes) >> 2;
+  world::SceneConfig cfg = opt.scene;
+  if (opt.visible_hi < 0.999) {
+    // Occluded objects wanted: the generator places occluders in front of targets in the range.
+    cfg.targets = std::max(cfg.targets, 1);
+    cfg.visible_min = opt.visible_lo;
+    cfg.visible_max = opt.visible_hi;
+  }
+  const std::string pictures_dir = out_dir + "/pictures";
+  if (opt.pictures) std::filesystem::create_directories(pictures_dir);
+
+  const int threads = opt.threads > 0 ? opt.threads : std::max(1, static_cast<int>(std::thread::hardware_concurrency()));
+  Progress progress{"eval_lift", "objects"};
+  progress(0, src.target);
+  int placed_k = 0;
+  while (static_cast<int>(res.objects.size()) < src.target) {
+    // One scene and the objects of it to evaluate.
+    world::WorldScene scene;
+    std::vector<int> chosen;
+    std::string source;  // the mesh file of an external object
+    if (src.placed) {
+      const world::ShapeInstance inst = placed_instance(src, opt, placed_k);
+      if (!src.files.empty()) source = src.files[placed_k % src.files.size()];
+      const std::string what = source.empty() ? inst.name : source;
+      // Scenes until one shows it usable and in the visible range; a scene the generator cannot place it
+      // in counts as a try (the last reason is reported).
+      std::string last = "not in the visible range";
+      for (int a = 0;; ++a) {
+        SIMU_CHECK(a < opt.attempts, "object {}: no usable placement with visible fraction in [{:.2f}, {:.2f}] in {} scenes "
+                   "(last: {})", what, opt.visible_lo, opt.visible_hi, opt.attempts, last);
+        ++res.scenes;
+        try {
+          scene = world::make_scene(cfg, take_scene_seed(src), world::Split::Test, {inst});
+        } catch (const Error& e) {
+          last = e.what();
+          continue;
+        }
+        const auto& o = scene.objects.at(0);
+        if (o.usable && o.visible_fraction >= opt.visible_lo && o.visible_fraction <= opt.visible_hi) break;
+        last = fmt::format("visible fraction {:.2f}{}", o.visible_fraction, o.usable ? "" : ", not usable");
+      }
+      chosen = {0};
+      ++placed_k;
+    } else {
+      scene = world::make_scene(cfg, take_scene_seed(src), src.split);
+      ++res.scenes;
+      for (size_t i = 0; i < scene.objects.size(); ++i) {
+        const auto& o = scene.objects[i];
+        if (static_cast<int>(res.objects.size() + chosen.size()) >= src.target) break;
+        if (o.usable && o.visible_fraction >= opt.visible_lo && o.visible_fraction <= opt.visible_hi)
+          chosen.push_back(static_cast<int>(i));
+      }
+      SIMU_CHECK(res.scenes <= 50 * src.target + 100, "--world {}: {} scenes gave only {} objects with visible fraction in "
+                 "[{:.2f}, {:.2f}]", opt.world, res.scenes, res.objects.size(), opt.visible_lo, opt.visible_hi);
+      if (chosen.empty()) continue;
+    }
+    // Ground truth of the chosen objects.
+    const int first = static_cast<int>(res.objects.size());
+    std::vector<std::string> ids;
+    const auto t_metrics0 = Clock::now();
+    for (int i : chosen) {
+      const world::WorldObject& o = scene.objects[i];
+      EvalObject e;
+      e.id = scene.name + "/" + o.id;
+      e.scene = scene.name;
+      e.scene_seed = scene.seed;
+      e.family = o.shape.family;
+      e.instance = o.shape.name;
+      e.source = source;
+      e.held_out = o.shape.held_out;
+      e.visible_fraction = o.visible_fraction;
+      e.bucket = visibility_bucket(o.visible_fraction);
+      e.gt.canonical = o.shape.mesh;
+      e.gt.scale = o.scale, e.gt.R = o.R, e.gt.t = o.t;
+      ids.push_back(e.id);
+      res.objects.push_back(std::move(e));
+    }
+    parallel_for_each(static_cast<int64_t>(chosen.size()), threads, [&](int64_t k) {
+      EvalObject& e = res.objects[first + k];
+      e.symmetry = physics::find_symmetry(e.gt.scaled(), opt.metrics.symmetry);
+    });
+    res.seconds_metrics += since(t_metrics0);
+    const uint64_t noise = derive(opt.seed, kNoise, scene.seed);
+    for (const std::string& depth : res.depths) {
+      world::PointMap pm = scene.pointmap;
+      if (depth == "corrupted") pm = world::corrupt_pointmap(scene.pointmap, opt.corruption, derive(opt.seed, kCorruption, scene.seed));
+      // Lift with every model (the same inputs and noise), then score every (model, object) in parallel.
+      const size_t nk = chosen.size(), nm = res.models.size(), row0 = res.rows.size();
+      std::vector<PlacedShape> preds(nm * nk);
+      std::vector<physics::Mesh> pred_world(nm * nk);  // for the picture
+      for (size_t m = 0; m < nm; ++m) {
+        LiftResult lifted;
+        if (!opt.gt_as_prediction) {
+          const auto t0 = Clock::now();
+          LiftOptions lo;
+          lo.seed = noise;
+          lifted = lift_objects(m == 0 ? *models.base : *models.compare, lift_inputs(scene, pm, chosen, ids), lo);
+          res.seconds_lift += since(t0);
+        }
+        for (size_t k = 0; k < nk; ++k) {
+          const EvalObject& obj = res.objects[first + k];
+          EvalRow row;
+          row.object = first + static_cast<int>(k);
+          row.depth = depth;
+          row.model = res.models[m];
+          if (opt.gt_as_prediction) {
+            preds[m * nk + k] = obj.gt;
+            row.ok = true;
+          } else {
+            row.ok = prediction(lifted.objects[k], preds[m * nk + k]);
+            if (!row.ok)
+              row.error = lifted.objects[k].error.empty() ? fmt::format("object {}: no usable sample", obj.id)
+                                                          : lifted.objects[k].error;
+          }
+          res.rows.push_back(std::move(row));
+        }
+      }
+      const auto t1 = Clock::now();
+      parallel_for_each(static_cast<int64_t>(nm * nk), threads, [&](int64_t i) {
+        EvalRow& row = res.rows[row0 + i];
+        if (!row.ok) return;
+        const EvalObject& obj = res.objects[row.object];
+        row.metrics = physics::shape_metrics(preds[i], obj.gt, obj.symmetry, opt.metrics);
+        pred_world[i] = preds[i].world();
+      });
+      res.seconds_metrics += since(t1);
+      if (!opt.pictures) continue;
+      std::vector<const physics::Mesh*> env;
+      for (const auto& e : scene.environment) env.push_back(&e);
+      for (size_t k = 0; k < chosen.size(); ++k) {
+        const EvalObject& obj = res.objects[first + k];
+        const physics::Mesh gt_world = obj.gt.world();
+        std::vector<physics::MeshPanel> panels{{"GT " + obj.family, &gt_world}};
+        for (size_t m = 0; m < res.models.size(); ++m) {
+          const EvalRow& row = res.rows[row0 + m * nk + k];
+          const std::string who = res.models.size() > 1 ? res.models[m] + " " : "";
+          panels.push_back({row.ok ? fmt::format("{}IoU {:.2f} F2 {:.2f}", who, row.metrics.iou, row.metrics.fscore[1].f)
+                                   : who + "FAILED",
+                            &pred_world[m * nk + k]});
+        }
+        const std::string rel = "pictures/" + safe_name(obj.id) + "_" + depth + ".png";
+        physics::write_object_comparison_png(
+            out_dir + "/" + rel, scene.camera, scene.rgb, scene.objects[chosen[k]].modal, panels, env,
+            fmt::format("{}  visible {:.0f}%  {} depth", obj.id, 100 * obj.visible_fraction, depth));
+        for (size_t m = 0; m < res.models.size(); ++m) res.rows[row0 + m * nk + k].picture = rel;
+      }
+    }
+    progress(static_cast<int64_t>(res.objects.size()), src.target);
+  }
+  return res;
+}
+
+}  // namespace simu::resample
