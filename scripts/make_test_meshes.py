@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
 """Writes the small procedural meshes of tests/testdata/meshes (eval_lift --objects in CI): each made
-here from a formula, in its own file format and unit, so the folder exercises OBJ / PLY / STL reading and
+here from a formula, in its own file format and unit, so the folder exercises OBJ / PLY / STL / GLB reading and
 the unit guess of world::make_external_shape (the longest side read in m, cm, mm or inches, whichever
 first lands in 2-60 cm). No third-party meshes. Deterministic: rerunning rewrites identical bytes.
 
     python3 scripts/make_test_meshes.py [OUT_DIR]   (default tests/testdata/meshes)
 """
+import json
 import math
 import os
 import struct
@@ -94,6 +95,32 @@ def write_stl(path, v, f, comment):
             out.write(struct.pack("<12fH", *(x / norm for x in n), *pa, *pb, *pc, 0))
 
 
+def write_glb(path, v, f, comment):
+    """Binary glTF 2.0: one mesh, float32 positions, uint16 indices, in one buffer (units: metres)."""
+    pos = b"".join(struct.pack("<3f", *p) for p in v)
+    idx = b"".join(struct.pack("<3H", *t) for t in f)
+    idx += b"\0" * (-len(idx) % 4)
+    lo = [min(p[i] for p in v) for i in range(3)]
+    hi = [max(p[i] for p in v) for i in range(3)]
+    gltf = {
+        "asset": {"version": "2.0", "generator": comment},
+        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+        "buffers": [{"byteLength": len(pos) + len(idx)}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(pos), "target": 34962},
+                        {"buffer": 0, "byteOffset": len(pos), "byteLength": 6 * len(f), "target": 34963}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": len(v), "type": "VEC3", "min": lo, "max": hi},
+                      {"bufferView": 1, "componentType": 5123, "count": 3 * len(f), "type": "SCALAR"}],
+    }
+    js = json.dumps(gltf, separators=(",", ":"), sort_keys=True).encode()
+    js += b" " * (-len(js) % 4)
+    body = pos + idx
+    with open(path, "wb") as out:
+        out.write(struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(js) + 8 + len(body)))
+        out.write(struct.pack("<I4s", len(js), b"JSON") + js)
+        out.write(struct.pack("<I4s", len(body), b"BIN\0") + body)
+
+
 def main():
     out = sys.argv[1] if len(sys.argv) > 1 else os.path.join(os.path.dirname(__file__), "..", "tests", "testdata", "meshes")
     os.makedirs(out, exist_ok=True)
@@ -108,6 +135,9 @@ def main():
     # An L-bracket 10 x 6 cm, 3 cm deep, in centimetres (OBJ).
     write_obj(os.path.join(out, "l_bracket_cm.obj"),
               *prism([(0, 0), (10, 0), (10, 2), (2, 2), (2, 6), (0, 6)], 3), "L-bracket 10 x 6 x 3, centimetres")
+    # A wedge (right-triangular prism) 20 x 8 cm, 10 cm wide, in metres (binary glTF).
+    write_glb(os.path.join(out, "wedge_m.glb"), *prism([(0, 0), (0.2, 0), (0, 0.08)], 0.1),
+              "wedge 0.2 x 0.08 x 0.1, metres (scripts/make_test_meshes.py)")
 
 
 if __name__ == "__main__":

@@ -320,8 +320,14 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
         EvalRow& row = res.rows[row0 + i];
         if (!row.ok) return;
         const EvalObject& obj = res.objects[row.object];
-        row.metrics = physics::shape_metrics(preds[i], obj.gt, obj.symmetry, opt.metrics);
-        pred_world[i] = preds[i].world();
+        try {
+          row.metrics = physics::shape_metrics(preds[i], obj.gt, obj.symmetry, opt.metrics);
+          pred_world[i] = preds[i].world();
+        } catch (const std::exception& e) {
+          // A prediction the metrics cannot score (a degenerate mesh or pose) is that object's failure.
+          row.ok = false;
+          row.error = fmt::format("object {}: metrics: {}", obj.id, e.what());
+        }
       });
       res.seconds_metrics += since(t1);
       if (!opt.pictures) continue;

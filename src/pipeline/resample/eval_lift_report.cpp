@@ -6,7 +6,6 @@
 #include <cmath>
 #include <functional>
 #include <map>
-#include <tuple>
 
 #include "common/error.h"
 #include "common/random.h"

@@ -76,7 +76,7 @@ TEST(EvalLift, OptionParsers) {
   EXPECT_EQ(sr::depth_kinds("both"), (std::vector<std::string>{"clean", "corrupted"}));
   EXPECT_NE(simu::testing::error_of([] { sr::depth_kinds("noisy"); }).find("--depth"), std::string::npos);
   const auto files = sr::list_mesh_files(meshes_dir());
-  ASSERT_EQ(files.size(), 4u);
+  ASSERT_EQ(files.size(), 5u);
   EXPECT_NE(files[0].find("box_cm.obj"), std::string::npos);  // sorted
   const std::string empty = simu::testing::temp_dir("eval_lift_empty");
   EXPECT_NE(simu::testing::error_of([&] { sr::list_mesh_files(empty); }).find(empty), std::string::npos);
@@ -142,8 +142,8 @@ TEST(EvalLift, GroundTruthAsPredictionIsPerfect) {
   opt.depth = "both";
   opt.metrics.samples = 2000;
   const auto r = sr::run_eval_lift(opt, {}, simu::testing::temp_dir("eval_lift_gt"));
-  ASSERT_EQ(r.objects.size(), 4u);
-  ASSERT_EQ(r.rows.size(), 8u);
+  ASSERT_EQ(r.objects.size(), 5u);
+  ASSERT_EQ(r.rows.size(), 10u);
   for (const auto& row : r.rows) {
     ASSERT_TRUE(row.ok) << row.error;
     EXPECT_EQ(row.metrics.iou, 1.0) << r.objects[row.object].id;
@@ -170,7 +170,7 @@ TEST(EvalLiftCli, ObjectsFolderDepthsAndCompareAdapter) {
   ASSERT_EQ(st0, 0) << out0;
   const json g = read_json(tmp + "/gt/summary.json");
   const json& all = g["buckets"]["clean"]["base"]["all"];
-  EXPECT_EQ(all["n"], 4);
+  EXPECT_EQ(all["n"], 5);
   EXPECT_EQ(all["iou_mean"], 1.0);
   EXPECT_EQ(all["fscore_1cm"], 1.0);
   EXPECT_EQ(all["fscore_2cm"], 1.0);
@@ -179,18 +179,18 @@ TEST(EvalLiftCli, ObjectsFolderDepthsAndCompareAdapter) {
   EXPECT_LT(all["chamfer_mean"].get<double>(), 1e-12);  // a few ulps of coordinates below 10 m
   EXPECT_LT(all["rot_err_deg_median"].get<double>(), 1e-5);  // acos near 1 (ShapeMetrics.GroundTruthAsPredictionIsPerfect)
   // The GT sizes follow the files' units (world::make_external_shape's guess): 12 cm written in cm, 9 cm
-  // in mm, 15 cm in m, 10 cm in cm. The PLY and STL hold float32 coordinates: the side +-0.075 m is off by
-  // up to 2 x 0.075 x 2^-24 = 9e-9 m; 1e-8.
-  const std::map<std::string, double> size{
-      {"box_cm.obj", 0.12}, {"cylinder_mm.stl", 0.09}, {"cone_m.ply", 0.15}, {"l_bracket_cm.obj", 0.10}};
+  // in mm, 15 cm in m, 10 cm in cm, 20 cm in m. The PLY, STL and GLB hold float32 coordinates: a side of
+  // 0.2 m is off by up to 0.2 x 2^-24 = 1.2e-8 m; 2e-8.
+  const std::map<std::string, double> size{{"box_cm.obj", 0.12},       {"cylinder_mm.stl", 0.09}, {"cone_m.ply", 0.15},
+                                           {"l_bracket_cm.obj", 0.10}, {"wedge_m.glb", 0.20}};
   std::set<std::string> sources;
   for (const json& row : g["objects"]) {
     const std::string file = std::filesystem::path(row["source"].get<std::string>()).filename().string();
     sources.insert(file);
-    EXPECT_NEAR(row["size_m"].get<double>(), size.at(file), 1e-8) << file;
+    EXPECT_NEAR(row["size_m"].get<double>(), size.at(file), 2e-8) << file;
     EXPECT_TRUE(std::filesystem::exists(tmp + "/gt/" + row["picture"].get<std::string>()));
   }
-  EXPECT_EQ(sources.size(), 4u);
+  EXPECT_EQ(sources.size(), 5u);
 
   // Two objects lifted from clean and corrupted depth with the small fixture models.
   auto [st, out] = run(eval_cmd("--count 2 --depth both --seed 3 --surface-samples 2000 --out " + tmp + "/a"),
