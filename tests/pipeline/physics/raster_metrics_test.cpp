@@ -4,6 +4,7 @@
 #include "pipeline/physics/geometry.h"
 #include "pipeline/physics/metrics.h"
 #include "pipeline/physics/raster.h"
+#include "tolerance.h"
 
 #include <gtest/gtest.h>
 
@@ -219,7 +220,6 @@ TEST(Metrics, PhysicsMetrics) {
 
 #include "pipeline/physics/overlay.h"
 #include "test_files.h"
-#include "tolerance.h"
 
 #include <filesystem>
 
