@@ -17,6 +17,7 @@
 
 #include "models/cond_embedder.h"
 #include "models/flow_model.h"
+#include "models/pose.h"
 #include "models/ss_decoder.h"
 #include "tolerance.h"
 
@@ -80,6 +81,18 @@ inline double decoder_chain(const models::SSDecoderConfig& c) {
     if (level + 1 < ch.size()) n += 27.0 * static_cast<double>(ch[level]);
   }
   return n + 2.0 * static_cast<double>(ch.back()) + 27.0 * static_cast<double>(ch.back());
+}
+
+// Orthonormality bound of a rotation decoded in fp32 from normalised 6-D latents [.., 6]: Gram-Schmidt's
+// ~20 roundings amplified by 1 / sin(angle between the two de-normalised vectors), the smallest over
+// the latents, plus a 3-term product.
+inline double pose_rotation_bound(const torch::Tensor& latent) {
+  const auto raw = latent.reshape({-1, 6}).to(torch::kFloat64) * models::rotation_6d_std().to(torch::kFloat64) +
+                   models::rotation_6d_mean().to(torch::kFloat64);
+  const auto a1 = raw.narrow(1, 0, 3), a2 = raw.narrow(1, 3, 3);
+  const double sin_min =
+      (torch::linalg_cross(a1, a2).norm(2, {1}) / (a1.norm(2, {1}) * a2.norm(2, {1}))).min().item<double>();
+  return gamma(20) / sin_min + gamma(3);
 }
 
 // Rounding chain of the condition embedder from its config: the longest of its embedders' chains, then

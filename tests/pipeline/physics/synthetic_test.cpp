@@ -2,6 +2,7 @@
 // masks rendered, the ideal-probe decisions matching the injected error types, files written and
 // read back through the scene loader; the benchmark's "after" metrics score the probe's output.
 #include "pipeline/physics/synthetic.h"
+#include "tolerance.h"
 
 #include "test_files.h"
 
@@ -116,7 +117,6 @@ TEST(Synthetic, WriteAndReload) {
 }
 
 #include "pipeline/physics/overlay.h"
-#include "tolerance.h"
 
 // The committed default set (tests/testdata/scenes) loads, and every free object has a modal mask of the
 // camera's size with pixels in it.

@@ -12,7 +12,6 @@
 #include "data/safetensors.h"
 #include "pipeline/resample/probe_resampler.h"
 #include "models/cond_embedder.h"
-#include "models/pose.h"
 #include "pipeline/resample/resampler.h"
 #include "flow_rounding.h"
 #include "test_util.h"
@@ -33,16 +32,6 @@ ResamplerConfig small_config() {
   c.decode_batch = 3;
   return c;
 }
-// Orthonormality bound of a rotation decoded in fp32 from a normalised 6-D latent [.., 6]: Gram-Schmidt's
-// ~20 roundings amplified by 1 / sin(angle between the two de-normalised vectors), plus a 3-term product.
-double gram_schmidt_bound(const torch::Tensor& latent) {
-  const auto raw = latent.reshape({-1, 6}).to(torch::kFloat64) * simu::models::rotation_6d_std().to(torch::kFloat64) +
-                   simu::models::rotation_6d_mean().to(torch::kFloat64);
-  const auto a1 = raw.narrow(1, 0, 3), a2 = raw.narrow(1, 3, 3);
-  const double sin_min = (torch::linalg_cross(a1, a2).norm(2, {1}) / (a1.norm(2, {1}) * a2.norm(2, {1}))).min().item<double>();
-  return simu::testing::gamma(20) / sin_min + simu::testing::gamma(3);
-}
-
 // The fixture generator's condition width (ss_generator_small.json).
 int64_t cond_width() {
   return simu::models::GeneratorConfig::from_official_file(simu::testing::fixture("ss_generator_small.json"))
@@ -118,7 +107,7 @@ TEST(Resampler, BatchedMatchesPerObjectChain) {
       // Pose: proper rotation (fp32 Gram-Schmidt of the sampled 6-D latent: ~20 roundings over the
       // sine of the angle between its two vectors), and the canonical pose maps canonical points where
       // the voxel-frame pose does (float64, ~16 roundings of the terms' magnitudes).
-      const double ortho = gram_schmidt_bound(got.latents.at("6drotation_normalized"));
+      const double ortho = simu::testing::pose_rotation_bound(got.latents.at("6drotation_normalized"));
       EXPECT_NEAR(got.rotation.determinant(), 1.0, 3 * ortho);
       EXPECT_LT((got.rotation.transpose() * got.rotation - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), ortho);
       const Eigen::Vector3d pc(0.1, -0.3, 0.25);
