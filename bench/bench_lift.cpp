@@ -20,6 +20,7 @@
 
 #include <sys/resource.h>
 
+#include "common/source_dir.h"
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
@@ -192,11 +193,11 @@ int main(int argc, char** argv) {
     simu::resample::ResamplerConfig cfg;  // released inference sampler defaults, real-size configs
     cfg.device = device;
     cfg.steps = steps;
-    cfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
+    cfg.embedder_config = simu::source_dir() + "/configs/cond_embedder_sam3d_stage1.yaml";
     if (small) {
-      cfg.generator_config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml";
-      cfg.decoder_config = std::string(SIMU_SOURCE_DIR) + "/configs/ss_decoder_small.yaml";
-      cfg.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/demo_embedder_small.json";
+      cfg.generator_config = simu::source_dir() + "/configs/stage1_small.yaml";
+      cfg.decoder_config = simu::source_dir() + "/configs/ss_decoder_small.yaml";
+      cfg.embedder_config = simu::source_dir() + "/configs/demo_embedder_small.json";
       cfg.generator_overrides = {"flow_model.cond_channels=48"};
     }
     simu::resample::apply_precision(cfg, precision);

@@ -13,6 +13,7 @@
 #include <algorithm>
 #include <chrono>
 
+#include "common/source_dir.h"
 #include "common/cli.h"
 #include "gpu_profile.h"
 #include "common/error.h"
@@ -51,8 +52,8 @@ int main(int argc, char** argv) {
     cfg.random_weights = true;  // timing only
     cfg.precision = fp32 ? "fp32" : "bf16";  // this benchmark's recorded figures are bf16
     if (small) {
-      cfg.generator_config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml";
-      cfg.decoder_config = std::string(SIMU_SOURCE_DIR) + "/configs/ss_decoder_small.yaml";
+      cfg.generator_config = simu::source_dir() + "/configs/stage1_small.yaml";
+      cfg.decoder_config = simu::source_dir() + "/configs/ss_decoder_small.yaml";
       cond_len = std::min<int64_t>(cond_len, 16);
       iters = 1;
     }

@@ -13,6 +13,7 @@
 #include <algorithm>
 #include <chrono>
 
+#include "common/source_dir.h"
 #include "common/cli.h"
 #include "gpu_profile.h"
 #include "common/error.h"
@@ -255,7 +256,7 @@ void add_step_cache_options(CLI::App& app, std::vector<int>& intervals, simu::mo
 int main(int argc, char** argv) {
   CLI::App app{"Benchmark the Stage-1 flow model: forward at batch 2 and full CFG sampling (random weights)"};
   std::string precision = "fp16";
-  std::string config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_real.yaml", device = "cuda";
+  std::string config = simu::source_dir() + "/configs/stage1_real.yaml", device = "cuda";
   std::vector<int64_t> cond_lens = {7528, 2800};  // released embedder first
   int steps = 25, iters = 5, sample_iters = 3, warmup = 2;
   double cfg = 7.0;
@@ -301,7 +302,7 @@ int main(int argc, char** argv) {
     const torch::Device dev(device);
     if (!simu::bench::device_usable("bench_stage1", dev, small)) return 0;
     if (small) {
-      config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml";
+      config = simu::source_dir() + "/configs/stage1_small.yaml";
       cond_lens = {10, 30};
       steps = std::min(steps, 4);
     }

@@ -17,6 +17,7 @@
 #include <cmath>
 #include <cstdlib>
 
+#include "common/source_dir.h"
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
@@ -93,8 +94,8 @@ void print_table(const std::vector<Summary>& rows, int steps) {
 }
 
 struct Args {
-  std::string config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_real.yaml", weights,
-              decoder_config = std::string(SIMU_SOURCE_DIR) + "/configs/ss_decoder.yaml", decoder_weights,
+  std::string config = simu::source_dir() + "/configs/stage1_real.yaml", weights,
+              decoder_config = simu::source_dir() + "/configs/ss_decoder.yaml", decoder_weights,
               device = "cuda", precision = "fp16";
   bool fixtures = false, graphs = false;
   int64_t cond_len = 2800;
@@ -109,7 +110,7 @@ void run(Args& a) {
              a.device);
   if (a.fixtures) {
     const char* env = std::getenv("SIMU_SHARED_DIR");  // as the tests find the fixtures
-    const std::string fx = (env && *env ? std::string(env) : std::string(SIMU_SOURCE_DIR) + "/../shared") + "/fixtures/";
+    const std::string fx = (env && *env ? std::string(env) : simu::source_dir() + "/../shared") + "/fixtures/";
     a.config = fx + "ss_generator_small.json", a.weights = fx + "ss_generator_small.safetensors";
     a.decoder_config = fx + "ss_decoder_small.json", a.decoder_weights = fx + "ss_decoder_small.safetensors";
     a.cond_len = std::min<int64_t>(a.cond_len, 10);

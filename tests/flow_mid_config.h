@@ -9,13 +9,14 @@
 #include <utility>
 #include <vector>
 
+#include "common/source_dir.h"
 #include "test_util.h"
 
 namespace simu::testing {
 
 // Writes the widened config into temp_dir(name) and returns its path.
 inline std::string mid_flow_config(const std::string& name) {
-  std::ifstream in(std::string(SIMU_SOURCE_DIR) + "/configs/stage1_small.yaml");
+  std::ifstream in(simu::source_dir() + "/configs/stage1_small.yaml");
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
            {"model_channels: 64", "model_channels: 256"}, {"num_blocks: 2", "num_blocks: 3"}, {"resolution: 4", "resolution: 8"}}) {

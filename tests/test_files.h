@@ -11,6 +11,7 @@
 #include <string>
 
 #include "common/error.h"
+#include "common/source_dir.h"
 #include "tolerance.h"  // the derived bounds every suite uses (simu::testing::kFp64Chain, gamma)
 
 namespace simu::testing {
@@ -18,11 +19,14 @@ namespace simu::testing {
 // ../shared beside the repository root, or $SIMU_SHARED_DIR.
 inline std::string shared_dir() {
   if (const char* env = std::getenv("SIMU_SHARED_DIR")) return env;
-  return (std::filesystem::path(SIMU_SOURCE_DIR) / ".." / "shared").lexically_normal().string();
+  return (std::filesystem::path(simu::source_dir()) / ".." / "shared").lexically_normal().string();
 }
 inline std::string fixture(const std::string& name) { return shared_dir() + "/fixtures/" + name; }
-inline std::string source_dir() { return SIMU_SOURCE_DIR; }
-inline std::string build_dir() { return SIMU_BUILD_DIR; }
+inline std::string source_dir() { return simu::source_dir(); }
+// The CMake build folder and the Python interpreter CMake found (defined in test_main.cpp, the one
+// test file compiled with their absolute paths).
+std::string build_dir();
+std::string python_exe();
 // A fresh temporary directory for one test.
 inline std::string temp_dir(const std::string& name) {
   // A counter keeps directories unique within a process (remove with simu::fs::remove_tree, never

@@ -4,9 +4,16 @@
 #include <gtest/gtest.h>
 
 #include <cstdlib>
+#include <string>
 #ifdef SIMU_TEST_TORCH
 #include <torch/torch.h>
 #endif
+
+namespace simu::testing {
+// SIMU_BUILD_DIR and SIMU_PYTHON are compile definitions of this file alone (CMakeLists.txt).
+std::string build_dir() { return SIMU_BUILD_DIR; }
+std::string python_exe() { return SIMU_PYTHON; }
+}  // namespace simu::testing
 
 int main(int argc, char** argv) {
   ::testing::InitGoogleTest(&argc, argv);

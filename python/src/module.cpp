@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <memory>
 
+#include "common/source_dir.h"
 #include "bind.h"
 #include "common/cancel.h"
 #include "common/log.h"
@@ -238,7 +239,7 @@ PYBIND11_MODULE(_core, m) {
     }
   });
   sb::install_hooks();
-  m.attr("source_dir") = SIMU_SOURCE_DIR;
+  m.attr("source_dir") = simu::source_dir();
   m.def("_shutdown", [] { sb::remove_hooks(); sb::remove_temp_root(); }, "Removes the log sink, the Ctrl-C hook and the temp folder (called at interpreter exit).");
   m.def(
       "set_log_level",

@@ -3,6 +3,7 @@
 // (resample::make_probe_resample_fn, as the probe program's --resample).
 #include <pybind11/stl_bind.h>
 
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <unistd.h>
@@ -40,9 +41,16 @@ std::string temp_root() {
   return root;
 }
 
+// simu::fs::remove_tree, not std::filesystem::remove_all: the latter binds to libtorch.so's copy
+// inside a Python process (torch loads it first, globally), which crashes on a non-empty folder.
+// At interpreter exit a failure is reported on stderr, never thrown.
 void remove_temp_root() {
-  std::error_code ec;
-  stdfs::remove_all(stdfs::temp_directory_path() / fmt::format("simuscene-{}", ::getpid()), ec);
+  const auto p = stdfs::temp_directory_path() / fmt::format("simuscene-{}", ::getpid());
+  try {
+    simu::fs::remove_tree(p.string());
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "simuscene: could not remove the temp folder: %s\n", e.what());
+  }
 }
 
 namespace {

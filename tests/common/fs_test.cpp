@@ -1,5 +1,6 @@
 // File helpers: remove_tree removes nested trees without following links; atomic_write replaces whole files;
 // no source calls std::filesystem::remove_all (libtorch.so's exported copy crashes on non-empty folders).
+#include "common/source_dir.h"
 #include "common/fs.h"
 
 #include <sys/wait.h>
@@ -110,8 +111,8 @@ TEST(Fs, NoSourceCallsStdRemoveAll) {
   namespace sfs = std::filesystem;
   const std::string needle = std::string("remove_") + "all(";  // split so this file does not match itself
   std::vector<std::string> hits;
-  for (const char* top : {"src", "apps", "bench", "tests", "fuzz"}) {
-    const sfs::path root = sfs::path(SIMU_SOURCE_DIR) / top;
+  for (const char* top : {"src", "apps", "bench", "tests", "fuzz", "python/src"}) {
+    const sfs::path root = sfs::path(simu::source_dir()) / top;
     ASSERT_TRUE(sfs::is_directory(root)) << root;
     for (const auto& e : sfs::recursive_directory_iterator(root)) {
       const std::string ext = e.path().extension().string();

@@ -24,7 +24,7 @@ namespace {
 bool python(const std::string& code, const std::string& dir) {
   const std::string py = dir + "/snippet.py";
   std::ofstream(py) << code;
-  return std::system((std::string(SIMU_PYTHON) + " " + py).c_str()) == 0;
+  return std::system((simu::testing::python_exe() + " " + py).c_str()) == 0;
 }
 
 // Expects fn to throw a simu::Error whose message contains every one of `parts`.

@@ -170,8 +170,8 @@ TEST(PairCacheInputs, ValidationNamesRecordAndDataset) {
 // h5py reads the layout (attributes, dtypes, shapes, chunks) and the values: masks as uint8 levels,
 // images and point maps as float32 equal to what was written (dumped raw, not through our reader).
 TEST(PairCacheInputs, H5pyReadsTheLayout) {
-  if (std::system((std::string(SIMU_PYTHON) + " -c 'import h5py, numpy' >/dev/null 2>&1").c_str()) != 0)
-    GTEST_SKIP() << "no h5py in SIMU_PYTHON=" << SIMU_PYTHON;
+  if (std::system((simu::testing::python_exe() + " -c 'import h5py, numpy' >/dev/null 2>&1").c_str()) != 0)
+    GTEST_SKIP() << "no h5py in SIMU_PYTHON=" << simu::testing::python_exe();
   const auto dir = simu::testing::temp_dir("pci_h5py");
   const auto path = write_cache(dir + "/c.h5", "exact", 2);
   const auto want = random_inputs(1);
@@ -199,7 +199,7 @@ assert np.array_equal(f["pointmap"][1], pm, equal_nan=True)
 print("h5py ok")
 )PY";
   std::ofstream(dir + "/check.py") << script;
-  EXPECT_EQ(WEXITSTATUS(std::system((std::string(SIMU_PYTHON) + " " + dir + "/check.py " + path + " " + dir).c_str())), 0);
+  EXPECT_EQ(WEXITSTATUS(std::system((simu::testing::python_exe() + " " + dir + "/check.py " + path + " " + dir).c_str())), 0);
 }
 
 // A damaged input_size (huge sides) is refused from the header, before any record is allocated.

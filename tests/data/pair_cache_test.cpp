@@ -35,7 +35,7 @@ PairRecord random_record(const std::string& id, PairKind kind, int64_t T, int64_
 }
 
 bool has_h5py() {
-  const std::string py = SIMU_PYTHON;
+  const std::string py = simu::testing::python_exe();
   return std::system((py + " -c 'import h5py, numpy' >/dev/null 2>&1").c_str()) == 0;
 }
 
@@ -43,7 +43,7 @@ bool has_h5py() {
 int run_python(const std::string& dir, const std::string& script, const std::string& args) {
   const auto file = dir + "/check.py";
   std::ofstream(file) << script;
-  return WEXITSTATUS(std::system((std::string(SIMU_PYTHON) + " " + file + " " + args).c_str()));
+  return WEXITSTATUS(std::system((simu::testing::python_exe() + " " + file + " " + args).c_str()));
 }
 
 // Writes a float32 tensor's bytes (C order) to a file for numpy.fromfile.
@@ -172,7 +172,7 @@ TEST(PairCache, SyntheticCacheHasMixedKindsAndDistinctMembers) {
 // The layout as h5py sees it: attributes, dtypes, shapes, chunks, filters and values (compared with
 // raw float32 dumps of what was written, not with our reader).
 TEST(PairCache, H5pyReadsTheLayout) {
-  if (!has_h5py()) GTEST_SKIP() << "no h5py in SIMU_PYTHON=" << SIMU_PYTHON;
+  if (!has_h5py()) GTEST_SKIP() << "no h5py in SIMU_PYTHON=" << simu::testing::python_exe();
   const auto dir = simu::testing::temp_dir("pc_h5py_read");
   const auto path = dir + "/c.h5";
   torch::manual_seed(2);
@@ -235,7 +235,7 @@ print("h5py ok")
 
 // A cache written by h5py from the documented layout (f32) is read by PairCacheReader.
 TEST(PairCache, ReadsACacheWrittenByH5py) {
-  if (!has_h5py()) GTEST_SKIP() << "no h5py in SIMU_PYTHON=" << SIMU_PYTHON;
+  if (!has_h5py()) GTEST_SKIP() << "no h5py in SIMU_PYTHON=" << simu::testing::python_exe();
   const auto dir = simu::testing::temp_dir("pc_h5py_write");
   const auto path = dir + "/py.h5";
   const std::string script = R"PY(
@@ -736,7 +736,7 @@ namespace {
 
 // The pairs tool end to end: make, inspect, validate; a truncated copy fails validation with exit 1.
 TEST(PairsTool, MakeInspectValidate) {
-  const std::string exe = std::string(SIMU_BUILD_DIR) + "/pairs";
+  const std::string exe = simu::testing::build_dir() + "/pairs";
   if (!std::filesystem::exists(exe)) GTEST_SKIP() << "pairs not built at " << exe;
   const auto dir = simu::testing::temp_dir("pairs_tool");
   const auto f = dir + "/p.h5";

@@ -52,7 +52,7 @@ TEST(LoraTargets, RegexFullMatchAgreesWithPythonRe) {
   std::ofstream(dir + "/ref.py") << "import json, re, sys\n"
                                     "c = json.load(open(sys.argv[1]))\n"
                                     "print(json.dumps([[re.fullmatch(p, k) is not None for k in c['paths']] for p in c['patterns']]))\n";
-  const std::string cmd = std::string(SIMU_PYTHON) + " " + dir + "/ref.py " + dir + "/cases.json > " + dir + "/out.json";
+  const std::string cmd = simu::testing::python_exe() + " " + dir + "/ref.py " + dir + "/cases.json > " + dir + "/out.json";
   ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
   std::ifstream in(dir + "/out.json");
   const auto want = nlohmann::json::parse(in);

@@ -45,7 +45,7 @@ int64_t count_prefix(const simu::data::SafeTensorsFile& f, const std::string& pr
 
 TEST(OfficialCheckpoint, ReleasedLayoutConvertsAndLoadsStrictly) {
   const auto dir = simu::testing::temp_dir("official_ckpt");
-  const std::string py = SIMU_PYTHON;
+  const std::string py = simu::testing::python_exe();
   const auto src = simu::testing::source_dir();
   // 1. The official-layout checkpoints (names checked against the official small fixtures).
   ASSERT_EQ(run(py + " " + src + "/tests/models/make_official_checkpoint.py " + dir + " --check-against " +

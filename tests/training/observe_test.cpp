@@ -24,7 +24,7 @@ namespace {
 // Runs `body` (Python; `ea` is a loaded EventAccumulator of dir) under SIMU_PYTHON and returns what it
 // printed; "" with *skip set when that Python has no tensorboard module.
 std::string read_with_tensorboard(const std::string& dir, const std::string& body, bool* skip) {
-  const std::string py = SIMU_PYTHON;
+  const std::string py = simu::testing::python_exe();
   *skip = std::system((py + " -c 'import tensorboard' >/dev/null 2>&1").c_str()) != 0;
   if (*skip) return "";
   const std::string script = dir + "/read.py", out = dir + "/out.txt";
@@ -50,7 +50,7 @@ TEST(TensorBoard, ReadBackByTensorBoard) {
                                                 "for tag in sorted(ea.Tags()['scalars']):\n"
                                                 "    for e in ea.Scalars(tag): print(tag, e.step, repr(e.value))\n",
                                                 &skip);
-  if (skip) GTEST_SKIP() << SIMU_PYTHON << " has no tensorboard module";
+  if (skip) GTEST_SKIP() << simu::testing::python_exe() << " has no tensorboard module";
   EXPECT_EQ(got, "accuracy 1 0.25\naccuracy 2 0.75\nloss 1 0.5\nloss 2 0.375\n");
 }
 
@@ -70,7 +70,7 @@ TEST(TensorBoard, ResumedRunReplacesStepsAfterTheCheckpoint) {
   bool skip = false;
   const std::string got =
       read_with_tensorboard(dir, "print(' '.join('%d:%g' % (e.step, e.value) for e in ea.Scalars('loss')))\n", &skip);
-  if (skip) GTEST_SKIP() << SIMU_PYTHON << " has no tensorboard module";
+  if (skip) GTEST_SKIP() << simu::testing::python_exe() << " has no tensorboard module";
   EXPECT_EQ(got, "1:1 2:2 3:3 4:4 5:50 6:60\n");
 }
 

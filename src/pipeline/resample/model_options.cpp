@@ -1,3 +1,4 @@
+#include "common/source_dir.h"
 #include "pipeline/resample/model_options.h"
 
 #include "pipeline/resample/lift.h"
@@ -7,7 +8,7 @@
 namespace simu::resample {
 
 ModelOptions::ModelOptions() {
-  config.embedder_config = std::string(SIMU_SOURCE_DIR) + "/configs/cond_embedder_sam3d_stage1.yaml";
+  config.embedder_config = simu::source_dir() + "/configs/cond_embedder_sam3d_stage1.yaml";
 }
 
 void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& flags, const std::string& group) {

@@ -29,6 +29,7 @@
 #include <utility>
 #include <vector>
 
+#include "common/source_dir.h"
 #include "common/config.h"
 #include "models/cond_embedder.h"
 #include "models/generator.h"
@@ -44,9 +45,9 @@ using physics::Mesh;
 constexpr uint64_t kRandomWeightsSeed = 0;
 
 struct ResamplerConfig {
-  std::string generator_config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_real.yaml";
+  std::string generator_config = simu::source_dir() + "/configs/stage1_real.yaml";
   std::string generator_weights;  // safetensors; "" keeps the random init (benchmarks only)
-  std::string decoder_config = std::string(SIMU_SOURCE_DIR) + "/configs/ss_decoder.yaml";
+  std::string decoder_config = simu::source_dir() + "/configs/ss_decoder.yaml";
   std::string decoder_weights;    // safetensors; "" keeps the random init (benchmarks only)
   std::string adapter_dir;        // PEFT adapter directory; "" = base model
   std::vector<std::string> generator_overrides;  // "a.b=v" edits of the generator config

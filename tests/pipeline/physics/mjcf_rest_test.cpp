@@ -78,7 +78,7 @@ std::pair<double, int> rest_in_mujoco22(const std::string& xml) {
 
 // Runs the PyPI mujoco check; returns its exit status and output.
 std::pair<int, std::string> rest_in_pypi_mujoco(const std::vector<std::string>& files) {
-  std::string cmd = std::string(SIMU_PYTHON) + " tests/pipeline/physics/mjcf_rest_check.py";
+  std::string cmd = simu::testing::python_exe() + " tests/pipeline/physics/mjcf_rest_check.py";
   for (const auto& f : files) cmd += " " + f;
   cmd += " 2>&1";
   std::string out;
@@ -91,7 +91,7 @@ std::pair<int, std::string> rest_in_pypi_mujoco(const std::vector<std::string>& 
 }
 
 bool pypi_mujoco_available() {
-  return std::system((std::string(SIMU_PYTHON) + " -c 'import mujoco' >/dev/null 2>&1").c_str()) == 0;
+  return std::system((simu::testing::python_exe() + " -c 'import mujoco' >/dev/null 2>&1").c_str()) == 0;
 }
 
 }  // namespace
@@ -114,7 +114,7 @@ TEST(MjcfRest, ProbeOutputRestsInMuJoCo22AndCurrentMuJoCo) {
     EXPECT_EQ(warnings, 0) << scene << ": MuJoCo 2.2 warnings " << describe_warnings(warnings);
     xmls.push_back(xml);
   }
-  if (!pypi_mujoco_available()) GTEST_FAIL() << "PyPI mujoco is not installed in " << SIMU_PYTHON << " (scripts/setup.sh installs it)";
+  if (!pypi_mujoco_available()) GTEST_FAIL() << "PyPI mujoco is not installed in " << simu::testing::python_exe() << " (scripts/setup.sh installs it)";
   const auto [rc, out] = rest_in_pypi_mujoco(xmls);
   std::printf("%s", out.c_str());
   EXPECT_EQ(rc, 0) << out;
@@ -123,7 +123,7 @@ TEST(MjcfRest, ProbeOutputRestsInMuJoCo22AndCurrentMuJoCo) {
 // The contact parameters of the file before issue 18 (margin = gap = 4 mm, Euler): current MuJoCo
 // lifts resting objects by millimetres, and the check above says so.
 TEST(MjcfRest, CheckCatchesTheOldMarginGapFile) {
-  if (!pypi_mujoco_available()) GTEST_SKIP() << "PyPI mujoco is not installed in " << SIMU_PYTHON;
+  if (!pypi_mujoco_available()) GTEST_SKIP() << "PyPI mujoco is not installed in " << simu::testing::python_exe();
   const auto dir = physics_temp_dir("mjcf_rest_old");
   const auto all = scenes(dir);
   const ProbeConfig cfg = config({"physics.margin=0.004", "physics.gap=0.004", "physics.integrator=Euler"});

@@ -138,7 +138,7 @@ TEST(ProbeConfig, UnknownKeysAndOutOfDomainValuesFail) {
 
 // The program: --set on an unknown key fails (exit 1, key named); --help lists every key's default.
 TEST(ProbeConfig, ProgramSetAndHelp) {
-  const std::string probe = std::string(SIMU_BUILD_DIR) + "/probe";
+  const std::string probe = simu::testing::build_dir() + "/probe";
   if (!std::filesystem::exists(probe)) GTEST_SKIP() << "build the probe program first";
   const auto dir = physics_temp_dir("probe_cli_set");
   const std::string scene = small_scene(dir);
@@ -185,7 +185,7 @@ TEST(ProbeConfig, ScenesWithTheSameFileNameGetDistinctFolders) {
 
 // The program on the three committed scenes writes three folders, each with its own report.
 TEST(ProbeConfig, ProgramScenesWriteOneFolderEach) {
-  const std::string probe = std::string(SIMU_BUILD_DIR) + "/probe";
+  const std::string probe = simu::testing::build_dir() + "/probe";
   if (!std::filesystem::exists(probe)) GTEST_SKIP() << "build the probe program first";
   const auto dir = physics_temp_dir("probe_cli_scenes");
   const auto [rc, out] =

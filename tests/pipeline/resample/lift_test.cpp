@@ -255,7 +255,7 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
   // Numpy opens the occupancy as uint8 [R, R, R].
   const std::string occ = out + "/" + o1.at("samples").at(0).at("dir").get<std::string>() + "/occupancy.npy";
   const int64_t R = fixture_resolution();
-  const auto [prc, plog] = run(std::string(SIMU_PYTHON) + " -c \"import numpy as np; a = np.load('" + occ +
+  const auto [prc, plog] = run(simu::testing::python_exe() + " -c \"import numpy as np; a = np.load('" + occ +
                                    "'); assert a.dtype == np.uint8 and a.shape == (" + std::to_string(R) + ", " +
                                    std::to_string(R) + ", " + std::to_string(R) + "), (a.dtype, a.shape)\"",
                                dir + "/numpy.log");
