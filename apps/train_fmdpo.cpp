@@ -3,9 +3,6 @@
 //   train_fmdpo --config ... --nproc-per-node 2        (starts the local ranks itself)
 //   torchrun --nproc-per-node 2 --no-python train_fmdpo --config ...
 #include <cstdlib>
-#include <cstring>
-
-#include <c10/cuda/CUDAFunctions.h>
 
 #include "common/cli.h"
 #include "common/error.h"
@@ -32,28 +29,14 @@ int main(int argc, char** argv) {
     if (nproc > 1 && !std::getenv("RANK")) {
       auto cfg = TrainConfig::load(config_path, common.sets);
       prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/true);
-      std::vector<std::string> args;
-      for (int i = 1; i < argc; ++i) {
-        if (std::strcmp(argv[i], "--nproc-per-node") == 0) { ++i; continue; }
-        if (std::strncmp(argv[i], "--nproc-per-node=", 17) == 0) continue;
-        args.push_back(argv[i]);
-      }
-      launch_local_ranks(nproc, args, std::chrono::seconds(static_cast<int64_t>(cfg.dist.hang_timeout_s)));
+      launch_local_ranks(nproc, relaunch_args(argc, argv), std::chrono::seconds(static_cast<int64_t>(cfg.dist.hang_timeout_s)));
       return 0;
     }
     const auto env = DistEnv::from_environment();
     simu::log::set_rank(env.rank);
     auto cfg = TrainConfig::load(config_path, common.sets);
     prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/env.rank == 0);
-    torch::Device device(torch::kCPU);
-    if (cfg.train.device == "cuda") {
-      if (!torch::cuda::is_available())
-        simu::fail_hint("set train.device: cpu (slow) or run on a GPU machine", "train.device is cuda but no CUDA device is visible");
-      SIMU_CHECK(env.local_rank < static_cast<int>(torch::cuda::device_count()),
-                 "LOCAL_RANK {} but only {} CUDA devices are visible", env.local_rank, torch::cuda::device_count());
-      device = torch::Device(torch::kCUDA, env.local_rank);
-      c10::cuda::set_device(static_cast<c10::DeviceIndex>(env.local_rank));
-    }
+    const torch::Device device = rank_device(cfg.train.device, env.local_rank);
     auto comm = Communicator::create(env, device, std::chrono::milliseconds(static_cast<int64_t>(cfg.dist.timeout_s * 1000)));
     auto model = make_generator_policy(cfg, device);
     Trainer trainer(cfg, *model, pair_cache_source(cfg.data.cache, cfg.data.prefetch), *comm, device);

@@ -181,18 +181,19 @@ std::string format_duration(double s) {
   return fmt::format("{}s", t);
 }
 
-Progress::Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every)
-    : total_(total_steps), start_(start_step), every_(std::max<int64_t>(every, 1)), tty_(tty),
+Progress::Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every, std::string unit)
+    : total_(total_steps), start_(start_step), every_(std::max<int64_t>(every, 1)), tty_(tty), unit_(std::move(unit)),
       began_(std::chrono::steady_clock::now()) {}
 
 bool Progress::stderr_is_tty() { return ::isatty(STDERR_FILENO) == 1; }
 
-void Progress::update(int64_t step, double loss, double accuracy, double lr, double pairs_per_s) {
+void Progress::update(int64_t step, double loss, double accuracy, double lr, double per_s) {
   const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - began_).count();
   const int64_t done = step - start_;
   const double eta = done > 0 ? elapsed / done * (total_ - step) : NAN;
-  const std::string stats = fmt::format("loss {:.4f} acc {:.3f} lr {:.2e} {:.1f} pairs/s ETA {}", loss, accuracy, lr,
-                                        pairs_per_s, format_duration(eta));
+  const std::string acc = std::isnan(accuracy) ? "" : fmt::format(" acc {:.3f}", accuracy);
+  const std::string stats = fmt::format("loss {:.4f}{} lr {:.2e} {:.1f} {}/s ETA {}", loss, acc, lr, per_s, unit_,
+                                        format_duration(eta));
   if (tty_) {
     // Redrawn bar: [#####.....] step/total stats
     const int width = 30;

@@ -56,9 +56,11 @@ class MetricsWriter {
 // Progress display: a redrawn bar on a terminal, one plain line per `every` steps otherwise.
 class Progress {
  public:
-  Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every = 1);
-  // Shows step (1-based count of finished steps), loss, accuracy, lr, pairs/s and the ETA.
-  void update(int64_t step, double loss, double accuracy, double lr, double pairs_per_s);
+  // unit: what the rate counts ("pairs" -> "pairs/s").
+  Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every = 1, std::string unit = "pairs");
+  // Shows step (1-based count of finished steps), loss, accuracy (omitted when NaN), lr, the rate and
+  // the ETA.
+  void update(int64_t step, double loss, double accuracy, double lr, double per_s);
   void finish();
   // True when stderr is a terminal.
   static bool stderr_is_tty();
@@ -66,6 +68,7 @@ class Progress {
  private:
   int64_t total_, start_, every_;
   bool tty_;
+  std::string unit_;
   std::chrono::steady_clock::time_point began_;
 };
 
