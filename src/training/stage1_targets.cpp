@@ -1,0 +1,37 @@
+#include "training/stage1_targets.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+
+#include "common/error.h"
+
+namespace simu::training {
+
+torch::Tensor grid_to_shape_tokens(const torch::Tensor& grid) {
+  SIMU_CHECK(grid.dim() == 5, "shape latent grid: expected [B, C, k, k, k], got {} dimensions", grid.dim());
+  const int64_t B = grid.size(0), C = grid.size(1);
+  // [B, C, k, k, k] -> [B, C, k^3] -> [B, k^3, C]
+  return grid.reshape({B, C, -1}).permute({0, 2, 1}).contiguous();
+}
+
+ShapeTargetFn random_linear_targets(const models::LatentSpec& shape, int64_t R, uint64_t seed, torch::Device device) {
+  const int64_t k = shape.resolution / shape.patch_size, C = shape.in_channels;
+  SIMU_CHECK(k > 0 && R % k == 0, "random linear targets: occupancy side {} is not a multiple of the latent side {}", R, k);
+  const int64_t s = R / k;
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
+  auto weight = (at::randn({C, 1, s, s, s}, gen, torch::TensorOptions().dtype(torch::kFloat32)) /
+                 std::sqrt(static_cast<double>(s * s * s)))
+                    .to(device);
+  return [weight, s](const torch::Tensor& occupancy) {
+    auto x = occupancy.to(torch::kFloat32).unsqueeze(1) - 0.5;  // [B, 1, R, R, R]
+    return grid_to_shape_tokens(torch::conv3d(x, weight, {}, s));  // [B, k^3, C]
+  };
+}
+
+ShapeTargetFn make_shape_targets(const TargetsConfig& config, const models::LatentSpec& shape,
+                                 int64_t occupancy_resolution, torch::Device device, const std::string& config_file) {
+  if (config.kind == "random_linear") return random_linear_targets(shape, occupancy_resolution, config.seed, device);
+  fail_hint("use targets.kind random_linear for a smoke run until the encoder is ported (branch vae)",
+            "{}: targets.kind encoder: the sparse-structure encoder is not in this build yet", config_file);
+}
+
+}  // namespace simu::training
