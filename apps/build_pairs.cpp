@@ -15,8 +15,6 @@
 
 namespace {
 std::atomic<bool> g_stop{false};
-// Seed of torch's global generator for the random initialisation of --random-weights.
-constexpr uint64_t kRandomWeightsSeed = 0;
 void on_signal(int) { g_stop = true; }
 
 // The summary: pairs, bytes per pair on disk, the skipped records.
@@ -97,9 +95,6 @@ int main(int argc, char** argv) {
       simu::fail("--dtype must be f16 or f32, got '{}'", dtype);
     cfg.resume = !overwrite;
     cfg.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
-    // Modules without weights keep their random initialisation, drawn from torch's global generator,
-    // which LibTorch seeds from the OS: a fixed seed makes two runs build the same models.
-    if (rc.random_weights) torch::manual_seed(kRandomWeightsSeed);
     // Ctrl-C / SIGTERM: finish the current batch, commit, exit.
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);

@@ -15,11 +15,6 @@
 #include "pipeline/physics/probe_batch.h"
 #include "pipeline/resample/probe_resampler.h"
 
-namespace {
-// Seed of torch's global generator for the random initialisation of --random-weights.
-constexpr uint64_t kRandomWeightsSeed = 0;
-}  // namespace
-
 int main(int argc, char** argv) {
   CLI::App app{"Physics probe: penetration resolution, gravity diagnostics, stretch-or-resample decision, final "
                "settle and the paper's metrics of a reconstructed scene (MuJoCo)"};
@@ -79,9 +74,6 @@ int main(int argc, char** argv) {
     if (resample) {
       if (rcfg.embedder_config.empty())
         simu::fail_hint("pass --embedder-config (and --embedder-weights)", "--resample needs the condition embedder");
-      // Modules without weights keep their random initialisation, drawn from torch's global generator,
-      // which LibTorch seeds from the OS: a fixed seed makes two runs build the same models.
-      if (rcfg.random_weights) torch::manual_seed(kRandomWeightsSeed);
       resampler = std::make_unique<simu::resample::Resampler>(rcfg);
       simu::log::info("resampler loaded on {} ({}){}", resampler->device().str(),
                       simu::models::precision_name(resampler->precision()),

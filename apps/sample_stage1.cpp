@@ -34,7 +34,7 @@ torch::Tensor read_condition(const std::string& path, const std::string& key) {
 // --step-cache K (0 = off) and its settings (models/step_cache.h).
 void add_step_cache_options(CLI::App& app, int& interval, simu::models::StepCacheOptions& o) {
   app.add_option("--step-cache", interval,
-                 "opt-in step caching (README \"Stage-1 step caching\"): a full model evaluation at least every K steps, "
+                 "opt-in step caching (docs/step_cache.md): a full model evaluation at least every K steps, "
                  "the shape velocity extrapolated and the pose velocity momentum-anchored in between; faster, at a "
                  "measured cost in fidelity. 0 = off (full sampling)")
       ->capture_default_str()

@@ -7,11 +7,9 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
-#include "training/cond_inputs.h"
 #include "training/distributed.h"
 #include "training/launcher.h"
-#include "training/generator_policy.h"
-#include "training/trainer.h"
+#include "training/train_run.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"FM-DPO fine-tuning of the shape branch's LoRA adapters on cached latent preference pairs"};
@@ -32,17 +30,12 @@ int main(int argc, char** argv) {
       launch_local_ranks(nproc, relaunch_args(argc, argv), std::chrono::seconds(static_cast<int64_t>(cfg.dist.hang_timeout_s)));
       return 0;
     }
-    const auto env = DistEnv::from_environment();
-    simu::log::set_rank(env.rank);
-    auto cfg = TrainConfig::load(config_path, common.sets);
-    prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/env.rank == 0);
-    const torch::Device device = rank_device(cfg.train.device, env.local_rank);
-    auto comm = Communicator::create(env, device, std::chrono::milliseconds(static_cast<int64_t>(cfg.dist.timeout_s * 1000)));
-    auto model = make_generator_policy(cfg, device);
-    Trainer trainer(cfg, *model, pair_cache_source(cfg.data.cache, cfg.data.prefetch), *comm, device);
-    attach_condition_embedder(trainer, cfg, device);  // inputs-mode caches: the embedder runs in the step
-    if (!resume.empty()) trainer.resume(resolve_resume(cfg.run.out_dir + "/checkpoints", resume));
-    trainer.run();
+    TrainRunOptions run;
+    run.env = DistEnv::from_environment();
+    simu::log::set_rank(run.env.rank);
+    run.resume = resume;
+    run.overwrite = overwrite;
+    run_training(TrainConfig::load(config_path, common.sets), run);
     return 0;
   });
 }

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Compare the loss/accuracy curves of two FM-DPO runs on the same cache: the bf16 base and the FP8
-frozen base (configs/fp8_curves.yaml, README "FP8 frozen base").
+frozen base (configs/fp8_curves.yaml, docs/training.md "FP8 frozen base").
 
     scripts/fp8_curves.py --bf16 runs/fp8_curves/bf16/metrics.jsonl --fp8 runs/fp8_curves/fp8/metrics.jsonl \
         --csv runs/fp8_curves/curves.csv [--png runs/fp8_curves/curves.png] [--window 50]

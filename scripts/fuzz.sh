@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fuzzing harness (README "Fuzzing"): libFuzzer targets of fuzz/ built with clang and
+# Fuzzing harness (docs/fuzzing.md): libFuzzer targets of fuzz/ built with clang and
 # AddressSanitizer + UndefinedBehaviorSanitizer in their own build dir.
 #   scripts/fuzz.sh --build-only                 configure + build the targets
 #   scripts/fuzz.sh --smoke                      replay every seed and regression input, then fuzz each

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# The FP8 frozen base's device measurements (README "FP8 frozen base"), after scripts/gpu_build_test.sh
-# has built build-gpu/ (targets fp8_fidelity, bench_fmdpo, pairs, train_fmdpo). Tables go to $OUT (or
-# ./bench-out). Each part takes a few minutes at most on one H100/H200:
+# The FP8 frozen base's device measurements (docs/training.md "FP8 frozen base"; figures in
+# docs/benchmarks.md), after scripts/gpu_build_test.sh has built build-gpu/ (targets fp8_fidelity,
+# bench_fmdpo, pairs, train_fmdpo). Tables go to $OUT (or ./bench-out). Each part takes a few
+# minutes at most on one H100/H200:
 #   bash scripts/gpu_fp8.sh fidelity   # fp8_fidelity at 2,800 (with fp32) and 7,528 tokens, two lora_B scales
 #   bash scripts/gpu_fp8.sh speed      # bench_fmdpo --fp8-base off,on,all at 7,528 and 2,800, micro 4 (PEAK: TFLOP/s)
 #   bash scripts/gpu_fp8.sh curves     # two 300-step runs (bf16 base, FP8 base) on one cache -> curves.csv

@@ -28,7 +28,7 @@ APT_PKGS=(
   libre2-dev
   libnanoflann-dev
   clang libclang-rt-dev
-  python3-venv
+  python3-venv python3-dev
 )
 missing=()
 for p in "${APT_PKGS[@]}"; do
@@ -77,6 +77,16 @@ if ! [ -f "$VENV/.mujoco-$MUJOCO_PY_VERSION" ]; then
   touch "$VENV/.mujoco-$MUJOCO_PY_VERSION"
 fi
 
+# The Python module's test and type-check tools, and the packages its tests hand results to (tests/python,
+# docs/python.md); scikit-build-core builds the wheel (pip install --no-build-isolation .).
+PY_TEST_PINS=("pytest==9.2.0" "mypy==2.4.1" "trimesh==5.2.0" "peft==0.21.2" "scikit-build-core==1.1.2")
+PY_TEST_STAMP="$VENV/.pytools-$(printf '%s' "${PY_TEST_PINS[*]}" | md5sum | cut -c1-12)"
+if ! [ -f "$PY_TEST_STAMP" ]; then
+  log "installing ${PY_TEST_PINS[*]} into $VENV"
+  "$VENV/bin/python" -m pip install -q "${PY_TEST_PINS[@]}"
+  touch "$PY_TEST_STAMP"
+fi
+
 [ "${1:-}" = "--deps" ] && exit 0
 
 # Configure (once) and build.
@@ -87,3 +97,15 @@ if ! [ -f "$BUILD/build.ninja" ]; then
     -DCMAKE_PREFIX_PATH="$TORCH_PREFIX" -DSIMU_PYTHON="$VENV/bin/python" >/dev/null
 fi
 cmake --build "$BUILD" -- -j"${JOBS:-$(nproc)}" >"$BUILD/build.log" 2>&1 || { tail -n 60 "$BUILD/build.log" >&2; echo "[setup] build failed: full log in $BUILD/build.log" >&2; exit 1; }
+
+# The Python module into the project's venv (pip install --no-build-isolation . reuses this build tree:
+# only the install step runs). Skipped where .deps is a link to another checkout's venv (git worktrees
+# share the main checkout's), so a worktree never installs its branch into someone else's environment;
+# and for other BUILD_DIRs (pyproject.toml names build/).
+MODULE="$(ls "$BUILD"/python/simuscene/_core*.so 2>/dev/null | head -1)"
+if [ -n "$MODULE" ] && [ "$BUILD" = "$ROOT/build" ] && ! [ -L "$DEPS" ] && { ! [ -f "$VENV/.simuscene-installed" ] || [ "$MODULE" -nt "$VENV/.simuscene-installed" ]; }; then
+  log "installing the simuscene Python package into $VENV (pip install --no-build-isolation .)"
+  "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps "$ROOT" >"$BUILD/pip-install.log" 2>&1 ||
+    { tail -n 30 "$BUILD/pip-install.log" >&2; echo "[setup] pip install of the Python package failed: $BUILD/pip-install.log" >&2; exit 1; }
+  touch "$VENV/.simuscene-installed"
+fi

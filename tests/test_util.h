@@ -1,4 +1,5 @@
-// Helpers shared by the torch test suites: test_files.h plus tensor comparison with tolerances.
+// Helpers shared by the torch test suites: test_files.h, the rounding model of every tolerance
+// (tolerance.h) and tensor comparison with a tolerance.
 #pragma once
 
 #include <gtest/gtest.h>
@@ -13,6 +14,7 @@
 
 #include "common/error.h"
 #include "test_files.h"
+#include "tolerance.h"
 
 namespace simu::testing {
 

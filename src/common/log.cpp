@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <memory>
 #include <mutex>
 
 #include "common/error.h"
@@ -24,6 +25,7 @@ Level initial_level() {
 std::atomic<int> g_level{static_cast<int>(initial_level())};
 std::atomic<int> g_rank{-1};
 std::mutex g_mutex;
+std::shared_ptr<const Sink> g_sink;  // null: stderr
 
 }  // namespace
 
@@ -40,8 +42,27 @@ Level parse_level(const std::string& name) {
   fail("unknown log level '{}': expected debug, info, warn, error or off", name);
 }
 
+void set_sink(Sink sink) {
+  std::lock_guard<std::mutex> lock(g_mutex);
+  g_sink = sink ? std::make_shared<const Sink>(std::move(sink)) : nullptr;
+}
+
+bool has_sink() {
+  std::lock_guard<std::mutex> lock(g_mutex);
+  return static_cast<bool>(g_sink);
+}
+
 void write(Level l, const std::string& line) {
   static const char* names[] = {"debug", "info", "warn", "error", "off"};
+  std::shared_ptr<const Sink> sink;
+  {
+    std::lock_guard<std::mutex> lock(g_mutex);
+    sink = g_sink;
+  }
+  if (sink) {
+    (*sink)(l, line);  // outside the lock: the sink may take other locks (the Python GIL)
+    return;
+  }
   std::lock_guard<std::mutex> lock(g_mutex);
   const int rank = g_rank.load();
   if (rank >= 0) {

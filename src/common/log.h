@@ -3,6 +3,7 @@
 
 #include <fmt/format.h>
 
+#include <functional>
 #include <string>
 
 namespace simu::log {
@@ -18,6 +19,13 @@ Level parse_level(const std::string& name);
 void set_rank(int rank);
 // Writes one already formatted line at the given level.
 void write(Level level, const std::string& line);
+// Where lines go instead of stderr (the Python module forwards them to Python's logging); nullptr
+// restores stderr. The sink is called outside the log's lock, from whichever thread logs, with the
+// line without level or rank prefix. Thread-safe.
+using Sink = std::function<void(Level level, const std::string& line)>;
+void set_sink(Sink sink);
+// Whether a sink is installed (progress displays then log their plain lines instead of drawing on stderr).
+bool has_sink();
 
 template <typename... Args>
 void debug(fmt::format_string<Args...> f, Args&&... a) {

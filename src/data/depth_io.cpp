@@ -361,12 +361,12 @@ cv::Mat imread_checked(const std::string& path, int flags, const std::string& wh
 }
 #endif
 
-// [H, W] float32 depth with every non-positive or non-finite value made NaN.
+}  // namespace
+
 torch::Tensor clean_depth(torch::Tensor z) {
   z = z.to(torch::kFloat32);
   return torch::where(torch::isfinite(z) & (z > 0), z, torch::full_like(z, NAN));
 }
-}  // namespace
 
 torch::Tensor read_depth(const std::string& path) {
   const std::string ext = lower_ext(path);

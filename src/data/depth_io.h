@@ -71,6 +71,9 @@ Intrinsics read_intrinsics_json(const std::string& path);
 //   .exr: float, metres (first channel); needs an OpenCV with OpenEXR, enabled here through
 //         OPENCV_IO_ENABLE_OPENEXR=1 (set for this process unless the user set it).
 torch::Tensor read_depth(const std::string& path);
+// Depth values [H, W] (metres, any float dtype) as read_depth returns them: float32, every non-positive
+// or non-finite value made NaN.
+torch::Tensor clean_depth(torch::Tensor z);
 
 // Point map [H, W, 3] float32 from an .npy of shape [H, W, 3] (MoGe's `points`, float32 or float64),
 // read as it is: OpenCV camera, +-inf / NaN kept (they mark invalid points).

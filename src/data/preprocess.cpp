@@ -347,6 +347,32 @@ torch::Tensor read_mask(const std::string& path) {
 #endif
 }
 
+torch::Tensor rgb_from_uint8(const torch::Tensor& image, const std::string& what) {
+  SIMU_CHECK(image.dim() == 3 && image.size(2) == 3 && image.scalar_type() == torch::kUInt8,
+             "{}: expected an RGB image [H, W, 3] uint8, got {} {}", what, image.sizes(), c10::toString(image.scalar_type()));
+#ifdef SIMU_HAVE_OPENCV
+  const auto c = image.contiguous().cpu();
+  const cv::Mat m(static_cast<int>(c.size(0)), static_cast<int>(c.size(1)), CV_8UC3, const_cast<uint8_t*>(c.data_ptr<uint8_t>()));
+  std::vector<cv::Mat> ch;
+  cv::split(m, ch);
+  return torch::stack({channel_to_tensor(ch[0], what), channel_to_tensor(ch[1], what), channel_to_tensor(ch[2], what)});
+#else
+  fail("{}: converting images needs OpenCV (built with SIMU_WITH_OPENCV=OFF)", what);
+#endif
+}
+
+torch::Tensor mask_from_uint8(const torch::Tensor& mask, const std::string& what) {
+  SIMU_CHECK(mask.dim() == 2 && mask.scalar_type() == torch::kUInt8, "{}: expected a mask [H, W] uint8, got {} {}", what,
+             mask.sizes(), c10::toString(mask.scalar_type()));
+#ifdef SIMU_HAVE_OPENCV
+  const auto c = mask.contiguous().cpu();
+  const cv::Mat m(static_cast<int>(c.size(0)), static_cast<int>(c.size(1)), CV_8UC1, const_cast<uint8_t*>(c.data_ptr<uint8_t>()));
+  return channel_to_tensor(m, what);
+#else
+  fail("{}: converting masks needs OpenCV (built with SIMU_WITH_OPENCV=OFF)", what);
+#endif
+}
+
 ConditionInputs prepare_condition_inputs_from_files(const std::string& image_path, const std::string& mask_path,
                                                     const torch::Tensor& pointmap, const PreprocessConfig& config,
                                                     const std::string& crop_mask_path) {

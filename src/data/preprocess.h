@@ -121,6 +121,11 @@ ConditionInputs prepare_condition_inputs(const torch::Tensor& rgb, const torch::
 torch::Tensor read_image_rgb(const std::string& path, torch::Tensor* alpha = nullptr);
 // Mask [H,W] in [0,1]: a grey file as is, the alpha channel of an RGBA file, else the channel maximum.
 torch::Tensor read_mask(const std::string& path);
+// Pixels in memory converted exactly as read_image_rgb / read_mask convert a file's (OpenCV's k / 255):
+// an 8-bit RGB image [H,W,3] uint8 -> [3,H,W] float in [0,1]; an 8-bit mask [H,W] uint8 -> [H,W] float.
+// `what` names the array in errors (wrong shape or dtype).
+torch::Tensor rgb_from_uint8(const torch::Tensor& image, const std::string& what);
+torch::Tensor mask_from_uint8(const torch::Tensor& mask, const std::string& what);
 // Files -> inputs. An empty mask_path uses the image's alpha channel; crop_mask_path is optional.
 ConditionInputs prepare_condition_inputs_from_files(const std::string& image_path, const std::string& mask_path,
                                                     const torch::Tensor& pointmap,

@@ -112,7 +112,7 @@ std::string fp8_scope_name(Fp8Scope s);
 // compute their frozen x W^T + b with e4m3 GEMMs (W quantised now, once, per output channel; inputs
 // per row at each call; bf16 out), their input gradient as `backward` says; the adapters, the loss and
 // the optimizer are untouched. disabled -> every FP8 copy under root is freed and the layers are
-// bit-identical to before. Costs fidelity (measured by bench/fp8_fidelity, README "FP8 frozen base").
+// bit-identical to before. Costs fidelity (measured by bench/fp8_fidelity, docs/benchmarks.md "FP8 frozen base").
 // Re-enabling re-quantises (after the base weights changed). Errors: merged adapters (merge changes
 // W), no adapters at all. Device checks are the caller's (models::require_fp8_device); on CPU the
 // products run through the reference emulation (tests). Returns the layers switched.

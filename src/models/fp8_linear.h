@@ -1,5 +1,5 @@
 // FP8 (e4m3) frozen-weight linear products: the opt-in "FP8 frozen base" of FM-DPO training
-// (train.fp8_base, docs in README "FP8 frozen base").
+// (train.fp8_base, docs/training.md "FP8 frozen base").
 //
 // What it does. A frozen weight W [out, in] is quantised once to e4m3 with one fp32 scale per output
 // channel (row of W); each call quantises its input x [rows, in] with one scale per row (token), and
@@ -18,7 +18,7 @@
 //
 // What it costs in fidelity: e4m3 rounds each operand element to 3 mantissa bits (relative error
 // <= 2^-4 for normal values, RMS about 2^-4/sqrt(3)); the measured cost on the FM-DPO gradients
-// (cosine vs the bf16 step, d_theta - d_ref) is bench/fp8_fidelity's output, figures in the README.
+// (cosine vs the bf16 step, d_theta - d_ref) is bench/fp8_fidelity's output, figures in docs/benchmarks.md.
 // Opt-in only: nothing uses it unless train.fp8_base (or set_fp8_base) switches it on.
 //
 // Reference path: on a CPU tensor fp8_matmul emulates the product exactly as specified above

@@ -1,5 +1,6 @@
 // Stage-1 generator (generator.h): configs, the official inference sampler values, classifier-free
 // guidance and the sampling loop. The CUDA graphs it samples through: sampling_graphs.cpp.
+#include "common/cancel.h"
 #include "models/generator.h"
 
 #include <fmt/ranges.h>
@@ -317,6 +318,7 @@ Latents GeneratorImpl::sample(const torch::Tensor& cond, const Latents& x0, cons
   };
   auto cache = make_step_cache(o);
   for (int i = 0; i < o.steps; ++i) {
+    simu::check_cancel();  // an embedding program's interrupt (common/cancel.h): between steps only
     const double t0 = grid[i], dt = tp(grid[i + 1] - grid[i]);
     if (cache) {
       // Step caching: a full evaluation (recorded) or the cache's prediction.

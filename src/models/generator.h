@@ -92,8 +92,8 @@ struct SampleOptions {
   std::function<void(int, int)> on_step;
   // Opt-in step caching (models/step_cache.h; euler only): full flow-model evaluations on some steps,
   // the shape velocity extrapolated in t and the pose velocity momentum-anchored on the others. Faster
-  // by about the fraction of skipped full evaluations, at a measured cost in fidelity (README "Stage-1
-  // step caching"). Default off: the sampler is then exactly the full one.
+  // by about the fraction of skipped full evaluations, at a measured cost in fidelity
+  // (docs/step_cache.md). Default off: the sampler is then exactly the full one.
   StepCacheOptions step_cache;
 
   // Defaults from the config (inference_steps, CFG strength/interval, rescale_t, !no_shortcut, solver):

@@ -3,6 +3,8 @@
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
+#include <cmath>
+
 #include "common/error.h"
 
 namespace simu::models {
@@ -138,6 +140,77 @@ torch::Tensor apply_pose(const DecodedPose& pose, int64_t b, const torch::Tensor
   const auto p = points.to(torch::kFloat32).to(pose.rotation.device());
   // Row-vector form as the official Transform3d: (p * s) @ R + t.
   return (p * pose.scale[b]).matmul(pose.rotation_official[b]) + pose.translation[b];
+}
+
+
+std::map<std::string, torch::Tensor> encode_pose(const InstancePose& pose, const PoseDecodeOptions& options) {
+  const auto& conv = options.convention;
+  SIMU_CHECK(conv == "ScaleShiftInvariant" || conv == "ScaleShiftInvariantWTranslationScale" || conv == "ApparentSize" ||
+                 conv == "default",
+             "encode_pose: unknown pose convention '{}' (expected ScaleShiftInvariant, "
+             "ScaleShiftInvariantWTranslationScale, ApparentSize or default)",
+             conv);
+  SIMU_CHECK(pose.rotation.defined() && pose.rotation.dim() == 3 && pose.rotation.size(1) == 3 && pose.rotation.size(2) == 3,
+             "encode_pose: rotation must be [B, 3, 3], got {}", pose.rotation.defined() ? pose.rotation.sizes() : c10::IntArrayRef{});
+  const int64_t B = pose.rotation.size(0);
+  SIMU_CHECK(pose.translation.defined() && pose.translation.sizes() == (c10::IntArrayRef{B, 3}),
+             "encode_pose: translation must be [{}, 3], got {}", B,
+             pose.translation.defined() ? pose.translation.sizes() : c10::IntArrayRef{});
+  SIMU_CHECK(pose.scale.defined() && pose.scale.dim() == 2 && pose.scale.size(0) == B &&
+                 (pose.scale.size(1) == 3 || pose.scale.size(1) == 1),
+             "encode_pose: scale must be [{}, 3] or [{}, 1], got {}", B, B,
+             pose.scale.defined() ? pose.scale.sizes() : c10::IntArrayRef{});
+  SIMU_CHECK(options.scene_scale > 0 && std::isfinite(options.scene_scale),
+             "encode_pose: scene_scale must be positive, got {}", options.scene_scale);
+  // Float64 throughout: the latents then carry one float32 rounding each.
+  const auto f64 = torch::TensorOptions().dtype(torch::kFloat64).device(pose.rotation.device());
+  const auto R = pose.rotation.to(torch::kFloat64);                            // [B, 3, 3]
+  const auto t = pose.translation.to(torch::kFloat64);                         // [B, 3]
+  const auto s = pose.scale.to(torch::kFloat64).expand({B, 3}).contiguous();  // [B, 3]
+  // Inputs the decoder can give back: proper rotations, positive finite scales.
+  const auto ortho = (R.transpose(1, 2).matmul(R) - torch::eye(3, f64)).abs().amax({1, 2});  // [B]
+  const auto det = torch::linalg_det(R);                                                        // [B]
+  for (int64_t b = 0; b < B; ++b) {
+    const double o = ortho[b].item<double>(), d = det[b].item<double>();
+    SIMU_CHECK(o <= 1e-4 && d > 0, "encode_pose: rotation {} is not a proper rotation (max |R^T R - I| {:.3g}, det {:.6g})",
+               b, o, d);
+    const double smin = s[b].min().item<double>();
+    SIMU_CHECK(smin > 0 && std::isfinite(s[b].sum().item<double>()), "encode_pose: scale {} must be positive, got {}", b,
+               smin);
+  }
+  const double s_scene = options.scene_scale;
+  const auto shift = torch::tensor({options.scene_shift[0], options.scene_shift[1], options.scene_shift[2]}, f64)
+                         .unsqueeze(0);  // [1, 3]
+  torch::Tensor scale, translation, translation_scale;  // [B, 3], [B, 3], [B, 1] in float64
+  if (conv == "default") {
+    scale = torch::log(s);
+    translation = t;
+    translation_scale = torch::zeros({B, 1}, f64);
+  } else if (conv == "ScaleShiftInvariant") {
+    scale = torch::log(s / s_scene);
+    translation = (t - shift) / s_scene;
+    translation_scale = torch::zeros({B, 1}, f64);
+  } else if (conv == "ScaleShiftInvariantWTranslationScale") {
+    const auto d = (t - shift) / s_scene;
+    const auto n = d.norm(2, -1, true).clamp_min(1e-7);  // [B, 1]
+    scale = torch::log(s / s_scene);
+    translation = d / n;
+    translation_scale = torch::log(n);
+  } else {  // ApparentSize: s_tilde = s_rel / |t_rel|, t_unit = t_rel / |t_rel|
+    const auto t_rel = t / s_scene;
+    const auto n = t_rel.norm(2, -1, true).clamp_min(1e-8);  // [B, 1]
+    scale = torch::log(s / s_scene / n);
+    translation = t_rel / n;
+    translation_scale = torch::log(n);
+  }
+  // The rotation: the official R is rotation^T; its first two columns, standardised.
+  const auto Ro = R.transpose(1, 2);
+  const auto rot6d = torch::cat({Ro.select(-1, 0), Ro.select(-1, 1)}, -1);  // [B, 6]
+  const auto mean = rotation_6d_mean().to(f64.device()).to(torch::kFloat64), std = rotation_6d_std().to(f64.device()).to(torch::kFloat64);
+  return {{"6drotation_normalized", ((rot6d - mean) / std).to(torch::kFloat32)},
+          {"scale", scale.to(torch::kFloat32)},
+          {"translation", translation.to(torch::kFloat32)},
+          {"translation_scale", translation_scale.to(torch::kFloat32)}};
 }
 
 }  // namespace simu::models

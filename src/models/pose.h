@@ -1,4 +1,7 @@
-// Pose decoding of SAM 3D Objects Stage 1: the generator's pose latents -> rotation, translation, scale,
+// Pose decoding of SAM 3D Objects Stage 1 (the generator's pose latents -> rotation, translation, scale)
+// and its exact inverse, the pose encoding (a pose -> the latents a Stage-1 model is trained to produce).
+//
+// Decoding: the generator's pose latents -> rotation, translation, scale,
 // as the official `pose_decoder(convention)` (sam3d_objects/pipeline/inference_utils.py) with
 // `PoseTargetConverter` (sam3d_objects/data/dataset/tdfy/pose_target.py) computes them.
 //
@@ -64,5 +67,31 @@ DecodedPose decode_pose(const std::map<std::string, torch::Tensor>& latents, con
 
 // Applies pose b to object-frame points [N, 3] -> camera-frame points [N, 3].
 torch::Tensor apply_pose(const DecodedPose& pose, int64_t b, const torch::Tensor& points);
+
+// A pose to encode, in DecodedPose's column-vector convention: p = rotation @ (scale * p_obj) + translation,
+// in the frame of the point map the preprocessing normalised (its scale/shift go in PoseDecodeOptions).
+struct InstancePose {
+  torch::Tensor rotation;     // [B, 3, 3] proper rotations (R^T R = I, det +1)
+  torch::Tensor translation;  // [B, 3]
+  torch::Tensor scale;        // [B, 3] per axis, positive ([B, 1]: the same on every axis)
+};
+
+// The pose encoding: the exact inverse of decode_pose for the same options, as the official
+// `PoseTargetConvention.from_instance_pose` of each convention builds its targets, followed by the
+// inverse of the decoder's latent maps (log for scale and translation_scale, the normalised 6-D
+// rotation: the first two columns of the official R = rotation^T, standardised by ROTATION_6D_MEAN/STD).
+// Per convention, with d = (translation - shift) / s_scene:
+//   ScaleShiftInvariant: scale = log(s / s_scene), translation = d, translation_scale = log 1 = 0
+//     (the official targets' x_translation_scale is ones; the decoder ignores it);
+//   ScaleShiftInvariantWTranslationScale: translation = d / |d|, translation_scale = log |d|,
+//     scale = log(s / s_scene) (|d| clamped at 1e-7, as the official);
+//   ApparentSize (no shift, as its decoder): t_rel = translation / s_scene, translation = t_rel / |t_rel|,
+//     translation_scale = log |t_rel|, scale = log(s / s_scene / |t_rel|) (|t_rel| clamped at 1e-8);
+//   default: scale = log(s), translation as is, translation_scale = 0.
+// Returns float32 latents by official name, one token each: "6drotation_normalized" [B, 6], "scale"
+// [B, 3], "translation" [B, 3], "translation_scale" [B, 1], on the pose's device. decode_pose of them
+// gives the pose back (scale as scale_per_axis) up to float32 rounding. Errors name the batch entry
+// whose rotation is not a proper rotation (tolerance 1e-4) or whose scale is not positive.
+std::map<std::string, torch::Tensor> encode_pose(const InstancePose& pose, const PoseDecodeOptions& options = {});
 
 }  // namespace simu::models

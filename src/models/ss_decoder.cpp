@@ -117,17 +117,17 @@ SparseStructureDecoderImpl::SparseStructureDecoderImpl(SSDecoderConfig config) :
   const auto& ch = config_.channels;
   input_layer = register_module("input_layer", conv3d(config_.latent_channels, ch[0], 3));
 
-  // Middle: residual blocks at the latent resolution.
+  // Middle: residual blocks at the latent resolution. Residual blocks always use layer norm: the
+  // official constructor builds ResBlock3d(ch, ch) without norm_type, which only reaches out_layer.
   middle_block = torch::nn::Sequential();
-  for (int64_t i = 0; i < config_.num_res_blocks_middle; ++i)
-    middle_block->push_back(ResBlock3d(ch[0], ch[0], config_.norm_type));
+  for (int64_t i = 0; i < config_.num_res_blocks_middle; ++i) middle_block->push_back(ResBlock3d(ch[0], ch[0], "layer"));
   register_module("middle_block", middle_block);
 
   // Per level: residual blocks, then a x2 upsampling to the next level's width.
   blocks = torch::nn::ModuleList();
   for (size_t level = 0; level < ch.size(); ++level) {
     for (int64_t i = 0; i < config_.num_res_blocks; ++i) {
-      ResBlock3d block(ch[level], ch[level], config_.norm_type);
+      ResBlock3d block(ch[level], ch[level], "layer");
       blocks->push_back(block);
       block_forward_.push_back([block](const torch::Tensor& h) mutable { return block->forward(h); });
     }

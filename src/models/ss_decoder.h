@@ -8,7 +8,7 @@
 //   input_layer (Conv3d latent->channels[0], k3)
 //   middle_block.<i> (ResBlock3d: norm1, conv1, norm2, conv2[, skip_connection])
 //   blocks.<i> (per level: num_res_blocks ResBlock3d, then an UpsampleBlock3d `conv` to the next level)
-//   out_layer.0 (channel norm), out_layer.1 (SiLU), out_layer.2 (Conv3d -> out_channels, k3)
+//   out_layer.0 (norm of norm_type), out_layer.1 (SiLU), out_layer.2 (Conv3d -> out_channels, k3)
 #pragma once
 
 #include <torch/torch.h>
@@ -28,7 +28,9 @@ struct SSDecoderConfig {
   int64_t num_res_blocks = 2;
   std::vector<int64_t> channels = {512, 128, 32};
   int64_t num_res_blocks_middle = 2;
-  std::string norm_type = "layer";  // "layer" (ChannelLayerNorm32) or "group" (GroupNorm32, 32 groups)
+  // The output head's norm: "layer" (ChannelLayerNorm32) or "group" (GroupNorm32, 32 groups). The residual
+  // blocks use layer norm either way, as the official constructor builds them.
+  std::string norm_type = "layer";
   // Official flag: forward() first turns [B, T, C] tokens into a cube with `flat_to_cube`.
   bool reshape_input_to_cube = false;
   // Official flag: the torso (middle_block, blocks) runs in float16; input/output layers in float32.

@@ -16,8 +16,8 @@
 // Cost in fidelity: the cheap steps integrate a predicted, not evaluated, velocity; the sample differs
 // from full sampling with the same noise. It is opt-in (StepCacheOptions::enabled, default off: the
 // sampler is then exactly the full one) and its error is measured, not assumed: tests/models/
-// step_cache_test.cpp (small fixture model) and bench/bench_step_cache_fidelity.cpp (decoded 64^3
-// occupancy IoU and pose differences); README "Stage-1 step caching". Only the euler solver.
+// step_cache_test.cpp (small fixture model) and bench/bench_step_cache.cpp (decoded 64^3
+// occupancy IoU and pose differences); docs/step_cache.md. Only the euler solver.
 #pragma once
 
 #include <torch/torch.h>

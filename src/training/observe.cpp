@@ -14,6 +14,7 @@
 
 #include "common/error.h"
 #include "common/fs.h"
+#include "common/log.h"
 
 namespace simu::training {
 
@@ -185,7 +186,7 @@ Progress::Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t ev
     : total_(total_steps), start_(start_step), every_(std::max<int64_t>(every, 1)), tty_(tty), unit_(std::move(unit)),
       began_(std::chrono::steady_clock::now()) {}
 
-bool Progress::stderr_is_tty() { return ::isatty(STDERR_FILENO) == 1; }
+bool Progress::stderr_is_tty() { return ::isatty(STDERR_FILENO) == 1 && !simu::log::has_sink(); }
 
 void Progress::update(int64_t step, double loss, double accuracy, double lr, double per_s) {
   const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - began_).count();
@@ -204,6 +205,10 @@ void Progress::update(int64_t step, double loss, double accuracy, double lr, dou
                  static_cast<long long>(total_), stats.c_str());
     std::fflush(stderr);
   } else if (step % every_ == 0 || step == total_) {
+    if (simu::log::has_sink()) {  // an embedding program's log (the Python module's logging)
+      simu::log::info("step {}/{} {}", step, total_, stats);
+      return;
+    }
     std::fprintf(stderr, "step %lld/%lld %s\n", static_cast<long long>(step), static_cast<long long>(total_),
                  stats.c_str());
     std::fflush(stderr);

@@ -12,14 +12,6 @@ namespace simu::training {
 
 namespace {
 
-// A string key (when present) that must be one of `allowed`.
-void choice(simu::config::Reader& r, const char* key, std::string& value, std::initializer_list<const char*> allowed) {
-  r.field(key, value);
-  for (const char* a : allowed)
-    if (value == a) return;
-  fail("{}: key '{}': expected '{}', got '{}'", r.file(), r.full(key), fmt::join(allowed, "' or '"), value);
-}
-
 template <class T>
 T section(simu::config::Reader& r, const char* name) {
   auto s = r.child(name);
@@ -38,7 +30,7 @@ Stage1ModelConfig Stage1ModelConfig::from(simu::config::Reader& r) {
 
 TargetsConfig TargetsConfig::from(simu::config::Reader& r) {
   TargetsConfig c;
-  choice(r, "kind", c.kind, {"encoder", "random_linear"});
+  simu::config::choice_field(r, "kind", c.kind, {"encoder", "random_linear"});
   r.field("encoder_config", c.encoder_config);
   r.field("encoder_weights", c.encoder_weights);
   r.field("seed", c.seed);
@@ -92,8 +84,8 @@ EmaConfig EmaConfig::from(simu::config::Reader& r) {
 
 ExportConfig ExportConfig::from(simu::config::Reader& r) {
   ExportConfig c;
-  choice(r, "weights", c.weights, {"ema", "raw"});
-  choice(r, "dtype", c.dtype, {"float32", "float16"});
+  simu::config::choice_field(r, "weights", c.weights, {"ema", "raw"});
+  simu::config::choice_field(r, "dtype", c.dtype, {"float32", "float16"});
   return c;
 }
 

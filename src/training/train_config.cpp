@@ -7,6 +7,7 @@
 
 #include <fmt/ranges.h>
 
+#include "common/config_check.h"
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
@@ -18,25 +19,8 @@ namespace stdfs = std::filesystem;
 
 namespace {
 
-// Reads an integer key (when present) and checks that it lies in [lo, hi]: an error naming the file
-// and the key otherwise.
-template <class T>
-void int_field(simu::config::Reader& r, const char* key, T& value, int64_t lo,
-               int64_t hi = std::numeric_limits<int64_t>::max()) {
-  r.field(key, value);
-  const int64_t v = static_cast<int64_t>(value);
-  if (v >= lo && v <= hi) return;
-  const std::string range = hi == std::numeric_limits<int64_t>::max() ? fmt::format(">= {}", lo) : fmt::format("in {}..{}", lo, hi);
-  fail("{}: key '{}': expected an integer {}, got {}", r.file(), r.full(key), range, v);
-}
-
-// Reads a string key (when present) that must be one of `allowed`.
-void choice_field(simu::config::Reader& r, const char* key, std::string& value, std::initializer_list<const char*> allowed) {
-  r.field(key, value);
-  for (const char* a : allowed)
-    if (value == a) return;
-  fail("{}: key '{}': expected '{}', got '{}'", r.file(), r.full(key), fmt::join(allowed, "' or '"), value);
-}
+using simu::config::choice_field;
+using simu::config::int_field;
 
 // Reads a number of seconds (when present) in (0, one week].
 void seconds_field(simu::config::Reader& r, const char* key, double& value) {
@@ -151,16 +135,20 @@ void prepare_out_dir(const TrainerConfig& cfg, bool resuming, bool overwrite, bo
   if (cfg.data.cache.empty())
     fail_hint(fmt::format("set data.cache in the config or pass --set data.cache=PATH ({})", build_hint),
               "{}: key 'data.cache' is missing: the cache (.h5) to train on", cfg.file);
+  prepare_run_dir(cfg.file, cfg.run.out_dir, {"checkpoints", "adapter", "model", "metrics.jsonl", "tensorboard"},
+                  resuming, overwrite, lead);
+}
+
+void prepare_run_dir(const std::string& config_file, const std::string& out, const std::vector<std::string>& outputs,
+                     bool resuming, bool overwrite, bool lead) {
   if (resuming) return;
-  namespace stdfs = std::filesystem;
-  const std::string out = cfg.run.out_dir;
   std::vector<std::string> found;
-  for (const char* name : {"checkpoints", "adapter", "model", "metrics.jsonl", "tensorboard"})
+  for (const auto& name : outputs)
     if (stdfs::exists(stdfs::path(out) / name)) found.push_back(name);
   if (found.empty()) return;
   if (!overwrite)
     fail_hint("pass --resume latest to continue that run, --overwrite to replace it, or --set run.out_dir=NEW",
-              "{}: run.out_dir '{}' already holds an earlier run ({})", cfg.file, out, fmt::join(found, ", "));
+              "{}: run.out_dir '{}' already holds an earlier run ({})", config_file, out, fmt::join(found, ", "));
   if (!lead) return;
   for (const auto& name : found) simu::fs::remove_tree((stdfs::path(out) / name).string());
   simu::log::info("--overwrite: removed the earlier run's {} from {}", fmt::join(found, ", "), out);

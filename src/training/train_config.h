@@ -44,7 +44,7 @@ struct LoopConfig {
   bool activation_checkpointing = false;  // recompute each transformer block in backward (per-block checkpointing)
   // Opt-in FP8 frozen base (models/fp8_linear.h): the LoRA-wrapped base projections run as e4m3 GEMMs
   // (weights quantised once after loading, inputs per call; adapters, loss and optimizer unchanged).
-  // Faster, costs fidelity (README "FP8 frozen base" has the measured figures). Needs device cuda with
+  // Faster, costs fidelity (docs/benchmarks.md "FP8 frozen base" has the measured figures). Needs device cuda with
   // compute capability >= 8.9 and precision bf16.
   bool fp8_base = false;
   std::string fp8_base_backward = "fp8";  // the base's input gradients: "fp8" (e4m3) or "bf16"
@@ -108,5 +108,9 @@ struct TrainConfig : TrainerConfig {
 // refuses an empty data.cache (naming the config file and key; `build_hint` says how to make one).
 void prepare_out_dir(const TrainerConfig& cfg, bool resuming, bool overwrite, bool lead,
                      const std::string& build_hint = "build one with pairs make / build_pairs");
+// The same for any training program: `outputs` (names under out_dir) of an earlier run are refused
+// unless overwrite (then removed by the lead process); nothing is checked when resuming.
+void prepare_run_dir(const std::string& config_file, const std::string& out_dir, const std::vector<std::string>& outputs,
+                     bool resuming, bool overwrite, bool lead);
 
 }  // namespace simu::training

@@ -13,6 +13,7 @@
 
 #include <fmt/ranges.h>
 
+#include "common/cancel.h"
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
@@ -342,6 +343,7 @@ void Trainer::run() {
   const auto began = Clock::now();
   bool stopped = false;
   while (step_ < end && !stopped) {
+    simu::check_cancel();  // an embedding program's interrupt (common/cancel.h), between steps
     auto m = step();
     if (lead) {
       const auto sc = m.scalars();

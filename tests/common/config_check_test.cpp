@@ -41,3 +41,28 @@ TEST(ConfigCheck, RejectsOutsideValuesNamingFileKeyAndDomain) {
   const std::string m = error_of([&] { simu::config::check_in(r, "lr", -0.5, 0, 1, false, "[0, 1]"); });
   EXPECT_NE(m.find("in [0, 1], got -0.5"), std::string::npos) << m;
 }
+
+// int_field and choice_field (shared by the training configs): a present key is read and checked, an
+// absent one keeps the default; out-of-range integers and unknown choices name file, key and value.
+TEST(ConfigCheck, IntAndChoiceFields) {
+  simu::config::Reader root(simu::config::load_text("data: {batch: 0, steps: 5, kind: cosine, mode: fast}\n", "run.yaml"),
+                            "run.yaml");
+  auto r = root.child("data");
+  int64_t steps = 1, absent = 7;
+  simu::config::int_field(r, "steps", steps, 1, 10);
+  simu::config::int_field(r, "absent", absent, 1);
+  EXPECT_EQ(steps, 5);
+  EXPECT_EQ(absent, 7);
+  int64_t batch = 1;
+  EXPECT_NE(error_of([&] { simu::config::int_field(r, "batch", batch, 1); })
+                .find("run.yaml: key 'data.batch': expected an integer >= 1, got 0"),
+            std::string::npos);
+  EXPECT_NE(error_of([&] { simu::config::int_field(r, "steps", steps, 6, 9); }).find("expected an integer in 6..9, got 5"),
+            std::string::npos);
+  std::string kind = "constant", mode = "slow";
+  simu::config::choice_field(r, "kind", kind, {"constant", "cosine"});
+  EXPECT_EQ(kind, "cosine");
+  EXPECT_NE(error_of([&] { simu::config::choice_field(r, "mode", mode, {"slow", "exact"}); })
+                .find("run.yaml: key 'data.mode': expected 'slow' or 'exact', got 'fast'"),
+            std::string::npos);
+}

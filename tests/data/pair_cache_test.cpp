@@ -224,7 +224,7 @@ assert np.array_equal(f["latent_neg"][:].astype(np.float32), neg)
 assert np.array_equal(f["cond"][:].astype(np.float32), cond)
 assert f["cond_len"].dtype == np.int32 and list(f["cond_len"][:]) == [2, 3, 4, 5]
 assert f["kind"].dtype == np.uint8 and list(f["kind"][:]) == [0, 0, 1, 0]
-assert f["weight"].dtype == np.float32 and np.allclose(f["weight"][:], [1.0, 1.0, 0.1, 1.0])
+assert f["weight"].dtype == np.float32 and np.array_equal(f["weight"][:], np.array([1.0, 1.0, 0.1, 1.0], np.float32))
 assert list(f["id"].asstr()[:]) == ["p0", "p1", "p2", "p3"]
 print("h5py ok")
 )PY";
@@ -273,9 +273,10 @@ with h5py.File(sys.argv[1], "w") as f:
   for (int64_t i = 0; i < 3; ++i) {
     const auto r = reader.read(i);
     auto ti = torch::arange(6).view({6, 1}), ci = torch::arange(2).view({1, 2});
+    // The script's values: the same float64 division rounded to float32 as here, stored as float32: bit for bit.
     auto want = ((i * 100 + ti * 10 + ci).to(torch::kFloat64) / 1000.0).to(torch::kFloat32);
-    EXPECT_TRUE(simu::testing::close(r.latent_pos, want, 1e-6, "latent_pos"));
-    EXPECT_TRUE(simu::testing::close(r.latent_neg, -want, 1e-6, "latent_neg"));
+    EXPECT_TRUE(torch::equal(r.latent_pos, want)) << "latent_pos " << i;
+    EXPECT_TRUE(torch::equal(r.latent_neg, -want)) << "latent_neg " << i;
     EXPECT_EQ(r.cond.sizes(), (std::vector<int64_t>{i + 2, 5}));
     EXPECT_TRUE(torch::equal(r.cond, torch::full({i + 2, 5}, static_cast<float>(i + 1))));
     EXPECT_EQ(r.id, std::string(1, static_cast<char>('a' + i)));

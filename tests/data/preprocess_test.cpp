@@ -17,6 +17,9 @@
 #include "models/weights.h"
 #include "test_util.h"
 
+#include <fstream>
+#include <nlohmann/json.hpp>
+
 #ifdef SIMU_HAVE_OPENCV
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -112,6 +115,8 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
   // rows [29, 89) of the 116 x 116 padded crop -> area fraction 98*60/116^2.
   auto mask = out.tensors.at("mask");
   EXPECT_TRUE(((mask == 0) | (mask == 1)).all().item<bool>());
+  // Nearest resampling moves each edge of the object by at most one output pixel: the fraction by
+  // at most 2/518 (98 + 60)/116 = 0.0053.
   EXPECT_NEAR(mask.mean().item<double>(), 98.0 * 60.0 / (116.0 * 116.0), 0.01);
   // Object centre in output pixels: ((9+49) / 116 * 518, (29+30) / 116 * 518) ~ (259, 263).
   EXPECT_EQ(mask[0][0][263][259].item<float>(), 1.f);
@@ -120,8 +125,11 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
   // Cropped image: background removed (exact zeros far from the object), the object is red.
   auto image = out.tensors.at("image");
   EXPECT_EQ(image[0].slice(1, 0, 100).abs().max().item<float>(), 0.f);  // rows above the object
-  EXPECT_NEAR(image[0][0][263][259].item<float>(), 1.0, 1e-3);
-  EXPECT_NEAR(image[0][1][263][259].item<float>(), 0.0, 1e-3);
+  // Inside a uniform region (> 2 source pixels from its edge): the bicubic weights of each pass sum to
+  // 1; two separable passes of 4 products and sums: gamma(16) of values <= 1, absolute.
+  const double interior = simu::testing::gamma(16);
+  EXPECT_NEAR(image[0][0][263][259].item<float>(), 1.0, interior);
+  EXPECT_NEAR(image[0][1][263][259].item<float>(), 0.0, interior);
   EXPECT_GE(image.min().item<float>(), -0.2f);  // bicubic overshoot only
   EXPECT_LE(image.max().item<float>(), 1.2f);
 
@@ -129,8 +137,9 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
   auto rgb = out.tensors.at("rgb_image");
   EXPECT_EQ(rgb[0].slice(1, 0, 60).abs().max().item<float>(), 0.f);  // 40/320*518 = 64.75 rows
   // Red object centre (149.5, 89.5) -> ((89.5+40)/320*518, 149.5/320*518) = (209.6, 242.0).
-  EXPECT_NEAR(rgb[0][0][210][242].item<float>(), 1.0, 1e-3);
+  EXPECT_NEAR(rgb[0][0][210][242].item<float>(), 1.0, interior);
   auto full_mask = out.tensors.at("rgb_image_mask");
+  // Nearest resampling: each edge within one output pixel, 2/518 (100 + 60)/320 = 0.0019.
   EXPECT_NEAR(full_mask.mean().item<double>(), 100.0 * 60.0 / (320.0 * 320.0), 0.005);
 
   // Point map normalisation: shift = lower median per axis over object pixels with depth, scale =
@@ -150,19 +159,29 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
       md.push_back(std::max({std::abs(a[0][v][u] - sx), std::abs(a[1][v][u] - sy), std::abs(a[2][v][u] - sz)}));
     }
   const double scale = lower_median(md);
-  EXPECT_NEAR(out.pointmap_shift[0].item<double>(), sx, 1e-5);
-  EXPECT_NEAR(out.pointmap_shift[1].item<double>(), sy, 1e-5);
-  EXPECT_NEAR(out.pointmap_shift[2].item<double>(), sz, 1e-5);
-  for (int i = 0; i < 3; ++i) EXPECT_NEAR(out.pointmap_scale[i].item<double>(), scale, 1e-5);
+  // A lower median is one of the fp32 values themselves: exact.
+  EXPECT_EQ(out.pointmap_shift[0].item<double>(), sx);
+  EXPECT_EQ(out.pointmap_shift[1].item<double>(), sy);
+  EXPECT_EQ(out.pointmap_shift[2].item<double>(), sz);
+  // The median of max |p - shift|, each difference rounded once in fp32 (an order statistic moves by
+  // no more than its inputs): u of the largest |p| + |shift|, absolute.
+  const double p_max = pm.nan_to_num(0).abs().max().item<double>();
+  const double s_max = std::max({std::abs(sx), std::abs(sy), std::abs(sz)});
+  for (int i = 0; i < 3; ++i)
+    EXPECT_NEAR(out.pointmap_scale[i].item<double>(), scale, simu::testing::gamma(1) * (p_max + s_max));
 
   // Cropped point map: finite only on the object minus the NaN stripe (5 of 98 visible columns);
   // its median z is ~0 after normalisation.
   auto p = out.tensors.at("pointmap")[0];
   auto finite = torch::isfinite(p).all(0);
+  // Nearest resampling: the region's edges (and the stripe's two) within one output pixel each.
   EXPECT_NEAR(finite.to(torch::kFloat64).mean().item<double>(), 93.0 * 60.0 / (116.0 * 116.0), 0.01);
   EXPECT_FALSE((finite & (mask[0][0] == 0)).any().item<bool>()) << "valid points only inside the mask";
   auto zc = p[2].masked_select(finite);
+  // Nearest resampling repeats every source column 4 or 5 times: the median stays within a few
+  // columns (0.01 in z each, over a scale of ~1) of the shift's column.
   EXPECT_NEAR(zc.median().item<double>(), 0.0, 0.05);
+  // z spans 3.0 .. 3.99 on the object: within 0.99 / scale of the shift (scale ~1).
   EXPECT_LT(zc.abs().max().item<double>(), 3.0);
   // Full point map: every pixel with depth is valid (no background removal), NaN in the padding.
   auto rp = out.tensors.at("rgb_pointmap")[0];
@@ -179,7 +198,11 @@ TEST(Preprocess, ImageMaskPointmapFromDiskThroughEmbedder) {
   simu::models::load_safetensors_into(*emb, simu::testing::fixture("cond_embedder_small.safetensors"), {});
   emb->eval();
   auto tokens = emb->forward(out.tensors);
-  EXPECT_EQ(tokens.sizes(), torch::IntArrayRef({1, 2 * 1370 + 2 * 26 + 2 * 16, 64}));
+  // As many tokens and channels as the official embedder's output on its own inputs.
+  const auto fused = simu::data::SafeTensorsFile::open(simu::testing::fixture("cond_embedder_small_io.safetensors"))
+                         .info("out.fused")
+                         .shape;
+  EXPECT_EQ(tokens.sizes(), torch::IntArrayRef({1, fused[1], fused[2]}));
   EXPECT_TRUE(torch::isfinite(tokens).all().item<bool>());
 #endif
 }
@@ -201,6 +224,7 @@ TEST(Preprocess, CropMaskDefinesTheCropButNotTheMaskChannel) {
   EXPECT_EQ(out.crop_extend, 11);
   // Mask channel: only the modal rows 60..119 -> crop rows [11, 71) of 140, columns [21, 121).
   auto mask = out.tensors.at("mask")[0][0];
+  // Nearest resampling: each edge within one output pixel, 2/518 (100 + 60)/140 = 0.0044.
   EXPECT_NEAR(mask.mean().item<double>(), 100.0 * 60.0 / (140.0 * 140.0), 0.01);
   // Row of the amodal extension (y = 150 -> crop row 101 -> output 101/140*518 = 373): mask 0, image kept.
   EXPECT_EQ(mask[373][259].item<float>(), 0.f);
@@ -208,7 +232,8 @@ TEST(Preprocess, CropMaskDefinesTheCropButNotTheMaskChannel) {
   EXPECT_GT(image.select(1, 373).select(1, 259).abs().sum().item<float>(), 0.1f);
   // Shift still from the modal mask: lower median z of the object pixels with depth (u 100..179 and
   // 185..199, 95 columns x 60 rows: the 48th column, u = 147).
-  EXPECT_NEAR(out.pointmap_shift[2].item<double>(), 2.0 + 0.01 * 147, 1e-4);
+  // z = 2 + 0.01 u in fp32: 3 roundings of 3.47.
+  EXPECT_NEAR(out.pointmap_shift[2].item<double>(), 2.0 + 0.01 * 147, 3.47 * simu::testing::gamma(3));
 #endif
 }
 
@@ -310,16 +335,33 @@ namespace {
   return ::testing::AssertionSuccess();
 }
 
-void check_released_case(int k) {
-  const auto path = simu::testing::fixture("preprocess_released_case" + std::to_string(k) + ".safetensors");
-  if (!std::filesystem::exists(path)) GTEST_SKIP() << "fixture missing: " << path;
+// The fixture's cases (preprocess_released.json "cases"): name -> its record (H, W, seed, crop box,
+// scale / shift, tensor statistics). Whatever cases a regeneration writes, each is checked.
+nlohmann::json released_cases() {
+  std::ifstream in(simu::testing::fixture("preprocess_released.json"));
+  return nlohmann::json::parse(in).at("cases");
+}
+
+std::string released_case_path(const std::string& name) {
+  return simu::testing::fixture("preprocess_released_" + name + ".safetensors");
+}
+
+// Taps per output pixel of an antialiased bilinear resize from `in` to `out` pixels (support
+// max(1, in / out) on each side).
+double bilinear_taps(double in, double out) { return std::ceil(2 * std::max(1.0, in / out)) + 1; }
+
+void check_released_case(const std::string& name) {
+  SCOPED_TRACE(name);
+  const auto path = released_case_path(name);
+  ASSERT_TRUE(std::filesystem::exists(path)) << "fixture missing: " << path;
   const auto f = simu::data::load_safetensors(path);
   // Inputs as the official pipeline reads them: rgb = uint8 / 255 (in float64, then float32),
   // mask = alpha / 255 with alpha = mask * 255, point map converted from the OpenCV camera.
   const auto rgb = (f.at("in.image").to(torch::kFloat64) / 255.0).to(torch::kFloat32).permute({2, 0, 1});  // [3,H,W]
   const auto mask = (f.at("in.mask").to(torch::kFloat64) * 255.0 / 255.0).to(torch::kFloat32);           // [H,W]
   const auto pm = sd::pointmap_from_opencv_camera(f.at("in.pointmap").permute({2, 0, 1}).contiguous());  // [3,H,W]
-  // The frame conversion itself (a NaN/inf coordinate makes the whole point NaN).
+  // The frame conversion itself (a NaN/inf coordinate makes the whole point NaN): negations, and the
+  // official 4x4 product's other terms are exact zeros, so bit for bit.
   EXPECT_TRUE(same_with_nan(pm, f.at("mid.pointmap"), 0.0, "mid.pointmap"));
 
   // Default config = the released preset.
@@ -327,24 +369,37 @@ void check_released_case(int k) {
   ASSERT_EQ(cfg.preset, "released");
   const auto out = sd::prepare_condition_inputs(rgb, mask, pm, cfg);
 
-  // Images and point maps <= 1e-5 max abs; masks exact; NaN positions exact.
+  // Images: two fp32 evaluations of the antialiased bilinear resize of values <= 1 (absolute): two
+  // separable passes, each of `taps` products and sums and the weights' normalisation (a sum of taps
+  // and a division), from the larger of the (padded) crop and the frame. Masks exact; NaN positions exact.
+  const double side = std::max({static_cast<double>(rgb.size(1)), static_cast<double>(rgb.size(2)),
+                                static_cast<double>(out.crop_box.x2 - out.crop_box.x1),
+                                static_cast<double>(out.crop_box.y2 - out.crop_box.y1)});
+  const double taps = bilinear_taps(side, static_cast<double>(cfg.image_size));
+  const double image_tol = simu::testing::two_paths(2 * (2 * taps + 1));
   double err = 0;
   for (const char* key : {"image", "rgb_image"}) {
-    EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), 1e-5, key, &err));
-    std::printf("case%d %-15s max abs error %.3g\n", k, key, err);
+    EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), image_tol, key, &err));
+    std::printf("%s %-15s max abs error %.3g\n", name.c_str(), key, err);
   }
   for (const char* key : {"mask", "rgb_image_mask"})
     EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), 0.0, key));
+  // Point maps: nearest resampling copies (p - shift) / scale, two fp32 roundings of it in each of
+  // the two implementations, absolute on its largest finite value.
   for (const char* key : {"pointmap", "rgb_pointmap"}) {
-    EXPECT_TRUE(same_with_nan(out.tensors.at(key), f.at(std::string("out.") + key), 1e-5, key, &err));
-    std::printf("case%d %-15s max abs error %.3g\n", k, key, err);
+    const auto& want = f.at(std::string("out.") + key);
+    const double p_max = want.masked_select(torch::isfinite(want)).abs().max().item<double>();
+    EXPECT_TRUE(same_with_nan(out.tensors.at(key), want, simu::testing::two_paths(2) * p_max, key, &err));
+    std::printf("%s %-15s max abs error %.3g\n", name.c_str(), key, err);
   }
-  // Scale / shift <= 1e-6 relative (the full-frame pair is the same).
+  // Scale / shift: lower medians of fp32 values (the shift one of the points, the scale one of the
+  // fp32 max |p - shift|): the same element in both implementations, bit for bit (the full-frame pair
+  // is the same).
   for (const char* prefix : {"out.", "out.rgb_"}) {
     const auto want_scale = f.at(std::string(prefix) + "pointmap_scale").reshape({3});
     const auto want_shift = f.at(std::string(prefix) + "pointmap_shift").reshape({3});
-    EXPECT_TRUE(simu::testing::close(out.pointmap_scale, want_scale, 1e-6, std::string(prefix) + "pointmap_scale"));
-    EXPECT_TRUE(simu::testing::close(out.pointmap_shift, want_shift, 1e-6, std::string(prefix) + "pointmap_shift"));
+    EXPECT_TRUE(simu::testing::close(out.pointmap_scale, want_scale, 0.0, std::string(prefix) + "pointmap_scale"));
+    EXPECT_TRUE(simu::testing::close(out.pointmap_shift, want_shift, 0.0, std::string(prefix) + "pointmap_shift"));
   }
 
   // Pose decode with the scene scale/shift of this preprocessing (ScaleShiftInvariant, the released
@@ -357,26 +412,40 @@ void check_released_case(int k) {
   for (const char* n : {"6drotation_normalized", "scale", "translation", "translation_scale"})
     lat[n] = f.at(std::string("pose.in.") + n);
   const auto pose = simu::models::decode_pose(lat, po);
-  EXPECT_TRUE(same_with_nan(pose.quaternion, f.at("pose.out.rotation"), 1e-5, "pose rotation"));
-  EXPECT_TRUE(same_with_nan(pose.translation, f.at("pose.out.translation"), 1e-5, "pose translation"));
-  EXPECT_TRUE(same_with_nan(pose.scale, f.at("pose.out.scale"), 1e-5, "pose scale"));
+  // Two fp32 implementations: the rotation (de-normalise, Gram-Schmidt, the quaternion: ~27 roundings
+  // of unit values, absolute); translation t s + shift and scale mean(exp(s)) s (<= 6 roundings of
+  // their largest value).
+  EXPECT_TRUE(same_with_nan(pose.quaternion, f.at("pose.out.rotation"), simu::testing::two_paths(27), "pose rotation"));
+  for (const auto& [got, key] : {std::pair{pose.translation, "pose.out.translation"}, std::pair{pose.scale, "pose.out.scale"}}) {
+    const auto& want = f.at(key);
+    EXPECT_TRUE(same_with_nan(got, want, simu::testing::two_paths(6) * want.abs().max().item<double>(), key));
+  }
 }
 
 }  // namespace
 
-TEST(PreprocessReleased, Case0ObjectInsideFrame) { check_released_case(0); }
-TEST(PreprocessReleased, Case1CropLeavesTheImageSingleCoordinateNaN) { check_released_case(1); }
-TEST(PreprocessReleased, Case2LargeImageNearPoleInfInvalid) { check_released_case(2); }
+// Every case of the fixture against the official tensors (json "cases": object inside the frame, crop
+// leaving the image with single-coordinate NaN, a large image with a near pole and +inf invalid points).
+TEST(PreprocessReleased, EveryCaseMatchesTheOfficialTensors) {
+  const auto cases = released_cases();
+  ASSERT_FALSE(cases.empty()) << "preprocess_released.json lists no case";
+  for (const auto& [name, record] : cases.items()) check_released_case(name);
+}
 
 // The crop box of each case is the official one (json: crop_bbox_x1y1x2y2).
 TEST(PreprocessReleased, CropBoxes) {
-  const std::vector<std::array<int64_t, 4>> want = {{74, 21, 170, 117}, {-27, 63, 83, 173}, {76, -19, 640, 544}};
-  for (int k = 0; k < 3; ++k) {
-    const auto path = simu::testing::fixture("preprocess_released_case" + std::to_string(k) + ".safetensors");
-    if (!std::filesystem::exists(path)) GTEST_SKIP() << "fixture missing: " << path;
+  const auto cases = released_cases();
+  ASSERT_FALSE(cases.empty()) << "preprocess_released.json lists no case";
+  for (const auto& [name, record] : cases.items()) {
+    const auto path = released_case_path(name);
+    ASSERT_TRUE(std::filesystem::exists(path)) << "fixture missing: " << path;
     const auto f = simu::data::SafeTensorsFile::open(path);
     const auto b = sd::compute_mask_bbox(f.get("in.mask"), sd::PreprocessConfig{}.box_size_factor);
-    EXPECT_EQ((std::array<int64_t, 4>{b.x1, b.y1, b.x2, b.y2}), want[k]) << "case" << k;
+    const auto want = record.at("crop_bbox_x1y1x2y2").get<std::array<int64_t, 4>>();
+    EXPECT_EQ((std::array<int64_t, 4>{b.x1, b.y1, b.x2, b.y2}), want) << name;
+    // The input's size is the record's too.
+    EXPECT_EQ(f.get("in.mask").size(0), record.at("H").get<int64_t>()) << name;
+    EXPECT_EQ(f.get("in.mask").size(1), record.at("W").get<int64_t>()) << name;
   }
 }
 

@@ -8,6 +8,7 @@
 #include "data/safetensors.h"
 #include "models/ss_decoder.h"
 #include "models/weights.h"
+#include "flow_rounding.h"
 #include "test_util.h"
 
 using namespace simu::models;
@@ -17,6 +18,7 @@ SparseStructureDecoder small_decoder() {
   return load_ss_decoder(simu::testing::fixture("ss_decoder_small.json"),
                          simu::testing::fixture("ss_decoder_small.safetensors"));
 }
+
 }  // namespace
 
 // io.in -> io.out matches the official decoder in float32.
@@ -26,7 +28,9 @@ TEST(SSDecoder, MatchesOfficialFixture) {
   auto in = file.get("io.in").clone(), want = file.get("io.out").clone();
   torch::NoGradGuard ng;
   auto got = dec->forward(in);
-  EXPECT_TRUE(simu::testing::close(got, want, 1e-4, "io.out"));
+  // The port and the official module: two fp32 evaluations of the decoder's chain.
+  const double tol = simu::testing::two_paths(simu::testing::decoder_chain(dec->config()));
+  EXPECT_TRUE(simu::testing::close(got, want, tol, "io.out"));
   std::printf("ss_decoder_small io.out rel err %.3g\n", simu::testing::rel_err(got, want));
 }
 
@@ -170,4 +174,24 @@ TEST(SSDecoder, RealConfigLayout) {
   std::printf("real ss decoder parameters: %ld\n", static_cast<long>(params));
   EXPECT_LT(bytes, 147591972);
   EXPECT_GT(bytes, 147591972 - 64 * 1024);
+}
+
+// The official constructor builds ResBlock3d(ch, ch) without norm_type, so every residual block uses
+// ChannelLayerNorm32 and only the output head follows norm_type ("group": a GroupNorm32 head).
+TEST(SSDecoder, ResidualBlocksUseLayerNormWhateverTheHead) {
+  SSDecoderConfig cfg;
+  cfg.channels = {32, 32};
+  cfg.num_res_blocks = 1;
+  cfg.num_res_blocks_middle = 1;
+  cfg.norm_type = "group";
+  SparseStructureDecoder dec(cfg);
+  int res_norms = 0;
+  for (const auto& m : dec->named_modules()) {
+    if (auto* n = m.value()->as<ChannelNorm32Impl>()) {
+      const bool head = m.key() == "out_layer.0";
+      EXPECT_EQ(n->group, head) << m.key();
+      res_norms += head ? 0 : 1;
+    }
+  }
+  EXPECT_EQ(res_norms, 6);  // middle_block.0, blocks.0, blocks.2: norm1 and norm2 each
 }

@@ -24,7 +24,9 @@ c10::intrusive_ptr<c10d::Store> rank_store(int rank, int port) {
 }
 
 // Rank 0's side of a lost peer: one all-reduce that rank 1 joins, then one it does not. Returns the
-// second one's error (with " (too late)" when it took 10 s or more), or "no error".
+// second one's error (with " (too late)" when it took 10 s or more), or "no error". 10 s: the callers'
+// collective timeouts (1.5 and 2 s) plus 8 s of scheduling margin on a loaded machine, half the 20 s
+// store timeout a missed detection would run into.
 std::string error_after_peer_left(Communicator& comm) {
   std::vector<torch::Tensor> ts{torch::ones({2})};
   comm.all_reduce_mean(ts);  // rank 1 joins this one
@@ -212,6 +214,8 @@ TEST(Distributed, GlooHungRankIsNamedAfterTimeout) {
   EXPECT_EQ(hung.get(), std::vector<double>{2.0});
   EXPECT_NE(msg.find("gloo barrier"), std::string::npos) << msg;
   EXPECT_NE(msg.find("waiting for rank(s) 1"), std::string::npos) << msg;
+  // Not before the 1.5 s timeout (1.0: 0.5 s for the timer's granularity), and within it plus 8.5 s
+  // of scheduling margin (rank 1's own timeout is 20 s).
   EXPECT_GE(s, 1.0) << "failed before the timeout: " << msg;
   EXPECT_LT(s, 10.0) << msg;
 }
@@ -249,5 +253,6 @@ TEST(Distributed, GlooRankZeroDeathIsNamedPlainly) {
   EXPECT_EQ(msg.find("0, 1"), std::string::npos) << msg;
   EXPECT_EQ(msg.find("Exception raised from"), std::string::npos) << msg;  // c10's backtrace
   EXPECT_EQ(msg.find('\n'), std::string::npos) << msg;
+  // At once (the connection resets), not at the 20 s timeout: 10 s is half of it.
   EXPECT_LT(s, 10.0) << msg;
 }

@@ -309,4 +309,20 @@ std::optional<Obb> lowest_part(const Diagnosis& d, const CorrectionConfig& confi
   return slab;
 }
 
+bool segment_misses_box(const Vec3& a, const Vec3& b, const Vec3& lo, const Vec3& hi) {
+  double t0 = 0, t1 = 1;
+  for (int k = 0; k < 3; ++k) {
+    const double d = b[k] - a[k];
+    if (std::abs(d) < 1e-12) {
+      if (a[k] < lo[k] || a[k] > hi[k]) return true;
+      continue;
+    }
+    double s0 = (lo[k] - a[k]) / d, s1 = (hi[k] - a[k]) / d;
+    if (s0 > s1) std::swap(s0, s1);
+    t0 = std::max(t0, s0), t1 = std::min(t1, s1);
+    if (t0 > t1) return true;
+  }
+  return false;
+}
+
 }  // namespace simu::physics

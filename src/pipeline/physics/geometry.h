@@ -43,6 +43,9 @@ struct Obb {
   Mesh to_mesh() const;
 };
 
+// Whether the segment from a to b misses the axis-aligned box [lo, hi] (slab test; touching counts as a hit).
+bool segment_misses_box(const Vec3& a, const Vec3& b, const Vec3& lo, const Vec3& hi);
+
 // How compute_obb searches. Deterministic: a fixed list of candidate frames, each refined by
 // minimum-area rectangles (rotating calipers) in the plane orthogonal to each of its axes; the
 // smallest-volume box wins (ties keep the earlier candidate).

@@ -450,6 +450,55 @@ Mesh prism_mesh(const std::vector<Eigen::Vector2d>& poly, double hh) {
   return m;
 }
 
+Mesh quad_mesh(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
+  Mesh m;
+  m.V.resize(4, 3);
+  m.V << a.transpose(), b.transpose(), c.transpose(), d.transpose();
+  m.F.resize(2, 3);
+  m.F << 0, 1, 2, 0, 2, 3;
+  return m;
+}
+
+Mesh revolve_mesh(const std::vector<std::pair<double, double>>& prof, int S) {
+  const int P = static_cast<int>(prof.size());
+  SIMU_CHECK(P >= 2 && S >= 3, "revolve_mesh: need >= 2 profile points and >= 3 segments (got {}, {})", P, S);
+  for (int k = 0; k < P; ++k) {
+    SIMU_CHECK(std::isfinite(prof[k].first) && std::isfinite(prof[k].second) && prof[k].second >= 0,
+               "revolve_mesh: profile point {} is ({}, {}): need finite values and radius >= 0", k, prof[k].first,
+               prof[k].second);
+    SIMU_CHECK(k == 0 || k == P - 1 || prof[k].second > 0, "revolve_mesh: interior profile point {} has radius 0", k);
+  }
+  // Ends of radius 0 are poles (no ring); the other profile points each get a ring.
+  const int k0 = prof.front().second > 0 ? 0 : 1, k1 = prof.back().second > 0 ? P - 1 : P - 2;
+  const int K = k1 - k0 + 1;
+  SIMU_CHECK(K >= 1, "revolve_mesh: a profile of two poles has no surface");
+  constexpr double kTwoPi = 6.283185307179586476925;
+  Mesh m;
+  m.V.resize(2 + K * S, 3);
+  m.V.row(0) << 0, prof.front().first, 0;  // top centre or pole
+  for (int k = 0; k < K; ++k)
+    for (int i = 0; i < S; ++i) {
+      const double th = kTwoPi * i / S, r = prof[k0 + k].second;
+      m.V.row(1 + k * S + i) << r * std::cos(th), prof[k0 + k].first, r * std::sin(th);
+    }
+  const int bottom = 1 + K * S;
+  m.V.row(bottom) << 0, prof.back().first, 0;
+  std::vector<Eigen::Vector3i> f;
+  auto ring = [&](int k, int i) { return 1 + k * S + (i % S); };
+  // Top and bottom fans (caps or pole fans), then the side quads between consecutive rings.
+  for (int i = 0; i < S; ++i) {
+    f.emplace_back(0, ring(0, i), ring(0, i + 1));
+    f.emplace_back(bottom, ring(K - 1, i + 1), ring(K - 1, i));
+    for (int k = 0; k + 1 < K; ++k) {
+      f.emplace_back(ring(k, i), ring(k + 1, i), ring(k + 1, i + 1));
+      f.emplace_back(ring(k, i), ring(k + 1, i + 1), ring(k, i + 1));
+    }
+  }
+  m.F.resize(static_cast<Eigen::Index>(f.size()), 3);
+  for (size_t k = 0; k < f.size(); ++k) m.F.row(static_cast<Eigen::Index>(k)) = f[k].transpose();
+  return m;
+}
+
 uint64_t fnv1a64(const void* data, size_t n, uint64_t seed) {
   uint64_t h = seed;
   const auto* p = static_cast<const unsigned char*>(data);

@@ -44,6 +44,17 @@ Mesh box_mesh(const Vec3& half_extents);
 // A closed prism: a simple counter-clockwise polygon in the xy plane (star-shaped about its first
 // vertex) extruded over z in [-half_height, half_height], wound outward.
 Mesh prism_mesh(const std::vector<Eigen::Vector2d>& polygon, double half_height);
+// A planar quadrilateral a, b, c, d as two triangles (a, b, c), (a, c, d) (floors and walls of pictures).
+Mesh quad_mesh(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d);
+// A closed surface of revolution about the y axis from a profile of (y, radius) pairs: a polyline
+// from one end to the other, drawn from the top (smaller y; the world is y-down) down the outside. An
+// end with radius 0 is a pole on the axis; an end with radius > 0 is closed by a flat cap around a
+// centre vertex; interior radii must be > 0. Faces wind outward, also for hollow shapes whose profile
+// runs from an inner pole up the inside, over the rim and down the outside (a bowl). Vertex 0 is the
+// top centre / pole, then one ring of `segments` vertices per non-pole profile point (ring vertex i at
+// angle 2 pi i / segments from +x towards +z), then the bottom centre / pole. Throws simu::Error for
+// fewer than 2 points, segments < 3, a negative or non-finite value or an interior radius of 0.
+Mesh revolve_mesh(const std::vector<std::pair<double, double>>& y_radius, int segments);
 // 64-bit FNV-1a hash of bytes (used to key caches by mesh content).
 uint64_t fnv1a64(const void* data, size_t n, uint64_t seed = 1469598103934665603ULL);
 uint64_t mesh_hash(const Mesh& mesh);

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <utility>
 
 namespace simu::physics {
 
@@ -87,7 +88,7 @@ void raster_triangle(const Camera& cam, const Vec3 (&tri)[3], double near, Fn&& 
   }
 }
 
-// Camera-frame triangles of a world mesh, fn(tri) for each valid face.
+// Camera-frame triangles of a world mesh, fn(tri, face index) for each valid face.
 template <class Fn>
 void for_each_camera_triangle(const Camera& cam, const Mesh& m, Fn&& fn) {
   std::vector<Vec3> pc(m.V.rows());
@@ -100,7 +101,7 @@ void for_each_camera_triangle(const Camera& cam, const Mesh& m, Fn&& fn) {
       if (idx < 0 || idx >= m.V.rows() || !pc[idx].allFinite()) { ok = false; break; }
       tri[j] = pc[idx];
     }
-    if (ok) fn(tri);
+    if (ok) fn(tri, f);
   }
 }
 
@@ -112,21 +113,7 @@ void check_camera(const Camera& cam) {
 }  // namespace
 
 LabelImage render_labels(const Camera& cam, const std::vector<const Mesh*>& meshes, double near) {
-  check_camera(cam);
-  LabelImage img;
-  img.width = cam.width, img.height = cam.height;
-  img.label.assign(size_t(cam.width) * cam.height, -1);
-  img.depth.assign(img.label.size(), std::numeric_limits<float>::infinity());
-  std::vector<double> zbuf(img.label.size(), std::numeric_limits<double>::infinity());
-  for (size_t k = 0; k < meshes.size(); ++k) {
-    if (!meshes[k] || meshes[k]->empty()) continue;
-    for_each_camera_triangle(cam, *meshes[k], [&](const Vec3(&tri)[3]) {
-      raster_triangle(cam, tri, near, [&](size_t i, double z) {
-        if (z < zbuf[i]) zbuf[i] = z, img.label[i] = int32_t(k), img.depth[i] = float(z);
-      });
-    });
-  }
-  return img;
+  return std::move(render_faces(cam, meshes, near).labels);
 }
 
 ShadedImage render_shaded(const Camera& cam, const std::vector<const Mesh*>& meshes, double ambient, double near) {
@@ -140,7 +127,7 @@ ShadedImage render_shaded(const Camera& cam, const std::vector<const Mesh*>& mes
   std::vector<double> zbuf(L.label.size(), std::numeric_limits<double>::infinity());
   for (size_t k = 0; k < meshes.size(); ++k) {
     if (!meshes[k] || meshes[k]->empty()) continue;
-    for_each_camera_triangle(cam, *meshes[k], [&](const Vec3(&tri)[3]) {
+    for_each_camera_triangle(cam, *meshes[k], [&](const Vec3(&tri)[3], Eigen::Index) {
       // Headlight: brightness from the angle between the face normal and the ray to its centre.
       const Vec3 n = (tri[1] - tri[0]).cross(tri[2] - tri[0]);
       const Vec3 ray = (tri[0] + tri[1] + tri[2]) / 3.0;
@@ -154,10 +141,30 @@ ShadedImage render_shaded(const Camera& cam, const std::vector<const Mesh*>& mes
   return img;
 }
 
+FaceImage render_faces(const Camera& cam, const std::vector<const Mesh*>& meshes, double near) {
+  check_camera(cam);
+  FaceImage img;
+  LabelImage& L = img.labels;
+  L.width = cam.width, L.height = cam.height;
+  L.label.assign(size_t(cam.width) * cam.height, -1);
+  L.depth.assign(L.label.size(), std::numeric_limits<float>::infinity());
+  img.face.assign(L.label.size(), -1);
+  std::vector<double> zbuf(L.label.size(), std::numeric_limits<double>::infinity());
+  for (size_t k = 0; k < meshes.size(); ++k) {
+    if (!meshes[k] || meshes[k]->empty()) continue;
+    for_each_camera_triangle(cam, *meshes[k], [&](const Vec3(&tri)[3], Eigen::Index f) {
+      raster_triangle(cam, tri, near, [&](size_t i, double z) {
+        if (z < zbuf[i]) zbuf[i] = z, L.label[i] = int32_t(k), L.depth[i] = float(z), img.face[i] = int32_t(f);
+      });
+    });
+  }
+  return img;
+}
+
 BinaryMask render_silhouette(const Camera& cam, const Mesh& m, double near) {
   check_camera(cam);
   BinaryMask mask(cam.width, cam.height);
-  for_each_camera_triangle(cam, m, [&](const Vec3(&tri)[3]) {
+  for_each_camera_triangle(cam, m, [&](const Vec3(&tri)[3], Eigen::Index) {
     raster_triangle(cam, tri, near, [&](size_t i, double) { mask.data[i] = 1; });
   });
   return mask;

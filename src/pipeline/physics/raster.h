@@ -57,6 +57,14 @@ struct ShadedImage {
 ShadedImage render_shaded(const Camera& cam, const std::vector<const Mesh*>& world_meshes, double ambient = 0.3,
                           double near = 1e-3);
 
+// Joint rendering that also records, per pixel, the index of the nearest face within its mesh (-1
+// where nothing is drawn): for shading by face normals (the shape world's lighting).
+struct FaceImage {
+  LabelImage labels;
+  std::vector<int32_t> face;  // per pixel: row of Mesh::F of mesh labels.label[pixel]
+};
+FaceImage render_faces(const Camera& cam, const std::vector<const Mesh*>& world_meshes, double near = 1e-3);
+
 // Silhouette (coverage, no occlusion by other meshes) of one world-frame mesh.
 BinaryMask render_silhouette(const Camera& cam, const Mesh& world_mesh, double near = 1e-3);
 

@@ -192,34 +192,10 @@ Mesh lathe_mesh(const std::vector<std::pair<double, double>>& prof, int S) {
 }
 
 namespace {
-// Surface of revolution in metres (not normalised).
+// Surface of revolution in metres (not normalised): the capped lathe (both ends on radius > 0).
 Mesh lathe_raw(const std::vector<std::pair<double, double>>& prof, int S) {
   SIMU_CHECK(prof.size() >= 2 && S >= 3, "lathe_mesh: need >= 2 profile points and >= 3 segments");
-  const int K = int(prof.size());
-  Mesh m;
-  m.V.resize(2 + K * S, 3);
-  m.V.row(0) << 0, prof.front().first, 0;  // top centre
-  for (int k = 0; k < K; ++k)
-    for (int i = 0; i < S; ++i) {
-      const double th = 2 * kPi * i / S;
-      m.V.row(1 + k * S + i) << prof[k].second * std::cos(th), prof[k].first, prof[k].second * std::sin(th);
-    }
-  const int bottom = 1 + K * S;
-  m.V.row(bottom) << 0, prof.back().first, 0;
-  std::vector<Eigen::Vector3i> F;
-  auto ring = [&](int k, int i) { return 1 + k * S + (i % S); };
-  // Caps (outward: top faces -y, bottom +y) and side quads (outward radial).
-  for (int i = 0; i < S; ++i) {
-    F.emplace_back(0, ring(0, i), ring(0, i + 1));
-    F.emplace_back(bottom, ring(K - 1, i + 1), ring(K - 1, i));
-    for (int k = 0; k + 1 < K; ++k) {
-      F.emplace_back(ring(k, i), ring(k + 1, i), ring(k + 1, i + 1));
-      F.emplace_back(ring(k, i), ring(k + 1, i + 1), ring(k, i + 1));
-    }
-  }
-  m.F.resize(F.size(), 3);
-  for (size_t f = 0; f < F.size(); ++f) m.F.row(f) = F[f].transpose();
-  return m;
+  return revolve_mesh(prof, S);
 }
 }  // namespace
 
@@ -300,23 +276,6 @@ void inject_error(SyntheticObject& o, const Shape& shape, const SyntheticConfig&
       break;
     }
   }
-}
-
-// Whether the segment from the camera centre to p misses the box [lo, hi] (slab test).
-bool segment_misses_box(const Vec3& c, const Vec3& p, const Vec3& lo, const Vec3& hi) {
-  double t0 = 0, t1 = 1;
-  for (int k = 0; k < 3; ++k) {
-    const double d = p[k] - c[k];
-    if (std::abs(d) < 1e-12) {
-      if (c[k] < lo[k] || c[k] > hi[k]) return true;
-      continue;
-    }
-    double a = (lo[k] - c[k]) / d, b = (hi[k] - c[k]) / d;
-    if (a > b) std::swap(a, b);
-    t0 = std::max(t0, a), t1 = std::min(t1, b);
-    if (t0 > t1) return true;
-  }
-  return false;
 }
 
 // A floor placement the camera sees: the object's top centre and mid-height centre project inside the

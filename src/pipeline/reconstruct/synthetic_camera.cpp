@@ -3,6 +3,7 @@
 #include "common/error.h"
 #include "common/fs.h"
 #include "pipeline/physics/camera.h"
+#include "pipeline/physics/mesh.h"
 #include "pipeline/physics/raster.h"
 
 #include <fmt/format.h>
@@ -22,14 +23,6 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 const Mat3 kFlip = Vec3(-1, -1, 1).asDiagonal();  // OpenCV <-> PyTorch3D camera
 
-physics::Mesh quad(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
-  physics::Mesh m;
-  m.V.resize(4, 3);
-  m.V << a.transpose(), b.transpose(), c.transpose(), d.transpose();
-  m.F.resize(2, 3);
-  m.F << 0, 1, 2, 0, 2, 3;
-  return m;
-}
 physics::Mesh placed(const physics::Mesh& m, const Vec3& s, const Mat3& R, const Vec3& t) {
   physics::Mesh out = m;
   for (Eigen::Index i = 0; i < m.V.rows(); ++i) out.V.row(i) = (R * s.cwiseProduct(m.V.row(i).transpose()) + t).transpose();
@@ -126,9 +119,9 @@ CameraScene generate_camera_scene(const CameraSceneConfig& cfg, uint64_t seed, c
   // Room planes (world frame: y down, floor y = floor_y, back wall z = wall_z, left wall x = left_wall_x).
   const double fy = src.floor.point.y(), wz = src.walls.at(0).point.z(), lx = cfg.left_wall_x, top = -1.5;
   std::vector<physics::Mesh> world;
-  world.push_back(quad(Vec3(lx, fy, 0.2), Vec3(3, fy, 0.2), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // floor
-  world.push_back(quad(Vec3(lx, top, wz), Vec3(3, top, wz), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // back wall
-  world.push_back(quad(Vec3(lx, top, 0.2), Vec3(lx, top, wz), Vec3(lx, fy, wz), Vec3(lx, fy, 0.2)));  // left wall
+  world.push_back(physics::quad_mesh(Vec3(lx, fy, 0.2), Vec3(3, fy, 0.2), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // floor
+  world.push_back(physics::quad_mesh(Vec3(lx, top, wz), Vec3(3, top, wz), Vec3(3, fy, wz), Vec3(lx, fy, wz)));      // back wall
+  world.push_back(physics::quad_mesh(Vec3(lx, top, 0.2), Vec3(lx, top, wz), Vec3(lx, fy, wz), Vec3(lx, fy, 0.2)));  // left wall
   // Objects (bases first) and the photo.
   collect_objects(src, s);
   for (auto& o : s.objects) world.push_back(placed(physics::Mesh{o.canonical, o.faces}, o.gt_scale, o.gt_R, o.gt_t));

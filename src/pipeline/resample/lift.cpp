@@ -260,6 +260,34 @@ std::vector<LiftObjectInput> load_lift_masks(const LiftFiles& files, int64_t H, 
 
 }  // namespace
 
+void set_lift_geometry(LiftInputs& in, const torch::Tensor& pointmap, const torch::Tensor& depth,
+                       const std::optional<data::Intrinsics>& intrinsics, const std::string& geometry_what,
+                       const std::string& image_what) {
+  SIMU_CHECK(in.rgb.defined() && in.rgb.dim() == 3, "lift: set the image before the geometry");
+  SIMU_CHECK(pointmap.defined() != depth.defined(), "lift: pass exactly one of a point map and a depth map");
+  const int64_t H = in.rgb.size(1), W = in.rgb.size(2);
+  data::Intrinsics K;
+  if (pointmap.defined()) {
+    in.pointmap = pointmap;
+    K = intrinsics ? *intrinsics : data::estimate_intrinsics(in.pointmap, geometry_what);
+    if (!intrinsics)
+      log::info("{}: no intrinsics given, fitted to the point map: fx {:.2f} fy {:.2f} cx {:.2f} cy {:.2f}",
+                geometry_what, K.fx, K.fy, K.cx, K.cy);
+  } else {
+    SIMU_CHECK(intrinsics.has_value(), "{}: a depth map needs the camera intrinsics K", geometry_what);
+    K = *intrinsics;
+    in.pointmap = data::unproject_depth(depth, K);
+  }
+  SIMU_CHECK(in.pointmap.size(0) == H && in.pointmap.size(1) == W, "{}: {}x{} (W x H), but the image {} is {}x{}",
+             geometry_what, in.pointmap.size(1), in.pointmap.size(0), image_what, W, H);
+  in.camera.fx = K.fx;
+  in.camera.fy = K.fy;
+  in.camera.cx = K.cx;
+  in.camera.cy = K.cy;
+  in.camera.width = static_cast<int>(W);
+  in.camera.height = static_cast<int>(H);
+}
+
 LiftInputs load_lift_inputs(const LiftFiles& files) {
   namespace sfs = std::filesystem;
   LiftInputs in;
@@ -269,30 +297,14 @@ LiftInputs load_lift_inputs(const LiftFiles& files) {
   const int64_t H = in.rgb.size(1), W = in.rgb.size(2);
   // Geometry: a point map as it is, or depth unprojected through K.
   SIMU_CHECK(files.pointmap.empty() != files.depth.empty(), "lift: pass exactly one of --pointmap and --depth");
-  data::Intrinsics K;
+  std::optional<data::Intrinsics> K;
+  if (!files.intrinsics.empty()) K = data::read_intrinsics_json(files.intrinsics);
   if (!files.pointmap.empty()) {
-    in.pointmap = data::read_pointmap(files.pointmap);
-    K = files.intrinsics.empty() ? data::estimate_intrinsics(in.pointmap, files.pointmap)
-                                 : data::read_intrinsics_json(files.intrinsics);
-    if (files.intrinsics.empty())
-      log::info("{}: no --intrinsics, fitted to the point map: fx {:.2f} fy {:.2f} cx {:.2f} cy {:.2f}", files.pointmap,
-                K.fx, K.fy, K.cx, K.cy);
+    set_lift_geometry(in, data::read_pointmap(files.pointmap), {}, K, files.pointmap, files.image);
   } else {
-    SIMU_CHECK(!files.intrinsics.empty(), "{}: a depth map needs the camera intrinsics (--intrinsics K.json)",
-               files.depth);
-    K = data::read_intrinsics_json(files.intrinsics);
-    const auto depth = data::read_depth(files.depth);
-    in.pointmap = data::unproject_depth(depth, K);
+    SIMU_CHECK(K.has_value(), "{}: a depth map needs the camera intrinsics (--intrinsics K.json)", files.depth);
+    set_lift_geometry(in, {}, data::read_depth(files.depth), K, files.depth, files.image);
   }
-  const std::string geom = files.pointmap.empty() ? files.depth : files.pointmap;
-  SIMU_CHECK(in.pointmap.size(0) == H && in.pointmap.size(1) == W, "{}: {}x{} (W x H), but the image {} is {}x{}", geom,
-             in.pointmap.size(1), in.pointmap.size(0), files.image, W, H);
-  in.camera.fx = K.fx;
-  in.camera.fy = K.fy;
-  in.camera.cx = K.cx;
-  in.camera.cy = K.cy;
-  in.camera.width = static_cast<int>(W);
-  in.camera.height = static_cast<int>(H);
   // Masks: expand a directory, then one label image or one mask per file.
   in.objects = load_lift_masks(files, H, W);
 

@@ -26,9 +26,11 @@
 #include <nlohmann/json.hpp>
 
 #include <array>
+#include <optional>
 #include <string>
 #include <vector>
 
+#include "data/depth_io.h"
 #include "data/preprocess.h"
 #include "pipeline/resample/resampler.h"
 #include "pipeline/physics/scene.h"
@@ -127,6 +129,15 @@ struct LiftFiles {
 // file; a per-object mask that cannot be read becomes that object's error. Object ids: the mask file
 // stem (per-object masks) or "label_<k>" (label image, k = the label value, ascending).
 LiftInputs load_lift_inputs(const LiftFiles& files);
+
+// The geometry of inputs whose rgb is set (what load_lift_inputs does after reading the files; the Python
+// module calls it with arrays): exactly one of a point map [H, W, 3] (OpenCV camera, kept as it is; K
+// fitted to it when not given) and a depth map [H, W] (metres, NaN invalid; data::clean_depth) unprojected
+// through K (required). Sets inputs.pointmap and the camera's intrinsics and size; the names in errors
+// are geometry_what and image_what (a size that differs from the image's).
+void set_lift_geometry(LiftInputs& inputs, const torch::Tensor& pointmap, const torch::Tensor& depth,
+                       const std::optional<data::Intrinsics>& intrinsics, const std::string& geometry_what,
+                       const std::string& image_what);
 
 // Checks that every weight file is given: a missing one is an error naming its flag
 // (--generator-weights, --decoder-weights, --embedder-weights) unless random_weights, which instead

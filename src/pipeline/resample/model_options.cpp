@@ -41,8 +41,8 @@ void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& f
   auto& sc = c.step_cache;
   app.add_option("--step-cache", o.step_cache_interval,
                  "opt-in step caching: a full Stage-1 evaluation at least every K steps, the shape velocity extrapolated "
-                 "and the pose velocity momentum-anchored in between (faster, at a measured cost in fidelity; README "
-                 "\"Stage-1 step caching\"). 0 = off")
+                 "and the pose velocity momentum-anchored in between (faster, at a measured cost in fidelity; "
+                 "docs/step_cache.md). 0 = off")
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber)
       ->group(group);

@@ -2,6 +2,9 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 #include <ATen/Parallel.h>
+
+#include <mutex>
+#include <optional>
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
@@ -75,6 +78,38 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   return c;
 }
 
+namespace {
+// Seeds torch's default CPU generator with kRandomWeightsSeed and restores its state when it goes out
+// of scope: random initialisation that does not depend on what the process drew before.
+class RandomInitSeed {
+ public:
+  RandomInitSeed() : gen_(at::detail::getDefaultCPUGenerator()) {
+    std::lock_guard<std::mutex> lock(gen_.mutex());
+    state_ = gen_.get_state();
+    gen_.set_current_seed(kRandomWeightsSeed);
+  }
+  ~RandomInitSeed() {
+    std::lock_guard<std::mutex> lock(gen_.mutex());
+    gen_.set_state(state_);
+  }
+  RandomInitSeed(const RandomInitSeed&) = delete;
+  RandomInitSeed& operator=(const RandomInitSeed&) = delete;
+
+ private:
+  at::Generator gen_;
+  at::Tensor state_;
+};
+}  // namespace
+
+void Resampler::load_adapter(const std::string& dir) {
+  simu::lora::load_peft(dir, *generator_);
+  generator_->to(device_);
+  generator_->eval();
+  config_.adapter_dir = dir;
+  has_adapter_ = true;
+  simu::log::info("resampler: adapter {} loaded", dir);
+}
+
 Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
     : config_(std::move(config)), device_(pick_device(config_.device)) {
   precision_ = models::parse_precision(config_.precision, device_, "resampler precision");
@@ -94,6 +129,9 @@ Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
                                  fmt::join(missing, ", "));
     simu::log::warn("{}", random_banner_);
   }
+  // Random init from a fixed seed (torch's CPU generator restored at the end of the constructor).
+  std::optional<RandomInitSeed> seeded;
+  if (!missing.empty()) seeded.emplace();
   // Generator (official names), then the adapter on top of the base weights.
   generator_ = models::load_generator(config_.generator_config, config_.generator_weights, device_,
                                       config_.generator_overrides);

@@ -40,6 +40,9 @@ namespace simu::resample {
 
 using physics::Mesh;
 
+// Seed of the random initialisation of modules without weights (ResamplerConfig::random_weights).
+constexpr uint64_t kRandomWeightsSeed = 0;
+
 struct ResamplerConfig {
   std::string generator_config = std::string(SIMU_SOURCE_DIR) + "/configs/stage1_real.yaml";
   std::string generator_weights;  // safetensors; "" keeps the random init (benchmarks only)
@@ -52,6 +55,8 @@ struct ResamplerConfig {
   // Missing weight files are an error naming the flag (--generator-weights, --decoder-weights,
   // --embedder-weights) unless this is set: then those modules keep their random init and a
   // RANDOM WEIGHTS banner is logged (random_weights_banner(), for reports). Benchmarks and demos only.
+  // The random init is drawn with torch's CPU generator seeded with kRandomWeightsSeed, whose state is
+  // restored afterwards: every program (and the Python module) builds the same models.
   bool random_weights = false;
   // false: the decoder is built but never run (build_pairs stores latents only): its weights are not
   // required.
@@ -77,8 +82,8 @@ struct ResamplerConfig {
   // call of a fresh process (one `lift` run) measured slower with graphs (docs/lift.md). Pays in a
   // long-lived process at shorter conditions (2,800 tokens: 663 vs 681-832 ms per sampling).
   bool cuda_graphs = false;
-  // Opt-in step caching of the Stage-1 sampling (models::StepCacheOptions; README "Stage-1 step
-  // caching"): off by default. Keys under `step_cache:` (enabled, interval, order, warmup, tail,
+  // Opt-in step caching of the Stage-1 sampling (models::StepCacheOptions; docs/step_cache.md):
+  // off by default. Keys under `step_cache:` (enabled, interval, order, warmup, tail,
   // pose_momentum, tolerance).
   models::StepCacheOptions step_cache;
   int num_samples = 1;    // shapes drawn per object
@@ -152,6 +157,9 @@ class Resampler {
   // graphs kept so far.
   void set_cuda_graphs(bool on);
   bool has_adapter() const { return has_adapter_; }
+  // Loads a PEFT adapter directory into the generator (simu::lora::load_peft; adapters already there are
+  // replaced by the directory's), as the constructor does for config.adapter_dir.
+  void load_adapter(const std::string& dir);
   // Non-empty when some module runs on random weights (random_weights): a one-line banner naming them,
   // to print in outputs and reports.
   const std::string& random_weights_banner() const { return random_banner_; }

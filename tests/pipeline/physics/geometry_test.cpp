@@ -2,6 +2,7 @@
 #include "pipeline/physics/camera.h"
 #include "pipeline/physics/geometry.h"
 #include "pipeline/physics/raster.h"
+#include "tolerance.h"
 
 #include <gtest/gtest.h>
 
@@ -46,7 +47,7 @@ bool ray_hits_box(const Vec3& o, const Vec3& d, const Obb& b) {
   double t0 = 0, t1 = 1e30;
   for (int a = 0; a < 3; ++a) {
     const double h = 0.5 * b.extents(a);
-    if (std::abs(dl(a)) < 1e-15) {
+    if (std::abs(dl(a)) < simu::testing::kFp64Short) {
       if (std::abs(lo(a)) > h) return false;
       continue;
     }
@@ -82,17 +83,17 @@ TEST(Geometry, ObbRecoversRotatedBox) {
   const Mat3 Q = rot(0.7, Vec3(1, 2, 3)) * rot(-0.4, Vec3(0, 1, 0));
   const Points P = (box_points(e) * Q.transpose()).rowwise() + c.transpose();
   const Obb b = compute_obb(P);
-  EXPECT_LT((b.center - c).norm(), 1e-9);
-  EXPECT_NEAR(b.volume(), e.prod(), 1e-9);
+  EXPECT_LT((b.center - c).norm(), simu::testing::kFp64Solve);
+  EXPECT_NEAR(b.volume(), e.prod(), simu::testing::kFp64Solve);
   for (int k = 0; k < 3; ++k) {
     // Each found axis is +-one box axis with the matching side length.
     int match = -1;
     for (int j = 0; j < 3; ++j)
-      if (std::abs(std::abs(b.axes.col(k).dot(Q.col(j))) - 1) < 1e-9) match = j;
+      if (std::abs(std::abs(b.axes.col(k).dot(Q.col(j))) - 1) < simu::testing::kFp64Solve) match = j;
     ASSERT_GE(match, 0) << "axis " << k << " is not a box axis";
-    EXPECT_NEAR(b.extents(k), e(match), 1e-9);
+    EXPECT_NEAR(b.extents(k), e(match), simu::testing::kFp64Solve);
   }
-  EXPECT_NEAR(b.axes.determinant(), 1.0, 1e-9);
+  EXPECT_NEAR(b.axes.determinant(), 1.0, simu::testing::kFp64Solve);
 }
 
 // A rotated cube (PCA is degenerate): the object's rotation as a hint gives the exact box, and the
@@ -101,10 +102,10 @@ TEST(Geometry, ObbOfCube) {
   const Mat3 Q = rot(0.5, Vec3(0.3, -1, 0.2));
   const Points P = box_points(Vec3::Constant(0.3)) * Q.transpose();
   const Obb hinted = compute_obb(P, {Q});
-  EXPECT_NEAR(hinted.volume(), 0.027, 1e-12);
+  EXPECT_NEAR(hinted.volume(), 0.027, simu::testing::kFp64Chain);
   const Mat3 yaw = rot(0.6, Vec3(0, 1, 0));
   const Obb free = compute_obb(box_points(Vec3::Constant(0.3)) * yaw.transpose());
-  EXPECT_NEAR(free.volume(), 0.027, 1e-9);
+  EXPECT_NEAR(free.volume(), 0.027, simu::testing::kFp64Solve);
   EXPECT_THROW(compute_obb(Points(0, 3)), simu::Error);
 }
 
@@ -115,8 +116,8 @@ TEST(Geometry, GravityAxis) {
   b.extents = Vec3(0.5, 0.3, 0.2);
   const GravityAxis ga = gravity_axis(b, Vec3(0, 1, 0));
   EXPECT_EQ(ga.index, 1);
-  EXPECT_NEAR(ga.length, 0.3, 1e-15);
-  EXPECT_NEAR(ga.alignment, std::cos(0.2), 1e-12);
+  EXPECT_NEAR(ga.length, 0.3, simu::testing::kFp64Short);
+  EXPECT_NEAR(ga.alignment, std::cos(0.2), simu::testing::kFp64Chain);
   EXPECT_GT(ga.u.dot(Vec3(0, 1, 0)), 0);
   const GravityAxis down = gravity_axis(b, Vec3(0, -1, 0));
   EXPECT_LT(down.u.y(), 0);
@@ -129,12 +130,12 @@ TEST(Geometry, DiagnoseRhoEta) {
   const Vec3 g(0, 1, 0);
   // Hovering 3 cm: falls 3 cm along g; pen push 0.
   Diagnosis d = diagnose(b, g, Vec3::Zero(), Vec3(0.01, 0.03, 0));
-  EXPECT_NEAR(d.eta, 0.03 / 0.25, 1e-12);
-  EXPECT_NEAR(d.rho, 0.12, 1e-12);
+  EXPECT_NEAR(d.eta, 0.03 / 0.25, simu::testing::kFp64Chain);
+  EXPECT_NEAR(d.rho, 0.12, simu::testing::kFp64Chain);
   EXPECT_EQ(d.branch, Branch::Stretch);
   // Sunk 5 cm: pushed up (against g) by 5 cm: eta < 0, rho = 0.2 -> resample.
   d = diagnose(b, g, Vec3(0, -0.05, 0), Vec3::Zero());
-  EXPECT_NEAR(d.eta, -0.2, 1e-12);
+  EXPECT_NEAR(d.eta, -0.2, simu::testing::kFp64Chain);
   EXPECT_EQ(d.branch, Branch::Resample);
   CorrectionConfig cfg;
   cfg.resample_threshold = 0.25;
@@ -158,14 +159,14 @@ void expect_world_stretch(const Mesh& canon, const Vec3& s, const Mat3& R, const
     const Vec3 want = x + d.eta * (u.dot(x) - top) * u;
     worst = std::max(worst, (Vec3(after.row(i).transpose()) - want).norm());
   }
-  EXPECT_LT(worst, 1e-12);
-  EXPECT_NEAR((after * u).minCoeff(), top, 1e-12);  // top face preserved
-  EXPECT_NEAR((after * u).maxCoeff() - (before * u).maxCoeff(), d.g_displacement, 1e-12);  // bottom moved
-  EXPECT_NEAR(r.top_face_shift, 0.0, 1e-12);
+  EXPECT_LT(worst, simu::testing::kFp64Chain);
+  EXPECT_NEAR((after * u).minCoeff(), top, simu::testing::kFp64Chain);  // top face preserved
+  EXPECT_NEAR((after * u).maxCoeff() - (before * u).maxCoeff(), d.g_displacement, simu::testing::kFp64Chain);  // bottom moved
+  EXPECT_NEAR(r.top_face_shift, 0.0, simu::testing::kFp64Chain);
   // The canonical convention holds: AABB-centred, longest side 1.
   const Vec3 lo = r.canonical.colwise().minCoeff().transpose(), hi = r.canonical.colwise().maxCoeff().transpose();
-  EXPECT_LT((0.5 * (lo + hi)).norm(), 1e-12);
-  EXPECT_NEAR((hi - lo).maxCoeff(), 1.0, 1e-12);
+  EXPECT_LT((0.5 * (lo + hi)).norm(), simu::testing::kFp64Chain);
+  EXPECT_NEAR((hi - lo).maxCoeff(), 1.0, simu::testing::kFp64Chain);
 }
 }  // namespace
 
@@ -184,7 +185,7 @@ TEST(Geometry, StretchPreservesTopFace) {
   ASSERT_EQ(d.branch, Branch::Stretch);
   StretchResult r = gravity_axis_stretch(canon.V, s, R, t, R, d);
   EXPECT_FALSE(r.mesh_changed);
-  EXPECT_NEAR(r.lambda, 1 + d.eta, 1e-15);
+  EXPECT_NEAR(r.lambda, 1 + d.eta, simu::testing::kFp64Short);
   expect_world_stretch(canon, s, R, t, d, r);
   // Shrinking (pushed up out of a sinking pose).
   d = diagnose(obb, g, Vec3(0, -0.01, 0), Vec3::Zero());
@@ -206,7 +207,7 @@ TEST(Geometry, StretchPreservesTopFace) {
   EXPECT_TRUE(r.mesh_changed);
   expect_world_stretch(oblique, s2, R2, t, d, r);
   // Paper: s_str = gamma s (isotropic input scale).
-  EXPECT_NEAR(r.scale(0), r.gamma * s2(0), 1e-12);
+  EXPECT_NEAR(r.scale(0), r.gamma * s2(0), simu::testing::kFp64Chain);
 }
 
 // A hovering box (3 cm, height 25 cm) stretches: its bottom reaches the floor, top unchanged.
@@ -217,15 +218,15 @@ TEST(Geometry, HoveringBoxStretches) {
   const Vec3 s = Vec3::Constant(h);
   const Vec3 t(0.0, floor_y - hover - h / 2, 2.0);
   const Obb obb = object_obb(canon, s, Mat3::Identity(), t, g);
-  EXPECT_NEAR(obb.extents(1), h, 1e-12);
+  EXPECT_NEAR(obb.extents(1), h, simu::testing::kFp64Chain);
   const Diagnosis d = diagnose(obb, g, Vec3::Zero(), Vec3(0, hover, 0));
   EXPECT_EQ(d.branch, Branch::Stretch);
-  EXPECT_NEAR(d.rho, hover / h, 1e-12);
+  EXPECT_NEAR(d.rho, hover / h, simu::testing::kFp64Chain);
   const StretchResult r = gravity_axis_stretch(canon.V, s, Mat3::Identity(), t, Mat3::Identity(), d);
   const Points after = (r.canonical * r.scale.asDiagonal()).rowwise() + r.t.transpose();
-  EXPECT_NEAR(after.col(1).maxCoeff(), floor_y, 1e-12);               // bottom on the floor
-  EXPECT_NEAR(after.col(1).minCoeff(), floor_y - hover - h, 1e-12);   // top kept
-  EXPECT_NEAR(after.col(0).maxCoeff() - after.col(0).minCoeff(), 0.8 * h, 1e-12);  // width kept
+  EXPECT_NEAR(after.col(1).maxCoeff(), floor_y, simu::testing::kFp64Chain);               // bottom on the floor
+  EXPECT_NEAR(after.col(1).minCoeff(), floor_y - hover - h, simu::testing::kFp64Chain);   // top kept
+  EXPECT_NEAR(after.col(0).maxCoeff() - after.col(0).minCoeff(), 0.8 * h, simu::testing::kFp64Chain);  // width kept
 }
 
 // Bottom cut off by 40%: the object hovers by the missing height, rho >= 0.15 -> resample; B_str is
@@ -249,15 +250,15 @@ TEST(Geometry, CutBoxResamplesAndAuxMaskCoversMissingPart) {
   const Mesh canon = raw_box(Vec3(full_extent.x(), h_vis, full_extent.z()) / longest);
   const Vec3 s = Vec3::Constant(longest);
   const Obb obb = object_obb(canon, s, full.axes, visible.center, g);
-  EXPECT_NEAR(obb.extents(1), h_vis, 1e-12);
+  EXPECT_NEAR(obb.extents(1), h_vis, simu::testing::kFp64Chain);
   // The simulation drops it by the missing height.
   const Diagnosis d = diagnose(obb, g, Vec3::Zero(), Vec3(0, cut * H, 0));
-  EXPECT_NEAR(d.rho, cut / (1 - cut), 1e-12);
+  EXPECT_NEAR(d.rho, cut / (1 - cut), simu::testing::kFp64Chain);
   EXPECT_EQ(d.branch, Branch::Resample);
   // B_str is the full box; its centre is the resampled translation.
   const Obb bstr = stretched_obb(d);
-  EXPECT_LT((bstr.center - full.center).norm(), 1e-12);
-  EXPECT_NEAR(bstr.extents(1), H, 1e-12);
+  EXPECT_LT((bstr.center - full.center).norm(), simu::testing::kFp64Chain);
+  EXPECT_NEAR(bstr.extents(1), H, simu::testing::kFp64Chain);
   // M' = modal + the missing part, checked pixel by pixel with rays.
   const Camera cam = test_camera();
   const BinaryMask modal = raycast_mask(cam, visible);

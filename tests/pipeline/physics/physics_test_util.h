@@ -14,6 +14,13 @@
 
 namespace simu::testing {
 
+// How far a body resting under gravity sinks into MuJoCo's soft contacts with the probe's settings
+// (solref time constant t_c 0.01 s, damping ratio 2; solimp d up to 0.95): to where the contact's
+// spring holds its weight, ~g (t_c 2)^2 (1 - d) / d = 0.2 mm. Resting positions, penetrations and
+// settle displacements are checked to 2 mm: ten times that, for the settle's last motion and the
+// timestep (1/480 s) of contact onset.
+inline constexpr double kContactSinkM = 0.002;
+
 // A fresh temporary directory for one test.
 inline std::string physics_temp_dir(const std::string& name) {
   auto p = std::filesystem::temp_directory_path() / ("simu_physics_" + name + "_" + std::to_string(::getpid()));

@@ -68,7 +68,8 @@ TEST(Raster, CubeSilhouetteAreaCentred) {
   EXPECT_NEAR(double(m.count()), side * side, 4 * side * 1.0);
   // Depth at the centre pixel is the front face's z (perspective-correct interpolation).
   const LabelImage img = render_labels(cam, {&cube});
-  EXPECT_NEAR(img.depth[200 * 400 + 200], 4.5, 1e-5);
+  // A float32 depth buffer: ~10 fp32 roundings of the interpolated z <= 5 m.
+  EXPECT_NEAR(img.depth[200 * 400 + 200], 4.5, 5 * simu::testing::gamma(10));
   EXPECT_EQ(img.label[200 * 400 + 200], 0);
   EXPECT_EQ(img.label[0], -1);
 }
@@ -104,7 +105,7 @@ TEST(Raster, CubeSilhouetteAreaRotated) {
         t0 = std::max(t0, ta), t1 = std::min(t1, tb);
       }
       if (t0 > t1 - 1e-3) continue;  // miss or grazing
-      EXPECT_NEAR(img.depth[r * 320 + c], t0, 1e-5) << "pixel " << c << "," << r;
+      EXPECT_NEAR(img.depth[r * 320 + c], t0, 5 * simu::testing::gamma(10)) << "pixel " << c << "," << r;  // as above
       ++checked;
     }
   EXPECT_GT(checked, 50);
@@ -140,18 +141,18 @@ TEST(Metrics, MaskIou) {
   BinaryMask a(30, 20), b(30, 20);
   for (int r = 0; r < 10; ++r)
     for (int c = 0; c < 10; ++c) a.at(r, c) = 1, b.at(r, c + 5) = 1;
-  EXPECT_NEAR(mask_iou(a, b), 50.0 / 150.0, 1e-15);
-  EXPECT_NEAR(mask_iou(a, a), 1.0, 1e-15);
+  EXPECT_NEAR(mask_iou(a, b), 50.0 / 150.0, simu::testing::kFp64Short);
+  EXPECT_NEAR(mask_iou(a, a), 1.0, simu::testing::kFp64Short);
   EXPECT_EQ(mask_iou(BinaryMask(30, 20), BinaryMask(30, 20)), 0.0);
   EXPECT_THROW(mask_iou(a, BinaryMask(3, 3)), simu::Error);
 }
 
 TEST(Metrics, BoxIou) {
   Box3 a{Vec3(0, 0, 0), Vec3(1, 1, 1)}, b{Vec3(0.5, 0, 0), Vec3(1.5, 1, 1)}, c{Vec3(2, 2, 2), Vec3(3, 3, 3)};
-  EXPECT_NEAR(box_iou(a, b), 0.5 / 1.5, 1e-15);
+  EXPECT_NEAR(box_iou(a, b), 0.5 / 1.5, simu::testing::kFp64Short);
   EXPECT_EQ(box_iou(a, c), 0.0);
   Box3 inner{Vec3(0, 0, 0), Vec3(0.5, 0.5, 0.5)};
-  EXPECT_NEAR(box_iou(a, inner), 0.125, 1e-15);
+  EXPECT_NEAR(box_iou(a, inner), 0.125, simu::testing::kFp64Short);
 }
 
 // ABO and IoU with the strict variants on a hand-made IoU matrix.
@@ -164,17 +165,17 @@ TEST(Metrics, OverlapAboFhFo) {
   const std::vector<MetricCategory> cat = {MetricCategory::Free, MetricCategory::Hanging, MetricCategory::Free,
                                            MetricCategory::Fixed};
   const OverlapMetrics m = overlap_metrics(iou, valid, cat);
-  EXPECT_NEAR(m.iou, (0.6 + 0.5 + 0.9 + 1.0) / 4, 1e-12);
-  EXPECT_NEAR(m.abo, (0.8 + 0.5 + 0.9 + 1.0) / 4, 1e-12);
+  EXPECT_NEAR(m.iou, (0.6 + 0.5 + 0.9 + 1.0) / 4, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.abo, (0.8 + 0.5 + 0.9 + 1.0) / 4, simu::testing::kFp64Chain);
   EXPECT_EQ(m.n_fh, 3);
   EXPECT_EQ(m.n_fo, 2);
   // fh: gt0 best valid fh pred = 0.6 (pred 2 invalid), gt1 0.5, gt2 best valid = 0.2 (pred 0).
-  EXPECT_NEAR(m.abo_fh, (0.6 + 0.5 + 0.2) / 3, 1e-12);
-  EXPECT_NEAR(m.iou_fh, (0.6 + 0.5 + 0.0) / 3, 1e-12);
+  EXPECT_NEAR(m.abo_fh, (0.6 + 0.5 + 0.2) / 3, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.iou_fh, (0.6 + 0.5 + 0.0) / 3, simu::testing::kFp64Chain);
   // fo: only free predictions (0, 2); pred 2 invalid.
-  EXPECT_NEAR(m.abo_fo, (0.6 + 0.2) / 2, 1e-12);
-  EXPECT_NEAR(m.iou_fo, (0.6 + 0.0) / 2, 1e-12);
-  EXPECT_NEAR(m.abo_fhfo(), 0.5 * (m.abo_fh + m.abo_fo), 1e-15);
+  EXPECT_NEAR(m.abo_fo, (0.6 + 0.2) / 2, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.iou_fo, (0.6 + 0.0) / 2, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.abo_fhfo(), 0.5 * (m.abo_fh + m.abo_fo), simu::testing::kFp64Short);
 }
 
 // Mask metrics through the renderer: a predicted box identical to the ground truth scores 1, a
@@ -186,11 +187,11 @@ TEST(Metrics, MaskMetricsRendered) {
   const std::vector<BinaryMask> gt = {render_silhouette(cam, a), render_silhouette(cam, b)};
   const OverlapMetrics m = mask_metrics(cam, {&a, nullptr}, gt, {true, true},
                                         {MetricCategory::Free, MetricCategory::Free});
-  EXPECT_NEAR(m.iou, 0.5, 1e-12);
-  EXPECT_NEAR(m.abo, 0.5, 1e-12);
+  EXPECT_NEAR(m.iou, 0.5, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.abo, 0.5, simu::testing::kFp64Chain);
   const OverlapMetrics bm = box_metrics({&a, &b}, {world_aabb(a), world_aabb(b)}, {true, true},
                                         {MetricCategory::Free, MetricCategory::Free});
-  EXPECT_NEAR(bm.iou, 1.0, 1e-12);
+  EXPECT_NEAR(bm.iou, 1.0, simu::testing::kFp64Chain);
 }
 
 // Stability, penetration ratio, mean displacement and peak energy on hand-made records.
@@ -204,12 +205,12 @@ TEST(Metrics, PhysicsMetrics) {
   r[4].physics_disabled = true, r[4].displacement = 5;            // left out entirely
   const PhysicsMetrics m = physics_metrics(r);
   EXPECT_EQ(m.stability_count, 2);
-  EXPECT_NEAR(m.stability, 50.0, 1e-12);
+  EXPECT_NEAR(m.stability, 50.0, simu::testing::kFp64Chain);
   EXPECT_EQ(m.evaluated_count, 4);
-  EXPECT_NEAR(m.penetration_ratio, 25.0, 1e-12);
-  EXPECT_NEAR(m.mean_displacement, (0.01 + 0.08 + 0.2 + 0.1) / 4, 1e-12);
-  EXPECT_NEAR(m.peak_energy, 2.0, 1e-15);
-  EXPECT_NEAR(physics_metrics(r, {}, 7.5).peak_energy, 7.5, 1e-15);
+  EXPECT_NEAR(m.penetration_ratio, 25.0, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.mean_displacement, (0.01 + 0.08 + 0.2 + 0.1) / 4, simu::testing::kFp64Chain);
+  EXPECT_NEAR(m.peak_energy, 2.0, simu::testing::kFp64Short);
+  EXPECT_NEAR(physics_metrics(r, {}, 7.5).peak_energy, 7.5, simu::testing::kFp64Short);
   EXPECT_TRUE(is_valid(r[0]));
   EXPECT_FALSE(is_valid(r[1]));  // unstable free object
   EXPECT_FALSE(is_valid(r[2]));  // penetrating
@@ -218,6 +219,7 @@ TEST(Metrics, PhysicsMetrics) {
 
 #include "pipeline/physics/overlay.h"
 #include "test_files.h"
+#include "tolerance.h"
 
 #include <filesystem>
 

@@ -7,6 +7,7 @@
 #include "common/error.h"
 #include "pipeline/physics/scene.h"
 #include "pipeline/physics/physics_test_util.h"
+#include "tolerance.h"
 
 using namespace simu::physics;
 
@@ -37,15 +38,15 @@ TEST(Scene, ParsesAndFlagsBadObjects) {
   const auto dir = simu::testing::physics_temp_dir("scene_parse");
   const auto s = scene_from_json(nlohmann::json::parse(kScene), dir);
   EXPECT_EQ(s.camera.fy, 510);
-  EXPECT_NEAR(s.gravity.z(), -1.0, 1e-12);
+  EXPECT_NEAR(s.gravity.z(), -1.0, simu::testing::kFp64Chain);
   ASSERT_EQ(s.walls.size(), 1u);
-  EXPECT_NEAR(s.walls[0].distance(Vec3(0, 0, 0)), 1.5, 1e-12);  // -y normal, plane at y = 1.5
+  EXPECT_NEAR(s.walls[0].distance(Vec3(0, 0, 0)), 1.5, simu::testing::kFp64Chain);  // -y normal, plane at y = 1.5
   ASSERT_EQ(s.objects.size(), 7u);
   EXPECT_TRUE(s.objects[0].error.empty()) << s.objects[0].error;
   EXPECT_EQ(s.objects[0].mesh_path, (std::filesystem::path(dir) / "meshes/cup.obj").string());
-  EXPECT_NEAR(s.objects[0].to_world(Vec3(1, 0, 0)).y(), 0.2 + 0.1, 1e-12);  // R maps x to y
+  EXPECT_NEAR(s.objects[0].to_world(Vec3(1, 0, 0)).y(), 0.2 + 0.1, simu::testing::kFp64Chain);  // R maps x to y
   EXPECT_EQ(s.objects[1].dof, PoseDof::LineAnchored);
-  EXPECT_NEAR(s.objects[1].scale.z(), 0.02, 1e-15);
+  EXPECT_NEAR(s.objects[1].scale.z(), 0.02, simu::testing::kFp64Short);
   for (int k = 2; k < 7; ++k) EXPECT_FALSE(s.objects[k].error.empty()) << "object " << k;
   EXPECT_NE(s.objects[2].error.find("not a rotation"), std::string::npos) << s.objects[2].error;
   EXPECT_NE(s.objects[5].error.find("duplicate"), std::string::npos) << s.objects[5].error;
@@ -62,8 +63,8 @@ TEST(Scene, RoundTripKeepsValuesAndRelativePaths) {
   EXPECT_EQ(j["custom"], 7);
   const auto r = load_scene(dir + "/out.json");
   ASSERT_EQ(r.objects.size(), 2u);
-  EXPECT_TRUE((r.objects[0].R - s.objects[0].R).cwiseAbs().maxCoeff() < 1e-12);
-  EXPECT_TRUE((r.objects[1].scale - s.objects[1].scale).cwiseAbs().maxCoeff() < 1e-12);
+  EXPECT_TRUE((r.objects[0].R - s.objects[0].R).cwiseAbs().maxCoeff() < simu::testing::kFp64Chain);
+  EXPECT_TRUE((r.objects[1].scale - s.objects[1].scale).cwiseAbs().maxCoeff() < simu::testing::kFp64Chain);
   EXPECT_EQ(r.objects[0].mesh_path, s.objects[0].mesh_path);
   EXPECT_TRUE(r.objects[0].gt_box.has_value());
   EXPECT_EQ(r.walls[0].id, "back");

@@ -5,6 +5,7 @@
 
 #include "pipeline/reconstruct/planes.h"
 #include "reconstruct_test_util.h"
+#include "tolerance.h"
 
 using namespace simu::reconstruct;
 using namespace simu::reconstruct::testing;
@@ -39,10 +40,14 @@ TEST(ReconstructPlanes, RansacFindsThePlaneAmongOutliers) {
   rc.threshold = 0.01;
   auto f = ransac_plane(stack(in, out), rc);
   ASSERT_TRUE(f);
+  // The refit over 1,000 inliers with 3 mm noise on a 1 m patch: the normal's standard error is
+  // ~0.003 / (0.29 sqrt(1000)) rad = 0.02 degrees, the offset's 0.003 / sqrt(1000) = 0.1 mm; the bounds
+  // are 25 and 30 times those. Inliers: 3 mm Gaussian noise leaves every point but ~1 in 10^3 within the
+  // 1 cm threshold (3.3 sigma); of 300 uniform outliers in a 2 m cube ~1% (3) fall within 1 cm.
   EXPECT_LT(line_angle_deg(f->normal, n), 0.5);
   EXPECT_NEAR(std::abs(f->distance(Vec3(0, 1, 3))), 0.0, 0.003);
   EXPECT_GE(f->inliers, 990);
-  EXPECT_LT(f->inliers, 1000 + 60);  // few outliers lie within 1 cm of the plane
+  EXPECT_LT(f->inliers, 1000 + 60);
 }
 
 // DBSCAN groups directions by line angle: 0, 5 and 180 degrees together, 90 and 92 together.
@@ -67,6 +72,9 @@ TEST(ReconstructPlanes, FloorAndWallsUnderAPitchedCamera) {
   const PlanesResult r = fit_planes(floor, walls, Points(), Vec3::Zero());
   ASSERT_TRUE(r.floor);
   EXPECT_EQ(r.up_source, "walls");
+  // Plane fits over >= 2,000 points with <= 1 cm noise on metre patches: normals within ~0.1 degree
+  // (noise / (extent sqrt(n))), offsets within 0.2 mm; 1 degree and 1 cm are the acceptance of a
+  // room's planes, far above both.
   EXPECT_LT(angle_deg(r.up, up), 1.0);
   EXPECT_LT(angle_deg(r.floor->plane.normal, up), 1.0);
   EXPECT_NEAR(r.floor->plane.distance(Rr * Vec3(0, 1.5, 3)), 0.0, 0.01);
@@ -74,7 +82,7 @@ TEST(ReconstructPlanes, FloorAndWallsUnderAPitchedCamera) {
   EXPECT_EQ(r.walls[0].id, "back");  // by coverage
   EXPECT_LT(angle_deg(r.walls[0].plane.normal, w1), 1.0);
   EXPECT_LT(angle_deg(r.walls[1].plane.normal, w2), 1.0);
-  for (auto& w : r.walls) EXPECT_NEAR(w.plane.normal.dot(r.up), 0.0, 1e-9);
+  for (auto& w : r.walls) EXPECT_NEAR(w.plane.normal.dot(r.up), 0.0, simu::testing::kFp64Solve);
   bool said = false;
   for (auto& m : r.messages) said |= m.find("wall odd") != std::string::npos && m.find("not orthogonal") != std::string::npos;
   EXPECT_TRUE(said);
@@ -87,7 +95,7 @@ TEST(ReconstructPlanes, FloorDecidesUpWithoutAWallPair) {
   const PlanesResult r = fit_planes(plane_points(up, Vec3(0, 1.4, 3), 1.5, 2000, 0.01, 7), {}, Points(), Vec3::Zero());
   ASSERT_TRUE(r.floor);
   EXPECT_EQ(r.up_source, "floor");
-  EXPECT_LT(angle_deg(r.up, up), 1.0);
+  EXPECT_LT(angle_deg(r.up, up), 1.0);  // 2,000 points, 1 cm noise over 1.5 m: ~0.1 degree
 }
 
 // No floor mask: the lowest upward-facing plane of the point map is the floor, and the result says so;
@@ -100,7 +108,7 @@ TEST(ReconstructPlanes, FallbackToTheLowestSupportedPlane) {
   const PlanesResult r = fit_planes(Points(), walls, all, Vec3::Zero());
   ASSERT_TRUE(r.floor);
   EXPECT_TRUE(r.fallback);
-  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.5, 3)), 0.0, 0.01);
+  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.5, 3)), 0.0, 0.01);  // 3,000 points, 5 mm noise: ~0.1 mm
   bool said_floor = false, said_wall = false;
   for (auto& m : r.messages) {
     said_floor |= m.find("lowest supported plane") != std::string::npos;
@@ -118,12 +126,12 @@ TEST(ReconstructPlanes, FloorSnapsToTheLowestMeshVertex) {
   Points a(2, 3), b(1, 3);
   a << 0, 1.2, 3, 0, 1.47, 3;  // lowest: y = 1.47 (height -1.47)
   b << 1, 1.3, 2;
-  EXPECT_NEAR(snap_floor_to_meshes(r, {a, b}), 0.03, 1e-12);
-  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.47, 0)), 0.0, 1e-12);
+  EXPECT_NEAR(snap_floor_to_meshes(r, {a, b}), 0.03, simu::testing::kFp64Chain);
+  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.47, 0)), 0.0, simu::testing::kFp64Chain);
   // A mesh far below the floor (a wrong lift) does not drag the floor: refused with a message.
   Points deep(1, 3);
   deep << 0, 2.5, 3;
   EXPECT_EQ(snap_floor_to_meshes(r, {a, deep}), 0.0);
-  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.47, 0)), 0.0, 1e-12);
+  EXPECT_NEAR(r.floor->plane.distance(Vec3(0, 1.47, 0)), 0.0, simu::testing::kFp64Chain);
   EXPECT_NE(r.messages.back().find("floor snap refused"), std::string::npos);
 }

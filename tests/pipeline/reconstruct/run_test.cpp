@@ -67,6 +67,8 @@ TEST(ReconstructRun, InMemoryPhotoWithWalls) {
   for (const auto& o : s.objects) free_or_hanging += !o.is_base;
   EXPECT_EQ(r.scene.objects.size(), free_or_hanging);
   EXPECT_EQ(r.planes.up_source, "walls");
+  // Up from two noisy wall fits (1 degree: as in planes_test); from the meshes' own up axes (a vote of
+  // a few objects' rotations, each a few degrees off by construction of the synthetic scene): 3 degrees.
   EXPECT_LT(angle_deg(r.planes.up, s.up), 1.0);
   ASSERT_GT(r.mesh_up.norm(), 0.5);
   EXPECT_LT(angle_deg(r.mesh_up, s.up), 3.0);
@@ -85,7 +87,7 @@ TEST(ReconstructRun, MeshDerivedUpWithoutWallsOrFloor) {
   opt.planes.fallback_planes = 0;
   const ReconstructResult r = reconstruct(in, opt, nullptr, dir + "/out");
   EXPECT_EQ(r.planes.up_source, "mesh");
-  EXPECT_LT(angle_deg(r.planes.up, s.up), 3.0);
+  EXPECT_LT(angle_deg(r.planes.up, s.up), 3.0);  // the meshes' vote, as above
   ASSERT_TRUE(r.planes.floor.has_value());
   // The floor plane passes through the lowest vertex (along up) of the standing objects' placed meshes.
   double low = 1e300;
@@ -99,6 +101,8 @@ TEST(ReconstructRun, MeshDerivedUpWithoutWallsOrFloor) {
     for (Eigen::Index i = 0; i < m.V.rows(); ++i)
       low = std::min(low, r.planes.up.dot(Vec3(b.R * b.scale.cwiseProduct(m.V.row(i).transpose()) + b.t)));
   }
+  // The snap puts the plane through the lowest vertex: float64 on ~1 m values, and the meshes' fp32
+  // storage (u of a metre: 6e-8 m); 1e-6 m.
   EXPECT_NEAR(r.planes.up.dot(r.planes.floor->plane.point), low, 1e-6);
 }
 
@@ -120,6 +124,8 @@ TEST(ReconstructRun, HangingObjectGetsAWallFromTheDepthAroundIt) {
   for (const auto& w : r.scene.walls)
     if (w.id == wall) p = &w;
   ASSERT_NE(p, nullptr);
+  // A wall fitted behind a hanging object from its mesh's back face and the point map: 1 degree and
+  // the 2 cm the object hangs off it.
   EXPECT_LT(angle_deg(p->normal, s.back_wall.plane.normal), 1.0);
   EXPECT_LT(std::abs(s.back_wall.plane.distance(p->point)), 0.02);
 }

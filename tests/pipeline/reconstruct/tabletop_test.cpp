@@ -56,6 +56,8 @@ TEST(ReconstructTabletop, SnapAndRefinePutTheTopOnThePlane) {
   in.scale = Vec3::Constant(1.04);
   const TabletopResult r = refine_tabletop(in);
   ASSERT_TRUE(r.ok) << r.message;
+  // The support plane fitted to the top face's sampled points (pixel pitch ~2 mm, no noise): a
+  // fraction of a degree, and the height to a few mm.
   EXPECT_LT(angle_deg(r.support.normal, sc.up), 0.5);
   EXPECT_NEAR(sc.up.dot(r.support.point), sc.top_height, 0.005);
   // The refined top face: canonical top normal (0, -1, 0) and the highest vertex.

@@ -19,6 +19,8 @@
 #include "common/fs.h"
 #include "data/depth_io.h"
 #include "data/safetensors.h"
+#include "models/generator.h"
+#include "models/ss_decoder.h"
 #include "pipeline/resample/lift.h"
 #include "pipeline/physics/mesh.h"
 #include "pipeline/physics/scene.h"
@@ -94,6 +96,13 @@ Photo make_photo(const std::string& dir) {
 }
 #endif
 
+// The occupancy grid's side: the fixture generator's shape grid times its decoder's upsampling.
+int64_t fixture_resolution() {
+  const auto g = simu::models::GeneratorConfig::from_official_file(simu::testing::fixture("ss_generator_small.json"));
+  const auto d = simu::models::load_ss_decoder(simu::testing::fixture("ss_decoder_small.json"), "");
+  return g.backbone.latent("shape").resolution * d->config().upsample_factor();
+}
+
 // The fixture decoder with random weights occupies no voxel: a copy whose output layer is 0 * x + 2
 // occupies the whole grid (every shape then meshes to the canonical cube; poses still come from the
 // sampled latents).
@@ -125,6 +134,15 @@ Eigen::Matrix3d mat(const json& rows) {
 }
 Eigen::Vector3d vec(const json& v) { return {v.at(0).get<double>(), v.at(1).get<double>(), v.at(2).get<double>()}; }
 
+// Orthonormality error of a rotation decoded in fp32 from a sampled 6-D latent (tests/tolerance.h):
+// Gram-Schmidt's ~20 roundings over the sine of the angle between the latent's two vectors, taken
+// >= 0.05 (3 degrees: two random directions come that close with probability ~1e-3), plus a 3-term
+// product. pose.json does not carry the latent, so the angle is an assumption here, not a measurement.
+const double kRotation = simu::testing::gamma(20) / 0.05 + simu::testing::gamma(3);
+// A unit quaternion extracted from that matrix in fp32 (~7 roundings per component, a division by
+// 2 |q_i| >= 1), and its matrix written out again here: both ways.
+const double kQuaternion = kRotation + 4 * simu::testing::gamma(7);
+
 // Checks one lifted object's files: meshes through assimp, occupancy, both pose conventions.
 void check_object_files(const std::string& out, const json& rep, int64_t resolution) {
   SCOPED_TRACE(rep.dump());
@@ -136,9 +154,10 @@ void check_object_files(const std::string& out, const json& rep, int64_t resolut
   ASSERT_GT(glb.F.rows(), 0);
   EXPECT_EQ(glb.V.rows(), obj.V.rows());
   EXPECT_EQ(glb.F.rows(), obj.F.rows());
+  // The files hold fp32 vertices (|c| <= 0.5): one rounding each, for the extent's two ends.
   const auto box = sph::mesh_aabb(obj);
-  EXPECT_NEAR(box.size().maxCoeff(), 1.0, 1e-5);
-  EXPECT_LT(box.center().norm(), 1e-5);
+  EXPECT_NEAR(box.size().maxCoeff(), 1.0, simu::testing::gamma(1));
+  EXPECT_LT(box.center().norm(), std::sqrt(3.0) * simu::testing::gamma(1));
   // Occupancy: uint8 [R, R, R]; the fixture-made decoder occupies every voxel.
   const auto occ = simu::data::read_npy(sdir + "/occupancy.npy");
   EXPECT_EQ(occ.scalar_type(), torch::kUInt8);
@@ -150,7 +169,7 @@ void check_object_files(const std::string& out, const json& rep, int64_t resolut
   const auto& s3 = pose.at("sam3d");
   const auto q = s3.at("rotation_wxyz");
   const double w = q.at(0), x = q.at(1), y = q.at(2), z = q.at(3);
-  EXPECT_NEAR(w * w + x * x + y * y + z * z, 1.0, 1e-5);
+  EXPECT_NEAR(w * w + x * x + y * y + z * z, 1.0, 2 * kQuaternion);
   // Quaternion -> matrix (Hamilton, w first), written out by hand.
   Eigen::Matrix3d Rq;
   Rq << 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), 2 * (x * y + w * z), 1 - 2 * (x * x + z * z),
@@ -163,8 +182,8 @@ void check_object_files(const std::string& out, const json& rep, int64_t resolut
   for (const auto& v : {R.array().isFinite().all(), t.array().isFinite().all(), s.array().isFinite().all(),
                         T.array().isFinite().all(), S.array().isFinite().all()})
     EXPECT_TRUE(v);
-  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-6);
-  EXPECT_NEAR(R.determinant(), 1.0, 1e-6);
+  EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), kRotation);
+  EXPECT_NEAR(R.determinant(), 1.0, 3 * kRotation);
   double worst = 0, extent = 0;
   for (int i = 0; i < obj.V.rows(); ++i) {
     const Eigen::Vector3d c = obj.V.row(i).transpose();
@@ -174,10 +193,14 @@ void check_object_files(const std::string& out, const json& rep, int64_t resolut
     const Eigen::Vector3d p_scene = R * s.cwiseProduct(c) + t;
     worst = std::max(worst, (p_cv - p_scene).norm());
     extent = std::max(extent, p_cv.norm());
-    // The voxel frame of the mesh lies within the occupancy grid's cube (half a voxel of MC bevel).
-    EXPECT_LE(v.cwiseAbs().maxCoeff(), 0.5 + 1.0 / resolution + 1e-6);
+    // The voxel frame of the mesh lies within the occupancy grid's cube (half a voxel of MC bevel),
+    // up to the fp32 storage of c and the float64 return to the voxel frame.
+    EXPECT_LE(v.cwiseAbs().maxCoeff(), 0.5 + 1.0 / resolution + simu::testing::gamma(3));
   }
-  EXPECT_LT(worst, 1e-5 * std::max(1.0, extent)) << "the two pose conventions disagree";
+  // The quaternion's matrix and the scene's R come from one fp32 rotation (kQuaternion between them),
+  // on points up to the extent, plus float64 arithmetic.
+  EXPECT_LT(worst, (kQuaternion + simu::testing::gamma(16, simu::testing::kFp64Unit)) * std::max(1.0, extent))
+      << "the two pose conventions disagree";
 }
 
 }  // namespace
@@ -209,7 +232,7 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
   EXPECT_EQ(o2.at("id"), "label_2");
   EXPECT_GE(o1.at("crop_box").at("x1").get<int>(), 0);
   EXPECT_LT(o2.at("crop_box").at("x1").get<int>(), 0);
-  for (const auto& o : report.at("objects")) check_object_files(out, o, 8);
+  for (const auto& o : report.at("objects")) check_object_files(out, o, fixture_resolution());
   // The scene file: the probe's reader loads it, poses equal pose.json's scene block.
   const auto scene = sph::load_scene(out + "/scene.json");
   ASSERT_EQ(scene.objects.size(), 2u);
@@ -223,14 +246,18 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
     EXPECT_TRUE(std::filesystem::exists(so.mask_path)) << so.mask_path;
     const auto pose = read_json(out + "/" + report.at("objects").at(i).at("samples").at(0).at("dir").get<std::string>() +
                                 "/pose.json");
-    // (the scene reader projects R onto the nearest rotation: equal to float precision)
-    EXPECT_LT((so.R - mat(pose.at("scene").at("R"))).cwiseAbs().maxCoeff(), 1e-6);
-    EXPECT_LT((so.t - vec(pose.at("scene").at("t"))).cwiseAbs().maxCoeff(), 1e-9);
+    // (the scene reader projects R onto the nearest rotation: it moves by R's orthonormality error)
+    EXPECT_LT((so.R - mat(pose.at("scene").at("R"))).cwiseAbs().maxCoeff(), kRotation);
+    // t: a float64 JSON round trip (17 digits: exact) and the reader's float64 arithmetic.
+    const Eigen::Vector3d t_file = vec(pose.at("scene").at("t"));
+    EXPECT_LT((so.t - t_file).cwiseAbs().maxCoeff(), simu::testing::gamma(8, simu::testing::kFp64Unit) * (1 + t_file.norm()));
   }
-  // Numpy opens the occupancy as uint8 [8, 8, 8].
+  // Numpy opens the occupancy as uint8 [R, R, R].
   const std::string occ = out + "/" + o1.at("samples").at(0).at("dir").get<std::string>() + "/occupancy.npy";
+  const int64_t R = fixture_resolution();
   const auto [prc, plog] = run(std::string(SIMU_PYTHON) + " -c \"import numpy as np; a = np.load('" + occ +
-                                   "'); assert a.dtype == np.uint8 and a.shape == (8, 8, 8), (a.dtype, a.shape)\"",
+                                   "'); assert a.dtype == np.uint8 and a.shape == (" + std::to_string(R) + ", " +
+                                   std::to_string(R) + ", " + std::to_string(R) + "), (a.dtype, a.shape)\"",
                                dir + "/numpy.log");
   EXPECT_EQ(prc, 0) << plog;
   // The probe reads scene.json directly and runs on it.
@@ -291,7 +318,7 @@ TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   for (const char* good : {"a_box", "b_border"}) {
     ASSERT_TRUE(by_id[good].at("ok").get<bool>()) << by_id[good].dump();
     EXPECT_EQ(by_id[good].at("samples").size(), 2u);
-    check_object_files(out, by_id[good], 8);
+    check_object_files(out, by_id[good], fixture_resolution());
   }
   const std::map<std::string, std::string> want = {{"c_empty", "the mask is empty"},
                                                    {"d_wrongsize", "mask is 160x60 (W x H) but the image is 160x120"},
@@ -307,6 +334,9 @@ TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   // K fitted to the point map equals the one it was made with.
   const auto scene = sph::load_scene(out + "/scene.json");
   EXPECT_EQ(scene.objects.size(), 2u);
+  // Least squares of the pixel against r = x/z from the fp32 point map unprojected with K: each r
+  // within gamma(4) |r| <= 1.3e-7 (|r| <= 80 / 150); f moves by at most f max|dr| / std(r) = 6e-5, the
+  // centre by that times |mean r| plus f max|dr| (2e-5): 1e-3 px is 16 times the bound.
   EXPECT_NEAR(scene.camera.fx, kF, 1e-3);
   EXPECT_NEAR(scene.camera.cy, kCy, 1e-3);
   simu::fs::remove_tree(dir);
@@ -369,9 +399,11 @@ TEST(Lift, ScenePoseFromSam3dIndependentMath) {
     Eigen::Vector3d p3d = rot * s.cwiseProduct(c) + tc;
     const Eigen::Vector3d cv_pt(-p3d.x(), -p3d.y(), p3d.z());
     const Eigen::Vector3d world = cam.R_world_cam * cv_pt + cam.t_world_cam;
-    EXPECT_LT((p.R * p.scale.cwiseProduct(c) + p.t - world).norm(), 1e-12);
+    // Two float64 paths of ~20 operations on values up to |world| ~ 3.
+    EXPECT_LT((p.R * p.scale.cwiseProduct(c) + p.t - world).norm(), 3 * simu::testing::two_paths(20, simu::testing::kFp64Unit));
   }
-  EXPECT_NEAR(p.R.determinant(), 1.0, 1e-12);
+  // A product of rotations in float64: ~20 roundings.
+  EXPECT_NEAR(p.R.determinant(), 1.0, simu::testing::gamma(20, simu::testing::kFp64Unit));
 }
 
 // Occupancy grid from voxel coordinates.

@@ -33,6 +33,9 @@ TEST(MarchingCubes, BallOccupancyClosedRightVolume) {
   const double got = mesh_signed_volume(mesh);
   std::printf("ball r=%.0f: %ld vertices, %ld faces, volume %.1f vs %.1f (%.2f%%)\n", r, (long)mesh.V.rows(),
               (long)mesh.F.rows(), got, want, 100.0 * (got - want) / want);
+  // Discretisation, not rounding: binary occupancy puts every crossing at an edge's mid-point, within
+  // a quarter voxel of the sphere on average; the volume moves by at most the area times that,
+  // 3 (1/4) / r = 3.1% of it at r = 24.
   EXPECT_NEAR(got / want, 1.0, 0.03);
 }
 
@@ -45,8 +48,10 @@ TEST(MarchingCubes, BallSignedDistanceAccurate) {
   auto mesh = marching_cubes(r - d);  // positive inside
   EXPECT_EQ(mesh_closedness_problem(mesh), "");
   const double want = 4.0 / 3.0 * kPi * r * r * r;
+  // Linear interpolation of r - d along a unit edge misses the sphere by at most the distance
+  // function's curvature, 1 / (2 r) = 0.025 voxel: the volume by 3 x 0.025 / r = 0.4%.
   EXPECT_NEAR(mesh_signed_volume(mesh) / want, 1.0, 0.01);
-  // Every vertex lies on the sphere up to interpolation error.
+  // Every vertex lies on the sphere up to that interpolation error (0.025), with room.
   const Eigen::RowVector3d centre(c, c, c);
   const Eigen::VectorXd dist = (mesh.V.rowwise() - centre).rowwise().norm();
   EXPECT_LT((dist.array() - r).abs().maxCoeff(), 0.1);
@@ -61,11 +66,14 @@ TEST(MarchingCubes, BoxOccupancyTouchingBorder) {
   const double want = 40.0 * 40.0 * 44.0;
   const double got = mesh_signed_volume(mesh);
   std::printf("box: volume %.1f vs %.1f (%.2f%%)\n", got, want, 100.0 * (got - want) / want);
+  // The mid-point crossings bevel the 12 edges (a quarter voxel^2 / 2 of section each): 0.09% here.
   EXPECT_NEAR(got / want, 1.0, 0.03);
-  // Crossings at the cell mid-points: the AABB spans [-0.5, 39.5] x [9.5, 49.5] x [19.5, 63.5].
-  EXPECT_NEAR(mesh.V.col(0).minCoeff(), -0.5, 1e-9);
-  EXPECT_NEAR(mesh.V.col(0).maxCoeff(), 39.5, 1e-9);
-  EXPECT_NEAR(mesh.V.col(2).maxCoeff(), 63.5, 1e-9);
+  // Crossings at the cell mid-points: the AABB spans [-0.5, 39.5] x [9.5, 49.5] x [19.5, 63.5]
+  // (t = v0 / (v0 - v1) = 1/2 for +-1 values, added to an integer: float64, 2 roundings of <= 64).
+  const double mid = 64 * simu::testing::gamma(2, simu::testing::kFp64Unit);
+  EXPECT_NEAR(mesh.V.col(0).minCoeff(), -0.5, mid);
+  EXPECT_NEAR(mesh.V.col(0).maxCoeff(), 39.5, mid);
+  EXPECT_NEAR(mesh.V.col(2).maxCoeff(), 63.5, mid);
 }
 
 // Every one of the 256 single-cube configurations (corner values +-1 on a 2x2x2 grid), and random
@@ -93,10 +101,12 @@ TEST(MarchingCubes, CanonicalFrame) {
   const auto before = mesh.V;
   auto tf = canonicalize_mesh(mesh);
   const Eigen::Vector3d lo = mesh.V.colwise().minCoeff(), hi = mesh.V.colwise().maxCoeff();
-  EXPECT_NEAR((hi - lo).maxCoeff(), 1.0, 1e-12);
-  EXPECT_NEAR((hi + lo).norm(), 0.0, 1e-12);
-  EXPECT_NEAR(tf.factor, 1.0 / 8.0, 1e-12);  // x extent 1.5..9.5
-  EXPECT_NEAR(((before.rowwise() - tf.centre.transpose()) * tf.factor - mesh.V).cwiseAbs().maxCoeff(), 0.0, 1e-12);
+  // float64: a few roundings of coordinates <= 16 before, <= 1 after the scaling.
+  const double canon = 16 * simu::testing::gamma(4, simu::testing::kFp64Unit);
+  EXPECT_NEAR((hi - lo).maxCoeff(), 1.0, canon);
+  EXPECT_NEAR((hi + lo).norm(), 0.0, canon);
+  EXPECT_NEAR(tf.factor, 1.0 / 8.0, canon);  // x extent 1.5..9.5
+  EXPECT_NEAR(((before.rowwise() - tf.centre.transpose()) * tf.factor - mesh.V).cwiseAbs().maxCoeff(), 0.0, canon);
   EXPECT_EQ(mesh_closedness_problem(mesh), "");
 }
 
@@ -135,7 +145,9 @@ TEST(VoxelPly, PointsAndCubes) {
     ASSERT_EQ(k, 4);
     six_v += v[q[0]].dot(v[q[1]].cross(v[q[2]])) + v[q[0]].dot(v[q[2]].cross(v[q[3]]));
   }
-  EXPECT_NEAR(six_v / 6.0, 3.0 / 64.0, 1e-6);  // three voxels of side 1/4
+  // Three voxels of side 1/4: vertices at multiples of 1/8, printed and parsed exactly; 36 float64
+  // triple products (5 roundings each) of values <= 1 summed.
+  EXPECT_NEAR(six_v / 6.0, 3.0 / 64.0, simu::testing::gamma(36 * 5 + 36, simu::testing::kFp64Unit));
 }
 
 // Mesh PLY: counts in the header and the face lines.

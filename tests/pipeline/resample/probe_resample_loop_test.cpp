@@ -195,12 +195,15 @@ TEST(ProbeResampleLoop, CutObjectIsResampledPlacedAndSettled) {
   tm.V = chosen.mesh.V;
   tm.F = chosen.mesh.F;
   EXPECT_EQ(mesh_closedness_problem(tm), "");
-  // A cube: equal AABB sides of 1; volume 1 less the bevel marching cubes cuts along its 12 edges and 8
-  // corners (the crossings sit half a voxel out: at 8^3 the edges alone lose 12 * 8 * 1/8 of 512 voxels).
+  // A cube: equal AABB sides of 1 (float64 canonicalisation of values <= 1); volume 1 less the bevel
+  // marching cubes cuts along its 12 edges and 8 corners (the crossings sit half a voxel out: at R^3
+  // the edges alone lose 12 R 1/8 of R^3 voxels, R the decoder's output side).
+  const double R = static_cast<double>(rs.generator()->config().backbone.latent("shape").resolution *
+                                       rs.decoder()->config().upsample_factor());
   const Eigen::Vector3d ext = tm.V.colwise().maxCoeff() - tm.V.colwise().minCoeff();
-  EXPECT_LT((ext - Eigen::Vector3d::Ones()).cwiseAbs().maxCoeff(), 1e-9);
-  EXPECT_GT(mesh_signed_volume(tm), 1.0 - 2 * 12.0 * 8 * 0.125 / 512);
-  EXPECT_LT(mesh_signed_volume(tm), 1.0 - 12.0 * 7 * 0.125 / 512);
+  EXPECT_LT((ext - Eigen::Vector3d::Ones()).cwiseAbs().maxCoeff(), simu::testing::gamma(8, simu::testing::kFp64Unit));
+  EXPECT_GT(mesh_signed_volume(tm), 1.0 - 2 * 12.0 * R * 0.125 / (R * R * R));
+  EXPECT_LT(mesh_signed_volume(tm), 1.0 - 12.0 * (R - 1) * 0.125 / (R * R * R));
 
   // Rotation / scale are the Resampler's decode for these inputs (same seed, same preprocessing,
   // converted from the PyTorch3D camera frame to the world here).
