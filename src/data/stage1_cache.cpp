@@ -396,26 +396,44 @@ Stage1Rows Stage1CacheReader::read_rows(int64_t start, int64_t count) const {
   Stage1Rows out;
   for (int64_t i = start; i < start + count; ++i) out.index.push_back(i);
   const auto& names = condition_input_names();
+  // Under the HDF5 lock: where each record's chunks are (and the small pose rows); then, without it,
+  // their bytes read and inflated, so that several threads can load at once.
+  struct Pending {
+    h5::RecordChunks chunks;
+    torch::Tensor out;
+  };
+  std::vector<Pending> pending;
   renamed([&] {
     H5Lock lock;
+    // A big dataset into `out` (its storage dtype): located now, decoded below when stored as read.
+    auto locate = [&](hid_t dset, const std::string& dt, const std::string& name, torch::Tensor out) {
+      if (count == 0) return;
+      H5Id mt = storage_mem_type(dt);
+      H5Id ft(H5Dget_type(dset));
+      if (H5Tequal(ft.get(), mt.get()) > 0)
+        pending.push_back({locate_record_chunks(dset, start, count, path, name), out});
+      else
+        read_record_rows(dset, mt.get(), start, count, out.data_ptr(), path, name);  // converting (e.g. big-endian)
+    };
     for (size_t k = 0; k < names.size(); ++k) {
       const bool point = is_pointmap_input(k), mask = is_mask_input(k);
       const std::string& dt = mask ? std::string("uint8") : point ? m.info.pointmap_dtype : m.info.image_dtype;
       const int64_t side = input_side(k, m.s.h.info);
       const auto st = dt == "uint8" ? torch::kByte : dt == "float16" ? torch::kFloat16 : torch::kFloat32;
-      auto t = torch::empty({count, input_channels(k), side, side}, st);
-      H5Id mt = storage_mem_type(dt);
-      if (count > 0) read_record_rows(m.s.h.inputs[k].get(), mt.get(), start, count, t.data_ptr(), path, names[k]);
-      out.inputs[names[k]] = t;
+      out.inputs[names[k]] = torch::empty({count, input_channels(k), side, side}, st);
+      locate(m.s.h.inputs[k].get(), dt, names[k], out.inputs[names[k]]);
     }
     out.occupancy = torch::empty({count, R, R, R}, torch::kByte);
-    if (count > 0) read_record_rows(m.s.occupancy.get(), H5T_NATIVE_UINT8, start, count, out.occupancy.data_ptr(), path, "occupancy");
+    locate(m.s.occupancy.get(), "uint8", "occupancy", out.occupancy);
     for (size_t k = 0; k < stage1_pose_latents().size(); ++k) {
       const auto& [name, width] = stage1_pose_latents()[k];
       auto t = torch::empty({count, width}, torch::kFloat32);
       if (count > 0) h5::read_rows(m.s.pose[k].get(), H5T_NATIVE_FLOAT, start, count, t.data_ptr(), path, pose_dataset(name));
       out.pose[name] = t;
     }
+  });
+  renamed([&] {
+    for (auto& p : pending) decode_record_chunks(p.chunks, p.out.data_ptr());
   });
   // Bulk checks, naming the first bad record.
   auto first_bad = [&](const torch::Tensor& bad_rows, const std::string& dataset, const std::string& what) {

@@ -107,7 +107,8 @@ class Stage1CacheWriter {
 
 // Reads a cache: open() checks the attributes, the schema version and every dataset's dtype and shape
 // (in a forked child first, as the pair cache's reader does: libhdf5 1.10 can crash on corrupt
-// files), and reads the small per-record datasets whole. Reads are thread-safe (hdf5_mutex()).
+// files), and reads the small per-record datasets whole. Reads are thread-safe (their HDF5 calls
+// take hdf5_mutex()).
 class Stage1CacheReader {
  public:
   static Stage1CacheReader open(const std::string& path);
@@ -116,7 +117,8 @@ class Stage1CacheReader {
   // Record i, inputs decoded to float32 and checked (errors name the file, record, id and dataset).
   Stage1Record read(int64_t i) const;
   // Records [start, start + count) of the big datasets in their storage dtypes, checked in bulk
-  // (occupancy 0/1, pose finite, images in range, point maps without +-Inf).
+  // (occupancy 0/1, pose finite, images in range, point maps without +-Inf). Several threads may call
+  // it at once: only locating the chunks holds the HDF5 lock, reading and inflating them does not.
   Stage1Rows read_rows(int64_t start, int64_t count) const;
   const std::vector<std::string>& ids() const;
   const std::vector<std::string>& families() const;

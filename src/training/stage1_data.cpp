@@ -3,16 +3,19 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include <cmath>
+#include <algorithm>
 #include <functional>
+#include <mutex>
 
 #include "common/error.h"
 #include "common/log.h"
+#include "common/parallel.h"
 #include "common/progress.h"
 
 namespace simu::training {
 
 std::shared_ptr<const Stage1Samples> load_stage1_samples(const std::string& cache, data::SampleSplit split,
-                                                         bool progress, int64_t chunk) {
+                                                         bool progress, int64_t chunk, int threads) {
   const auto reader = data::Stage1CacheReader::open(cache);
   const auto& info = reader.info();
   const auto& splits = reader.splits();
@@ -21,12 +24,15 @@ std::shared_ptr<const Stage1Samples> load_stage1_samples(const std::string& cach
     fail_hint("build the cache with samples of that split (build_stage1_data --split)",
               "stage-1 cache '{}' has no {} samples ({} train, {} val, {} test)", cache, data::split_name(split),
               info.counts[0], info.counts[1], info.counts[2]);
-  // Chunks of records; each keeps the rows of the split.
-  std::vector<data::Stage1Rows> parts;
+  // Chunks of records, read on `threads` threads (each keeps the rows of the split), joined in order.
+  const int64_t chunks = (info.size + chunk - 1) / chunk;
+  std::vector<data::Stage1Rows> parts(static_cast<size_t>(chunks));
+  std::mutex mu;
+  int64_t done = 0;
   std::unique_ptr<simu::Progress> bar;
   if (progress) bar = std::make_unique<simu::Progress>("loading " + cache, "records");
-  for (int64_t start = 0; start < info.size; start += chunk) {
-    const int64_t count = std::min(chunk, info.size - start);
+  simu::parallel_for_each(chunks, threads, [&](int64_t c) {
+    const int64_t start = c * chunk, count = std::min(chunk, info.size - start);
     std::vector<int64_t> keep;
     for (int64_t i = start; i < start + count; ++i)
       if (splits[i] == static_cast<uint8_t>(split)) keep.push_back(i - start);
@@ -41,10 +47,14 @@ std::shared_ptr<const Stage1Samples> load_stage1_samples(const std::string& cach
         for (int64_t j : keep) index.push_back(rows.index[j]);
         rows.index = index;
       }
-      parts.push_back(std::move(rows));
+      parts[c] = std::move(rows);
     }
-    if (bar) (*bar)(start + count, info.size);
-  }
+    std::lock_guard<std::mutex> lock(mu);
+    done += count;
+    if (bar) (*bar)(done, info.size);
+  });
+  parts.erase(std::remove_if(parts.begin(), parts.end(), [](const data::Stage1Rows& r) { return r.index.empty(); }),
+              parts.end());
   auto out = std::make_shared<Stage1Samples>();
   auto cat = [&](const std::function<torch::Tensor(const data::Stage1Rows&)>& get) {
     std::vector<torch::Tensor> ts;

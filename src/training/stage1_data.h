@@ -25,10 +25,10 @@ struct Stage1Samples {
   int64_t occupancy_resolution() const { return occupancy.size(1); }
 };
 
-// Loads every record of `split` (reading `chunk` records at a time, checked in bulk; a progress bar
-// when `progress`). Throws naming the cache when the split is empty.
+// Loads every record of `split` (`chunk` records at a time on `threads` threads, checked in bulk; a
+// progress bar when `progress`). Throws naming the cache when the split is empty.
 std::shared_ptr<const Stage1Samples> load_stage1_samples(const std::string& cache, data::SampleSplit split,
-                                                         bool progress = false, int64_t chunk = 256);
+                                                         bool progress = false, int64_t chunk = 256, int threads = 8);
 
 // n synthetic samples (benchmarks and smoke runs; seeded): smooth random images stored as uint8,
 // box masks, smooth point maps in [-1, 1] stored as float16 with an invalid (NaN) corner, random
