@@ -3,6 +3,7 @@
 #include <ATen/CPUGeneratorImpl.h>
 
 #include "common/error.h"
+#include "models/ss_encoder.h"
 
 namespace simu::training {
 
@@ -27,11 +28,28 @@ ShapeTargetFn random_linear_targets(const models::LatentSpec& shape, int64_t R, 
   };
 }
 
+ShapeTargetFn encoder_targets(models::SparseStructureEncoder encoder) {
+  return [encoder](const torch::Tensor& occupancy) mutable {
+    // The posterior mean of [B, 1, R, R, R] float occupancy: [B, C, k, k, k] -> tokens [B, k^3, C].
+    return grid_to_shape_tokens(encoder->posterior(occupancy.to(torch::kFloat32).unsqueeze(1)).first);
+  };
+}
+
 ShapeTargetFn make_shape_targets(const TargetsConfig& config, const models::LatentSpec& shape,
                                  int64_t occupancy_resolution, torch::Device device, const std::string& config_file) {
   if (config.kind == "random_linear") return random_linear_targets(shape, occupancy_resolution, config.seed, device);
-  fail_hint("use targets.kind random_linear for a smoke run until the encoder is ported (branch vae)",
-            "{}: targets.kind encoder: the sparse-structure encoder is not in this build yet", config_file);
+  const auto ec = models::SSEncoderConfig::load(config.encoder_config);
+  const int64_t k = shape.resolution / shape.patch_size;
+  if (ec.latent_channels != shape.in_channels || occupancy_resolution != k * ec.downsample_factor() || ec.in_channels != 1)
+    fail_hint("train the VAE for this flow model's shape latent and the cache's occupancy side",
+              "{}: targets.encoder_config {} maps [1, {}^3] occupancy to [{}, {}^3] latents; the flow model's shape latent "
+              "is [{}, {}^3] and the cache's occupancy is {}^3",
+              config_file, config.encoder_config, occupancy_resolution, ec.latent_channels,
+              occupancy_resolution / ec.downsample_factor(), shape.in_channels, k, occupancy_resolution);
+  auto encoder = models::load_ss_encoder(config.encoder_config, config.encoder_weights, device);
+  encoder->eval();
+  for (auto& p : encoder->parameters()) p.set_requires_grad(false);
+  return encoder_targets(encoder);
 }
 
 }  // namespace simu::training

@@ -9,6 +9,7 @@
 #include <functional>
 
 #include "models/flow_model.h"
+#include "models/ss_encoder.h"
 #include "training/stage1_config.h"
 
 namespace simu::training {
@@ -27,8 +28,12 @@ torch::Tensor grid_to_shape_tokens(const torch::Tensor& grid);
 ShapeTargetFn random_linear_targets(const models::LatentSpec& shape, int64_t occupancy_resolution, uint64_t seed,
                                     torch::Device device);
 
-// The maker a config asks for (targets.kind; "encoder" loads the frozen encoder on device). Checks
-// that its latents fit the flow model's shape latent (channels, k^3 tokens) and the cache's R.
+// The posterior mean of a (frozen) sparse-structure encoder, as tokens.
+ShapeTargetFn encoder_targets(models::SparseStructureEncoder encoder);
+
+// The maker a config asks for (targets.kind; "encoder" loads the frozen encoder on device, eval mode,
+// no gradients). Checks that its latents fit the flow model's shape latent (channels, k^3 tokens) and
+// the cache's R, naming the config and both shapes.
 ShapeTargetFn make_shape_targets(const TargetsConfig& config, const models::LatentSpec& shape,
                                  int64_t occupancy_resolution, torch::Device device, const std::string& config_file);
 
