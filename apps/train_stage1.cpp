@@ -8,6 +8,7 @@
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
+#include "data/stage1_cache.h"
 #include "training/distributed.h"
 #include "training/flow_objective.h"
 #include "training/launcher.h"
@@ -45,12 +46,14 @@ int main(int argc, char** argv) {
     prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/env.rank == 0, build_hint);
     const torch::Device device = rank_device(cfg.train.device, env.local_rank);
     auto comm = Communicator::create(env, device, std::chrono::milliseconds(static_cast<int64_t>(cfg.dist.timeout_s * 1000)));
-    // The training split in memory, the model, the shape-latent targets.
-    auto samples = load_stage1_samples(cfg.data.cache, simu::data::parse_sample_split(cfg.dataset.split),
-                                       /*progress=*/env.rank == 0 && cfg.run.progress);
+    // The model and the shape-latent targets (checked against the cache's grid), then the training
+    // split in memory.
     auto model = make_stage1_model(cfg.model.generator, cfg.model.embedder, cfg.model.init, device, cfg.train.seed);
     const auto& flow = model->generator->config().backbone;
-    auto targets = make_shape_targets(cfg.targets, flow.latent("shape"), samples->occupancy_resolution(), device, cfg.file);
+    const int64_t R = simu::data::Stage1CacheReader::open(cfg.data.cache).info().occupancy_resolution;
+    auto targets = make_shape_targets(cfg.targets, flow.latent("shape"), R, device, cfg.file);
+    auto samples = load_stage1_samples(cfg.data.cache, simu::data::parse_sample_split(cfg.dataset.split),
+                                       /*progress=*/env.rank == 0 && cfg.run.progress);
     const auto counts = count_parameters(model);
     if (env.rank == 0)
       simu::log::info("Stage-1 model: flow model {:.2f} M parameters, condition embedder {:.2f} M; {} on {}",

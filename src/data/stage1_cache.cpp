@@ -359,7 +359,8 @@ struct Stage1CacheReader::Impl {
 };
 
 Stage1CacheReader Stage1CacheReader::open(const std::string& path) {
-  if (!stdfs::exists(path)) fail("stage-1 cache '{}' does not exist", path);
+  if (!stdfs::exists(path))
+    fail_hint("build one with build_stage1_data (docs/stage1_cache.md)", "stage-1 cache '{}' does not exist", path);
   // First reads in a child process (a corrupt file crashes libhdf5 1.10 there, not here).
   renamed([&] {
     isolated(path, "structure and per-record datasets", [&](const std::function<void(int64_t, int64_t)>&) {

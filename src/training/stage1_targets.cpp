@@ -2,6 +2,8 @@
 
 #include <ATen/CPUGeneratorImpl.h>
 
+#include <filesystem>
+
 #include "common/error.h"
 #include "models/ss_encoder.h"
 
@@ -38,6 +40,10 @@ ShapeTargetFn encoder_targets(models::SparseStructureEncoder encoder) {
 ShapeTargetFn make_shape_targets(const TargetsConfig& config, const models::LatentSpec& shape,
                                  int64_t occupancy_resolution, torch::Device device, const std::string& config_file) {
   if (config.kind == "random_linear") return random_linear_targets(shape, occupancy_resolution, config.seed, device);
+  for (const auto& [key, path] : {std::pair{"encoder_config", config.encoder_config}, std::pair{"encoder_weights", config.encoder_weights}})
+    if (!std::filesystem::exists(path))
+      fail_hint("train the sparse-structure VAE first (train_ss_vae --config configs/miniature/ss_vae.yaml) or set the key",
+                "{}: key 'targets.{}': '{}' does not exist", config_file, key, path);
   const auto ec = models::SSEncoderConfig::load(config.encoder_config);
   const int64_t k = shape.resolution / shape.patch_size;
   if (ec.latent_channels != shape.in_channels || occupancy_resolution != k * ec.downsample_factor() || ec.in_channels != 1)
