@@ -4,7 +4,7 @@
 // miniature's sizes (condition inputs, ObjectCentricSSI scale / shift), the filled occupancy of its
 // canonical mesh, and its pose latents in SAM 3D's convention. Scenes run in parallel; samples are
 // written in scene order, so a file is a function of its arguments.
-//   build_stage1_data --out data/stage1.h5 --train 12000 --val 400 --threads 16
+//   build_stage1_data --out data/stage1.h5 --train 25000 --val 500 --threads 16
 #include <ATen/Parallel.h>
 #include <fmt/format.h>
 
