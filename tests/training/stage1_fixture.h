@@ -94,18 +94,19 @@ inline std::shared_ptr<training::Stage1Samples> tiny_samples(int64_t n, uint64_t
   return s;
 }
 
-// The objective of a config over samples (a fresh model seeded by model_seed, default cfg.train.seed;
-// targets default to the config's).
+// The objective of a config over samples (a fresh model seeded by model_seed, default cfg.train.seed,
+// on device; targets default to the config's).
 inline std::unique_ptr<training::FlowObjective> tiny_objective(const training::Stage1Config& cfg,
                                                                std::shared_ptr<const training::Stage1Samples> samples,
                                                                training::ShapeTargetFn targets = nullptr,
-                                                               int64_t model_seed = -1) {
-  auto model = training::make_stage1_model(cfg.model.generator, cfg.model.embedder, "", torch::kCPU,
+                                                               int64_t model_seed = -1,
+                                                               torch::Device device = torch::kCPU) {
+  auto model = training::make_stage1_model(cfg.model.generator, cfg.model.embedder, "", device,
                                            model_seed < 0 ? cfg.train.seed : static_cast<uint64_t>(model_seed));
   if (!targets)
     targets = training::make_shape_targets(cfg.targets, model->generator->config().backbone.latent("shape"),
-                                           samples->occupancy_resolution(), torch::kCPU, cfg.file);
-  return std::make_unique<training::FlowObjective>(cfg, model, std::move(samples), std::move(targets), torch::kCPU);
+                                           samples->occupancy_resolution(), device, cfg.file);
+  return std::make_unique<training::FlowObjective>(cfg, model, std::move(samples), std::move(targets), device);
 }
 
 }  // namespace simu::testing
