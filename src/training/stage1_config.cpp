@@ -104,6 +104,10 @@ Stage1Config Stage1Config::from(simu::config::Reader& r) {
   c.ema = section<EmaConfig>(r, "ema");
   c.export_ = section<ExportConfig>(r, "export");
   c.dataset = section<DatasetConfig>(r, "dataset");
+  // Options of FM-DPO's data stream that do not apply: the split is loaded into memory once.
+  if (r.has("data") && r.node()["data"].IsMap() && r.node()["data"]["prefetch"])
+    fail_hint("remove it: the training split is held in memory and gathered per step with the read-ahead",
+              "{}: key 'data.prefetch' applies to the pair cache's stream (train_fmdpo), not to train_stage1", r.file());
   c.read_shared(r);
   r.finish();
   // FM-DPO's frozen-base options do not apply to a model trained whole.

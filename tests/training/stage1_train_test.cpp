@@ -320,6 +320,7 @@ TEST(Stage1Config, BadConfigsAreClearErrors) {
   expect_error("dataset.split=training", "dataset.split");
   expect_error("targets.kind=encoder", "targets.encoder_config");
   expect_error("model.generatr=x", "unknown key 'model.generatr'");
+  expect_error("data.prefetch=4", "key 'data.prefetch'");
   try {
     Stage1Config::load(good.file, {"train.fp8_base=true", "train.device=cuda", "train.precision=bf16"});
     ADD_FAILURE() << "no error for train.fp8_base";
