@@ -3,7 +3,6 @@
 //   train_fmdpo --config ... --nproc-per-node 2        (starts the local ranks itself)
 //   torchrun --nproc-per-node 2 --no-python train_fmdpo --config ...
 #include <cstdlib>
-#include <cstring>
 
 #include "common/cli.h"
 #include "common/error.h"
@@ -28,13 +27,7 @@ int main(int argc, char** argv) {
     if (nproc > 1 && !std::getenv("RANK")) {
       auto cfg = TrainConfig::load(config_path, common.sets);
       prepare_out_dir(cfg, !resume.empty(), overwrite, /*lead=*/true);
-      std::vector<std::string> args;
-      for (int i = 1; i < argc; ++i) {
-        if (std::strcmp(argv[i], "--nproc-per-node") == 0) { ++i; continue; }
-        if (std::strncmp(argv[i], "--nproc-per-node=", 17) == 0) continue;
-        args.push_back(argv[i]);
-      }
-      launch_local_ranks(nproc, args, std::chrono::seconds(static_cast<int64_t>(cfg.dist.hang_timeout_s)));
+      launch_local_ranks(nproc, relaunch_args(argc, argv), std::chrono::seconds(static_cast<int64_t>(cfg.dist.hang_timeout_s)));
       return 0;
     }
     TrainRunOptions run;

@@ -5,7 +5,9 @@
 // objects (boxes in front of a wall, pinhole point map) stands in for a real one. Prints a table of
 // per-object milliseconds split into preprocess / embed / sampling / decoder / mesh / pose.
 // Random decoder weights give arbitrary occupancy: the table reports the occupied voxels per object
-// next to the mesh time (--decoder-bias shifts the output logits to change it).
+// next to the mesh time (--decoder-bias shifts the output logits to change it). Other models through
+// --generator-config / --embedder-config / --decoder-config and their preprocessing through
+// --preprocess (e.g. the miniature: configs/miniature/, docs/train_stage1.md "Sizing").
 #include <c10/cuda/CUDACachingAllocator.h>
 #include <fmt/format.h>
 #include <fmt/ranges.h>
@@ -121,7 +123,7 @@ struct Row {
 // Times lift_objects on the first B objects of `photo` with graphs "on" or "off": the first call apart,
 // then the median of `iters` calls (per-call stage times and page faults logged).
 Row time_lift(simu::resample::Resampler& rs, const simu::resample::LiftInputs& photo, const std::string& g, int64_t B,
-              int iters, const torch::Device& dev) {
+              int iters, const torch::Device& dev, const simu::data::PreprocessConfig& preprocess) {
   auto ms_of = [](const simu::resample::LiftTimings& t) {
     return fmt::format("preprocess {:.1f}, embed {:.1f}, sample {:.1f}, decode {:.1f}, mesh {:.1f}, pose {:.1f} ms",
                        t.preprocess * 1e3, t.embed * 1e3, t.sample * 1e3, t.decode * 1e3, t.mesh * 1e3, t.pose * 1e3);
@@ -130,6 +132,7 @@ Row time_lift(simu::resample::Resampler& rs, const simu::resample::LiftInputs& p
   auto in = photo;
   in.objects.resize(static_cast<size_t>(B));
   simu::resample::LiftOptions opt;
+  opt.preprocess = preprocess;
   // The first call (a fresh process's only call: kernels, allocator, graph captures) is timed apart.
   const auto f0 = std::chrono::steady_clock::now();
   const auto first = simu::resample::lift_objects(rs, in, opt);
@@ -179,6 +182,11 @@ int main(int argc, char** argv) {
                  "eager launches (off: lift's default) and/or sampling through persistent CUDA graphs (on: captured "
                  "in the first call, replayed after), each a row")
       ->check(CLI::IsMember({"on", "off"}))->capture_default_str();
+  std::string generator_config, embedder_config, decoder_config, preprocess_file;
+  app.add_option("--generator-config", generator_config, "generator config (default: the released size)");
+  app.add_option("--embedder-config", embedder_config, "condition embedder config (default: the released size)");
+  app.add_option("--decoder-config", decoder_config, "decoder config (default: the released size)");
+  app.add_option("--preprocess", preprocess_file, "preprocessing config (data::PreprocessConfig keys; default: released)");
   bool diagnose = false;
   app.add_flag("--diagnose", diagnose,
                "also time the CPU stages alone, back to back (preprocessing of one object, logits -> mesh of one "
@@ -199,6 +207,15 @@ int main(int argc, char** argv) {
       cfg.decoder_config = simu::source_dir() + "/configs/ss_decoder_small.yaml";
       cfg.embedder_config = simu::source_dir() + "/configs/demo_embedder_small.json";
       cfg.generator_overrides = {"flow_model.cond_channels=48"};
+    }
+    if (!generator_config.empty()) cfg.generator_config = generator_config;
+    if (!embedder_config.empty()) cfg.embedder_config = embedder_config;
+    if (!decoder_config.empty()) cfg.decoder_config = decoder_config;
+    simu::data::PreprocessConfig preprocess;
+    if (!preprocess_file.empty()) {
+      simu::config::Reader r(simu::config::load_file(preprocess_file), preprocess_file);
+      preprocess = simu::data::PreprocessConfig::from(r);
+      r.finish();
     }
     simu::resample::apply_precision(cfg, precision);
     cfg.random_weights = true;  // a benchmark: random init, banner logged
@@ -221,7 +238,7 @@ int main(int argc, char** argv) {
     const auto photo = synthetic_photo(max_b);
     std::vector<Row> rows;
     for (const auto& g : graphs)
-      for (const int64_t B : batches) rows.push_back(time_lift(rs, photo, g, B, iters, dev));
+      for (const int64_t B : batches) rows.push_back(time_lift(rs, photo, g, B, iters, dev, preprocess));
     if (diagnose) diagnose_cpu_stages(rs, photo, dev);
     fmt::print("\n| graphs | objects per call | call ms | per object ms | first call ms per object | preprocess | embed | "
                "sampling | decoder | mesh | pose | voxels/obj | peak alloc GiB |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");

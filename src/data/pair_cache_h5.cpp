@@ -197,72 +197,107 @@ struct ChunkFile {
   ChunkFile(const ChunkFile&) = delete;
   ChunkFile& operator=(const ChunkFile&) = delete;
 };
-
-// The stored (filtered) bytes of the chunk at `off` (record r) into raw, and its filter mask.
-uint32_t read_stored_chunk(hid_t dset, const ChunkFile& cf, const std::vector<hsize_t>& off, uint64_t limit, int64_t r,
-                           std::vector<uint8_t>& raw, const std::string& file, const std::string& name) {
-  unsigned mask = 0;
-  haddr_t addr = HADDR_UNDEF;
-  hsize_t nbytes = 0;
-  if (H5Dget_chunk_info_by_coord(dset, off.data(), &mask, &addr, &nbytes) < 0)
-    fail("pair cache '{}': record {}: cannot locate the chunk of dataset '{}': {}", file, r, name, h5_error());
-  // Its size bounded by what one record can take (gzip adds at most ~0.1% + 12 bytes), inside the file.
-  if (addr == HADDR_UNDEF || nbytes == 0)
-    fail("pair cache '{}': record {}: dataset '{}' has no stored chunk (never written)", file, r, name);
-  if (nbytes > limit || addr > cf.length || cf.base + addr > cf.length || nbytes > cf.length - cf.base - addr)
-    fail("pair cache '{}': record {}: dataset '{}' indexes a chunk of {} bytes at offset {} (a record takes at most "
-         "{}; the file has {}): the chunk index is corrupted",
-         file, r, name, nbytes, addr, limit, cf.length);
-  raw.resize(nbytes);
-  for (size_t got = 0; got < nbytes;) {
-    const ssize_t n = ::pread(cf.fd, raw.data() + got, nbytes - got, static_cast<off_t>(cf.base + addr + got));
-    if (n <= 0) fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}'", file, r, name);
-    got += static_cast<size_t>(n);
-  }
-  return mask;
-}
 }  // namespace
+
+RecordChunks locate_record_chunks(hid_t dset, int64_t start, int64_t count, const std::string& file,
+                                  const std::string& name) {
+  RecordChunks c;
+  c.file = file;
+  c.name = name;
+  c.start = start;
+  c.pipe = check_record_layout(dset, file, name);
+  const auto dims = dataset_dims(dset);
+  H5Id ftype(H5Dget_type(dset));
+  c.fsize = H5Tget_size(ftype.get());
+  c.per = 1;  // elements per record
+  for (size_t k = 1; k < dims.size(); ++k) c.per *= static_cast<size_t>(dims[k]);
+  const size_t chunk_bytes = c.per * c.fsize;
+  if (c.per == 0 || count <= 0) return c;
+  const ChunkFile cf(dset, file);
+  // A record's stored size is bounded by what one record can take (gzip adds at most ~0.1% + 12 bytes).
+  const uint64_t limit = c.pipe.deflate >= 0 ? chunk_bytes + chunk_bytes / 100 + 1024 : chunk_bytes;
+  std::vector<hsize_t> off(dims.size(), 0);
+  for (int64_t r = start; r < start + count; ++r) {
+    off[0] = static_cast<hsize_t>(r);
+    unsigned mask = 0;
+    haddr_t addr = HADDR_UNDEF;
+    hsize_t nbytes = 0;
+    if (H5Dget_chunk_info_by_coord(dset, off.data(), &mask, &addr, &nbytes) < 0)
+      fail("pair cache '{}': record {}: cannot locate the chunk of dataset '{}': {}", file, r, name, h5_error());
+    // Inside the file and no larger than a record may take.
+    if (addr == HADDR_UNDEF || nbytes == 0)
+      fail("pair cache '{}': record {}: dataset '{}' has no stored chunk (never written)", file, r, name);
+    if (nbytes > limit || addr > cf.length || cf.base + addr > cf.length || nbytes > cf.length - cf.base - addr)
+      fail("pair cache '{}': record {}: dataset '{}' indexes a chunk of {} bytes at offset {} (a record takes at most "
+           "{}; the file has {}): the chunk index is corrupted",
+           file, r, name, nbytes, addr, limit, cf.length);
+    c.offset.push_back(cf.base + addr);
+    c.nbytes.push_back(nbytes);
+    c.mask.push_back(mask);
+  }
+  return c;
+}
+
+void decode_record_chunks(const RecordChunks& c, void* buf) {
+  const size_t chunk_bytes = c.per * c.fsize;
+  if (c.offset.empty() || chunk_bytes == 0) return;
+  const int fd = ::open(c.file.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) fail("pair cache '{}': cannot open for reading: {}", c.file, std::strerror(errno));
+  struct Closer {
+    int fd;
+    ~Closer() { ::close(fd); }
+  } closer{fd};
+  std::vector<uint8_t> raw, plain(chunk_bytes);
+  auto* out = static_cast<uint8_t*>(buf);
+  for (size_t i = 0; i < c.offset.size(); ++i) {
+    const int64_t r = c.start + static_cast<int64_t>(i);
+    raw.resize(c.nbytes[i]);
+    for (size_t got = 0; got < raw.size();) {
+      const ssize_t n = ::pread(fd, raw.data() + got, raw.size() - got, static_cast<off_t>(c.offset[i] + got));
+      if (n <= 0) fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}'", c.file, r, c.name);
+      got += static_cast<size_t>(n);
+    }
+    // Filters in reverse: gzip (the last one), then shuffle; each must give exactly one record's bytes.
+    uint8_t* dst = out + i * chunk_bytes;
+    const bool shuffled = c.pipe.shuffle >= 0 && !(c.mask[i] & (1u << c.pipe.shuffle)) && c.fsize > 1;
+    uint8_t* inflated = shuffled ? plain.data() : dst;
+    if (c.pipe.deflate >= 0 && !(c.mask[i] & (1u << c.pipe.deflate))) {
+      uLongf got = static_cast<uLongf>(chunk_bytes);
+      const int z = uncompress(inflated, &got, raw.data(), static_cast<uLong>(raw.size()));
+      if (z != Z_OK || got != chunk_bytes)
+        fail("pair cache '{}': record {}: dataset '{}': gzip data does not inflate to one record ({} bytes): {}",
+             c.file, r, c.name, chunk_bytes, z == Z_OK ? fmt::format("{} bytes", got) : fmt::format("zlib error {}", z));
+    } else if (raw.size() != chunk_bytes) {
+      fail("pair cache '{}': record {}: dataset '{}' stores {} bytes uncompressed, a record is {} bytes", c.file, r,
+           c.name, raw.size(), chunk_bytes);
+    } else {
+      std::memcpy(inflated, raw.data(), chunk_bytes);
+    }
+    if (shuffled) unshuffle(plain.data(), dst, c.per, c.fsize);
+  }
+}
 
 void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
                       const std::string& name) {
-  const RecordPipeline pipe = check_record_layout(dset, file, name);
-  const auto dims = dataset_dims(dset);
+  const RecordChunks chunks = locate_record_chunks(dset, start, count, file, name);
+  if (chunks.per == 0 || count <= 0) return;
   H5Id ftype(H5Dget_type(dset));
-  const size_t fsize = H5Tget_size(ftype.get()), msize = H5Tget_size(mtype);
-  size_t per = 1;  // elements per record
-  for (size_t k = 1; k < dims.size(); ++k) per *= static_cast<size_t>(dims[k]);
-  const size_t chunk_bytes = per * fsize;
-  if (per == 0 || count <= 0) return;
-  const ChunkFile cf(dset, file);
-  const uint64_t limit = pipe.deflate >= 0 ? chunk_bytes + chunk_bytes / 100 + 1024 : chunk_bytes;
-  std::vector<uint8_t> raw, plain(chunk_bytes), work(per * std::max(fsize, msize));
+  const size_t msize = H5Tget_size(mtype);
+  if (H5Tequal(ftype.get(), mtype) > 0) {
+    decode_record_chunks(chunks, buf);
+    return;
+  }
+  // Stored type -> memory type, record by record in place (work holds per * max(fsize, msize) bytes).
+  std::vector<uint8_t> stored(static_cast<size_t>(count) * chunks.per * chunks.fsize);
+  decode_record_chunks(chunks, stored.data());
+  std::vector<uint8_t> work(chunks.per * std::max(chunks.fsize, msize));
   auto* out = static_cast<uint8_t*>(buf);
-  for (int64_t r = start; r < start + count; ++r) {
-    std::vector<hsize_t> off(dims.size(), 0);
-    off[0] = static_cast<hsize_t>(r);
-    const uint32_t mask = read_stored_chunk(dset, cf, off, limit, r, raw, file, name);
-    // Filters in reverse: gzip (the last one), then shuffle; each must give exactly one record's bytes.
-    if (pipe.deflate >= 0 && !(mask & (1u << pipe.deflate))) {
-      uLongf got = static_cast<uLongf>(chunk_bytes);
-      const int z = uncompress(plain.data(), &got, raw.data(), static_cast<uLong>(raw.size()));
-      if (z != Z_OK || got != chunk_bytes)
-        fail("pair cache '{}': record {}: dataset '{}': gzip data does not inflate to one record ({} bytes): {}",
-             file, r, name, chunk_bytes, z == Z_OK ? fmt::format("{} bytes", got) : fmt::format("zlib error {}", z));
-    } else if (raw.size() != chunk_bytes) {
-      fail("pair cache '{}': record {}: dataset '{}' stores {} bytes uncompressed, a record is {} bytes", file, r,
-           name, raw.size(), chunk_bytes);
-    } else {
-      std::memcpy(plain.data(), raw.data(), chunk_bytes);
-    }
-    if (pipe.shuffle >= 0 && !(mask & (1u << pipe.shuffle)) && fsize > 1)
-      unshuffle(plain.data(), work.data(), per, fsize);
-    else
-      std::memcpy(work.data(), plain.data(), chunk_bytes);
-    // Stored type -> memory type, in place (work holds per * max(fsize, msize) bytes).
-    if (H5Tconvert(ftype.get(), mtype, per, work.data(), nullptr, H5P_DEFAULT) < 0)
-      fail("pair cache '{}': record {}: dataset '{}': cannot convert its {} values: {}", file, r, name,
+  for (int64_t i = 0; i < count; ++i) {
+    std::memcpy(work.data(), stored.data() + static_cast<size_t>(i) * chunks.per * chunks.fsize, chunks.per * chunks.fsize);
+    if (H5Tconvert(ftype.get(), mtype, chunks.per, work.data(), nullptr, H5P_DEFAULT) < 0)
+      fail("pair cache '{}': record {}: dataset '{}': cannot convert its {} values: {}", file, start + i, name,
            type_name(ftype.get()), h5_error());
-    std::memcpy(out + static_cast<size_t>(r - start) * per * msize, work.data(), per * msize);
+    std::memcpy(out + static_cast<size_t>(i) * chunks.per * msize, work.data(), chunks.per * msize);
   }
 }
 

@@ -98,6 +98,22 @@ RecordPipeline check_record_layout(hid_t dset, const std::string& file, const st
 // stored type is converted to mtype. Throws naming the file, record and dataset.
 void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
                       const std::string& name);
+// read_record_rows in two steps, so that many records' bytes can be decoded on several threads:
+// locate_record_chunks (HDF5 calls: under the HDF5 lock) finds where each record's chunk is stored and
+// checks it against the file (the layout as read_record_rows requires); decode_record_chunks reads
+// those bytes (pread), inflates and unshuffles them into buf in the stored type (count * per * fsize
+// bytes; no HDF5 call: any thread, without the lock). Errors name the file, record and dataset.
+struct RecordChunks {
+  std::string file, name;
+  RecordPipeline pipe;
+  size_t per = 0, fsize = 0;             // elements per record, bytes per stored element
+  int64_t start = 0;                     // the first record
+  std::vector<uint64_t> offset, nbytes;  // each record's chunk: file offset and stored bytes
+  std::vector<uint32_t> mask;            // its filter mask
+};
+RecordChunks locate_record_chunks(hid_t dset, int64_t start, int64_t count, const std::string& file,
+                                  const std::string& name);
+void decode_record_chunks(const RecordChunks& chunks, void* buf);
 // Writes rows [start, start+count) of dimension 0 from buf.
 void write_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, const void* buf, const std::string& file,
                 const std::string& name);

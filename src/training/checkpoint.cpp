@@ -56,10 +56,13 @@ std::string save_checkpoint(const std::string& root, const CheckpointData& data,
   const std::string dst = root + "/" + name;
   stdfs::create_directories(tmp);
   // Each file is itself written atomically and fsynced.
-  simu::data::save_safetensors(tmp + "/adapter.safetensors", data.adapter, {{"format", "pt"}});
+  SIMU_CHECK(data.params_file == "adapter.safetensors" || data.params_file == "model.safetensors",
+             "checkpoint: parameters file '{}' (adapter.safetensors or model.safetensors expected)", data.params_file);
+  simu::data::save_safetensors(tmp + "/" + data.params_file, data.adapter, {{"format", "pt"}});
   write_point("adapter");
   simu::data::save_safetensors(tmp + "/optimizer.safetensors", data.optimizer, {{"format", "pt"}});
   write_point("optimizer");
+  if (!data.extra.empty()) simu::data::save_safetensors(tmp + "/extra.safetensors", data.extra, {{"format", "pt"}});
   nlohmann::json state = data.state;
   state["step"] = data.step;
   simu::fs::atomic_write(tmp + "/train_state.json", state.dump(2) + "\n");
@@ -100,12 +103,16 @@ std::string save_checkpoint(const std::string& root, const CheckpointData& data,
 
 CheckpointData load_checkpoint(const std::string& dir) {
   CheckpointData d;
-  for (const char* f : {"adapter.safetensors", "optimizer.safetensors", "train_state.json"})
+  // The parameters' file: an FM-DPO adapter or a Stage-1 model.
+  if (!stdfs::exists(dir + "/adapter.safetensors") && stdfs::exists(dir + "/model.safetensors"))
+    d.params_file = "model.safetensors";
+  for (const std::string f : {d.params_file, std::string("optimizer.safetensors"), std::string("train_state.json")})
     if (!stdfs::exists(dir + "/" + f))
-      fail_hint("pass a directory written by train_fmdpo (step_NNNNNNNN) or --resume latest",
+      fail_hint("pass a directory written by train_fmdpo or train_stage1 (step_NNNNNNNN) or --resume latest",
                 "{}: not a checkpoint: missing {}", dir, f);
-  d.adapter = simu::data::load_safetensors(dir + "/adapter.safetensors");
+  d.adapter = simu::data::load_safetensors(dir + "/" + d.params_file);
   d.optimizer = simu::data::load_safetensors(dir + "/optimizer.safetensors");
+  if (stdfs::exists(dir + "/extra.safetensors")) d.extra = simu::data::load_safetensors(dir + "/extra.safetensors");
   const std::string state_path = dir + "/train_state.json";
   d.state = simu::text::parse_json(simu::fs::read_file(state_path), state_path);
   // What resume reads: step and data_position {epoch, step}, non-negative integers.
@@ -123,6 +130,7 @@ CheckpointData load_checkpoint(const std::string& dir) {
   // Own copies: the mapped files may be replaced while training goes on.
   for (auto& [k, v] : d.adapter) v = v.clone();
   for (auto& [k, v] : d.optimizer) v = v.clone();
+  for (auto& [k, v] : d.extra) v = v.clone();
   return d;
 }
 

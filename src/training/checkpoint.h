@@ -1,9 +1,13 @@
 // Training checkpoints: one directory per step, written atomically, the last N kept.
 //
 // Layout of <root>/step_<NNNNNNNN>/:
-//   adapter.safetensors    adapter tensors under their PEFT names (base_model.model.<path>.lora_A.weight)
+//   adapter.safetensors    FM-DPO: the trained adapter tensors under their PEFT names
+//                          (base_model.model.<path>.lora_A.weight), or
+//   model.safetensors      Stage-1 pretraining: every trained parameter under its official name
+//                          (_base_models.generator.<...>, _base_models.condition_embedder.<...>)
 //   optimizer.safetensors  AdamW state (<name>.exp_avg, <name>.exp_avg_sq, <name>.step) and RNG
 //                          states (rng.<name>, uint8)
+//   extra.safetensors      the objective's own state, when it has one (Stage 1: the EMA weights)
 //   train_state.json       step, data position, schedule, seeds, world size, config snapshot
 // A checkpoint is built in <root>/.tmp-step_<N>-<pid>/ (every file fsynced), then renamed into place
 // and the root fsynced, so a kill at any moment leaves every visible step_* directory complete.
@@ -20,8 +24,10 @@ namespace simu::training {
 
 struct CheckpointData {
   int64_t step = 0;                                  // optimizer steps done
-  std::map<std::string, torch::Tensor> adapter;      // PEFT names
+  std::map<std::string, torch::Tensor> adapter;      // the trained parameters (FM-DPO: the adapter, PEFT names)
+  std::string params_file = "adapter.safetensors";   // their file: adapter.safetensors or model.safetensors
   std::map<std::string, torch::Tensor> optimizer;    // optimizer state + rng.*
+  std::map<std::string, torch::Tensor> extra;        // the objective's own state (extra.safetensors when non-empty)
   nlohmann::json state = nlohmann::json::object();   // train_state.json ("step" is set from step)
 };
 

@@ -10,6 +10,7 @@
 #include "common/config_check.h"
 #include "common/error.h"
 #include "common/random.h"
+#include "training/staging.h"
 
 namespace simu::training {
 
@@ -232,8 +233,7 @@ torch::Tensor checkpointed(const std::function<torch::Tensor(const std::vector<t
 
 PairNoise draw_pair_noise(uint64_t seed, int64_t step, int64_t pair_id, at::IntArrayRef latent_shape, double t_mean,
                           double t_std) {
-  const uint64_t s = splitmix64(splitmix64(splitmix64(seed) ^ static_cast<uint64_t>(step)) ^ static_cast<uint64_t>(pair_id));
-  auto gen = at::make_generator<at::CPUGeneratorImpl>(s);
+  auto gen = sample_generator(seed, step, pair_id);
   PairNoise n;
   const auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
   // t = sigmoid(N(mean, std)): the official logit-normal training sampler.

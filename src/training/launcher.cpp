@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <thread>
 
+#include <c10/cuda/CUDAFunctions.h>
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
@@ -20,6 +21,29 @@
 #include "training/distributed.h"
 
 namespace simu::training {
+
+std::vector<std::string> relaunch_args(int argc, char** argv) {
+  std::vector<std::string> args;
+  for (int i = 1; i < argc; ++i) {
+    if (std::strcmp(argv[i], "--nproc-per-node") == 0) {
+      ++i;
+      continue;
+    }
+    if (std::strncmp(argv[i], "--nproc-per-node=", 17) == 0) continue;
+    args.push_back(argv[i]);
+  }
+  return args;
+}
+
+torch::Device rank_device(const std::string& device, int local_rank) {
+  if (device != "cuda") return torch::Device(torch::kCPU);
+  if (!torch::cuda::is_available())
+    fail_hint("set train.device: cpu (slow) or run on a GPU machine", "train.device is cuda but no CUDA device is visible");
+  SIMU_CHECK(local_rank < static_cast<int>(torch::cuda::device_count()), "LOCAL_RANK {} but only {} CUDA devices are visible",
+             local_rank, torch::cuda::device_count());
+  c10::cuda::set_device(static_cast<c10::DeviceIndex>(local_rank));
+  return torch::Device(torch::kCUDA, static_cast<c10::DeviceIndex>(local_rank));
+}
 
 void heartbeat() {
   static const char* path = std::getenv("SIMU_HEARTBEAT_FILE");

@@ -1,6 +1,9 @@
-// The local launcher (train_fmdpo --nproc-per-node N): starts the ranks of one machine as child
-// processes of this program and watches them through heartbeat files.
+// The local launcher (train_fmdpo / train_stage1 --nproc-per-node N): starts the ranks of one machine
+// as child processes of this program and watches them through heartbeat files. And the two steps the
+// training programs share around it: the ranks' arguments and each rank's device.
 #pragma once
+
+#include <torch/torch.h>
 
 #include <chrono>
 #include <string>
@@ -17,5 +20,13 @@ void heartbeat();
 // heartbeat for hang_timeout, ends the whole job (SIGTERM, then SIGKILL after 5 s) and this throws
 // simu::Error naming the rank. Returns when all ranks exit 0.
 void launch_local_ranks(int nproc, const std::vector<std::string>& args, std::chrono::seconds hang_timeout);
+
+// This program's arguments (argv[1..]) without --nproc-per-node N / --nproc-per-node=N: what the
+// launcher passes to every rank.
+std::vector<std::string> relaunch_args(int argc, char** argv);
+
+// The device of a rank: "cpu", or "cuda" = the local rank's GPU (made current). Errors name
+// train.device when no CUDA device is visible or LOCAL_RANK exceeds the visible devices.
+torch::Device rank_device(const std::string& device, int local_rank);
 
 }  // namespace simu::training

@@ -189,12 +189,13 @@ Progress::Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t ev
 
 bool Progress::stderr_is_tty() { return ::isatty(STDERR_FILENO) == 1 && !simu::log::has_sink(); }
 
-void Progress::update(int64_t step, double loss, double accuracy, double lr, double pairs_per_s) {
+void Progress::update(int64_t step, double loss, double accuracy, double lr, double per_s) {
   const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - began_).count();
   const int64_t done = step - start_;
   const double eta = done > 0 ? elapsed / done * (total_ - step) : NAN;
-  const std::string stats = fmt::format("loss {:.4f} {} {:.3f} lr {:.2e} {:.1f} {}/s ETA {}", loss, accuracy_label_, accuracy,
-                                        lr, pairs_per_s, items_, format_duration(eta));
+  const std::string acc = std::isnan(accuracy) ? "" : fmt::format(" {} {:.3f}", accuracy_label_, accuracy);
+  const std::string stats = fmt::format("loss {:.4f}{} lr {:.2e} {:.1f} {}/s ETA {}", loss, acc, lr, pairs_per_s, items_,
+                                        format_duration(eta));
   if (tty_) {
     // Redrawn bar: [#####.....] step/total stats
     const int width = 30;

@@ -60,7 +60,8 @@ class Progress {
   // "iou", "shapes": the sparse-structure VAE).
   Progress(int64_t total_steps, int64_t start_step, bool tty, int64_t every = 1, std::string accuracy_label = "acc",
            std::string items = "pairs");
-  // Shows step (1-based count of finished steps), loss, accuracy, lr, items/s and the ETA.
+  // Shows step (1-based count of finished steps), loss, accuracy (omitted when NaN), lr, items/s and
+  // the ETA.
   void update(int64_t step, double loss, double accuracy, double lr, double pairs_per_s);
   void finish();
   // True when stderr is a terminal.

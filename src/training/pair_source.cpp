@@ -15,28 +15,35 @@ Pair pair_from_record(const data::PairRecord& r) {
   return p;
 }
 
-MemoryPairSource::MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world,
-                                   int64_t global_batch, uint64_t seed, DataPosition start)
-    : pairs_(std::move(pairs)), rank_(rank), world_(world), global_(global_batch), seed_(seed), pos_(start) {
+EpochOrder::EpochOrder(int64_t n, int rank, int world, int64_t global_batch, uint64_t seed, DataPosition start)
+    : n_(n), rank_(rank), world_(world), global_(global_batch), seed_(seed), pos_(start) {
   SIMU_CHECK(global_ % world_ == 0, "global batch {} is not divisible by the world size {}", global_, world_);
-  SIMU_CHECK(static_cast<int64_t>(pairs_->size()) >= global_, "{} pairs cannot fill one global batch of {}",
-             pairs_->size(), global_);
+  SIMU_CHECK(n_ >= global_, "{} samples cannot fill one global batch of {}", n_, global_);
 }
 
-std::vector<Pair> MemoryPairSource::next_batch() {
-  const int64_t n = static_cast<int64_t>(pairs_->size());
-  if (pos_.step >= n / global_) {
+std::vector<int64_t> EpochOrder::next() {
+  if (pos_.step >= n_ / global_) {
     ++pos_.epoch;
     pos_.step = 0;
   }
   if (perm_epoch_ != pos_.epoch) {
-    perm_ = simu::data::epoch_permutation(n, seed_, pos_.epoch);
+    perm_ = simu::data::epoch_permutation(n_, seed_, pos_.epoch);
     perm_epoch_ = pos_.epoch;
   }
   const int64_t share = global_ / world_;
-  std::vector<Pair> out;
-  for (int64_t i = 0; i < share; ++i) out.push_back((*pairs_)[perm_[pos_.step * global_ + rank_ * share + i]]);
+  std::vector<int64_t> out;
+  for (int64_t i = 0; i < share; ++i) out.push_back(perm_[pos_.step * global_ + rank_ * share + i]);
   ++pos_.step;
+  return out;
+}
+
+MemoryPairSource::MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world,
+                                   int64_t global_batch, uint64_t seed, DataPosition start)
+    : pairs_(std::move(pairs)), order_(static_cast<int64_t>(pairs_->size()), rank, world, global_batch, seed, start) {}
+
+std::vector<Pair> MemoryPairSource::next_batch() {
+  std::vector<Pair> out;
+  for (int64_t i : order_.next()) out.push_back((*pairs_)[i]);
   return out;
 }
 

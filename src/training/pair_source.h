@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "data/pair_cache.h"
+#include "training/objective.h"
 
 namespace simu::training {
 
@@ -29,11 +30,6 @@ struct Pair {
 // A pair cache record as the trainer sees it (id = the record index).
 Pair pair_from_record(const data::PairRecord& r);
 
-// Position in the epoch-shuffled stream of global batches.
-struct DataPosition {
-  int64_t epoch = 0, step = 0;
-};
-
 // Source of this rank's share of each global batch (the HDF5 PairStream or an in-memory one).
 class PairSource {
  public:
@@ -47,25 +43,38 @@ class PairSource {
 using PairSourceFactory =
     std::function<std::unique_ptr<PairSource>(int rank, int world, int64_t global_batch, uint64_t seed, DataPosition)>;
 
-// In-memory pairs with the stream's contract: each epoch the permutation data::epoch_permutation(n, seed,
-// epoch) that the HDF5 PairStream uses too (one order for every source), that
-// every rank computes alike; global batch b of the epoch = perm[b*G, (b+1)*G) (the tail that does
-// not fill a batch is skipped); rank r takes the contiguous slice [r*G/W, (r+1)*G/W).
-class MemoryPairSource : public PairSource {
+// The order of n in-memory samples with the stream's contract: each epoch the permutation
+// data::epoch_permutation(n, seed, epoch) that the HDF5 PairStream uses too (one order for every
+// source), that every rank computes alike; global batch b of the epoch = perm[b*G, (b+1)*G) (the tail
+// that does not fill a batch is skipped); rank r takes the contiguous slice [r*G/W, (r+1)*G/W).
+class EpochOrder {
  public:
-  MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world, int64_t global_batch,
-                   uint64_t seed, DataPosition start);
-  std::vector<Pair> next_batch() override;
-  DataPosition position() const override { return pos_; }
+  EpochOrder(int64_t n, int rank, int world, int64_t global_batch, uint64_t seed, DataPosition start);
+  // This rank's sample indices of the next global batch (G / W of them).
+  std::vector<int64_t> next();
+  DataPosition position() const { return pos_; }
 
  private:
-  std::shared_ptr<const std::vector<Pair>> pairs_;
+  int64_t n_;
   int rank_, world_;
   int64_t global_;
   uint64_t seed_;
   DataPosition pos_;
   std::vector<int64_t> perm_;
   int64_t perm_epoch_ = -1;
+};
+
+// In-memory pairs in EpochOrder.
+class MemoryPairSource : public PairSource {
+ public:
+  MemoryPairSource(std::shared_ptr<const std::vector<Pair>> pairs, int rank, int world, int64_t global_batch,
+                   uint64_t seed, DataPosition start);
+  std::vector<Pair> next_batch() override;
+  DataPosition position() const override { return order_.position(); }
+
+ private:
+  std::shared_ptr<const std::vector<Pair>> pairs_;
+  EpochOrder order_;
 };
 
 // Source over the HDF5 pair cache (data/pair_cache.h PairStream) with `prefetch` batches read ahead.

@@ -84,6 +84,10 @@ RunConfig RunConfig::from(simu::config::Reader& r) {
   int_field(r, "keep_last", c.keep_last, 0);  // 0 keeps all
   int_field(r, "log_every", c.log_every, 1);
   r.field("progress", c.progress);
+  int_field(r, "stop_at_step", c.stop_at_step, 0);
+  r.field("stop_after_s", c.stop_after_s);
+  SIMU_CHECK(std::isfinite(c.stop_after_s) && c.stop_after_s >= 0, "{}: key '{}': expected a number of seconds >= 0, got {}",
+             r.file(), r.full("stop_after_s"), c.stop_after_s);
   SIMU_CHECK(!c.out_dir.empty(), "{}: key '{}' must not be empty", r.file(), r.full("out_dir"));
   return c;
 }
@@ -106,15 +110,19 @@ TrainConfig TrainConfig::from(simu::config::Reader& r) {
     c.lora = YAML::Clone(l.node());
   }
   c.objective = section<ObjectiveConfig>(r, "objective");
-  c.optim = section<OptimConfig>(r, "optim");
-  c.data = section<DataConfig>(r, "data");
-  c.train = section<LoopConfig>(r, "train");
-  c.run = section<RunConfig>(r, "run");
-  c.dist = section<DistConfig>(r, "dist");
+  c.read_shared(r);
   r.finish();
-  c.file = r.file();
-  c.resolved = YAML::Clone(r.node());
   return c;
+}
+
+void TrainerConfig::read_shared(simu::config::Reader& r) {
+  optim = section<OptimConfig>(r, "optim");
+  data = section<DataConfig>(r, "data");
+  train = section<LoopConfig>(r, "train");
+  run = section<RunConfig>(r, "run");
+  dist = section<DistConfig>(r, "dist");
+  file = r.file();
+  resolved = YAML::Clone(r.node());
 }
 
 TrainConfig TrainConfig::load(const std::string& path, const std::vector<std::string>& overrides) {
@@ -123,12 +131,12 @@ TrainConfig TrainConfig::load(const std::string& path, const std::vector<std::st
   return from(r);
 }
 
-void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead) {
+void prepare_out_dir(const TrainerConfig& cfg, bool resuming, bool overwrite, bool lead, const std::string& build_hint) {
   if (cfg.data.cache.empty())
-    fail_hint("set data.cache in the config or pass --set data.cache=PATH (build one with pairs make / build_pairs)",
-              "{}: key 'data.cache' is missing: the pair cache (.h5) to train on", cfg.file);
-  prepare_run_dir(cfg.file, cfg.run.out_dir, {"checkpoints", "adapter", "metrics.jsonl", "tensorboard"}, resuming,
-                  overwrite, lead);
+    fail_hint(fmt::format("set data.cache in the config or pass --set data.cache=PATH ({})", build_hint),
+              "{}: key 'data.cache' is missing: the cache (.h5) to train on", cfg.file);
+  prepare_run_dir(cfg.file, cfg.run.out_dir, {"checkpoints", "adapter", "model", "metrics.jsonl", "tensorboard"},
+                  resuming, overwrite, lead);
 }
 
 void prepare_run_dir(const std::string& config_file, const std::string& out, const std::vector<std::string>& outputs,

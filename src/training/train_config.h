@@ -1,4 +1,6 @@
-// The typed config of an FM-DPO training run (configs/*.yaml): one struct per section, strict keys.
+// The typed config of a training run (configs/*.yaml): one struct per section, strict keys. The
+// sections every run shares (optim, data, train, run, dist: TrainerConfig, what Trainer reads) and
+// FM-DPO's own (model, lora, objective: TrainConfig). Stage-1 pretraining's: stage1_config.h.
 #pragma once
 
 #include <cstdint>
@@ -25,11 +27,11 @@ struct ModelConfig {
   static ModelConfig from(simu::config::Reader& r);
 };
 
-// data: the pair cache and the batch split.
+// data: the cache and the batch split.
 struct DataConfig {
-  std::string cache;          // HDF5 pair cache
-  int64_t global_batch = 16;  // pairs per optimizer step over all ranks
-  int64_t micro_batch = 1;    // pairs per forward/backward; accumulation = global / (micro * world)
+  std::string cache;          // HDF5 cache (FM-DPO: pair cache; Stage 1: stage-1 sample cache)
+  int64_t global_batch = 16;  // samples (pairs) per optimizer step over all ranks
+  int64_t micro_batch = 1;    // samples per forward/backward; accumulation = global / (micro * world)
   int64_t prefetch = 4;       // batches read ahead by the background thread
   uint64_t seed = 0;          // epoch shuffle seed (all ranks agree)
   static DataConfig from(simu::config::Reader& r);
@@ -61,6 +63,12 @@ struct RunConfig {
   int keep_last = 3;
   int64_t log_every = 10;              // plain progress lines every N steps (non-TTY)
   bool progress = true;
+  // End this run early (with a checkpoint, without the export; continue with --resume latest): after
+  // the step that reaches stop_at_step (0: none), or after the first step that ends more than
+  // stop_after_s seconds into this run's steps (0: none). The learning-rate schedule stays over
+  // train.steps, so runs of any length make the same training.
+  int64_t stop_at_step = 0;
+  double stop_after_s = 0;
   static RunConfig from(simu::config::Reader& r);
 };
 
@@ -71,10 +79,8 @@ struct DistConfig {
   static DistConfig from(simu::config::Reader& r);
 };
 
-struct TrainConfig {
-  ModelConfig model;
-  YAML::Node lora;  // LoRA section, read by the LoRA library (lora::LoraConfig::from, strict)
-  ObjectiveConfig objective;
+// The sections every training run shares, which Trainer reads.
+struct TrainerConfig {
   OptimConfig optim;
   DataConfig data;
   LoopConfig train;
@@ -82,16 +88,26 @@ struct TrainConfig {
   DistConfig dist;
   std::string file;      // the config file
   YAML::Node resolved;   // the whole config after --set overrides (saved in checkpoints)
+  // Reads the shared sections of r (the caller reads its own sections and finishes r).
+  void read_shared(simu::config::Reader& r);
+};
+
+// An FM-DPO run (train_fmdpo): the shared sections plus the generator, its LoRA and the objective.
+struct TrainConfig : TrainerConfig {
+  ModelConfig model;
+  YAML::Node lora;  // LoRA section, read by the LoRA library (lora::LoraConfig::from, strict)
+  ObjectiveConfig objective;
   // Loads a file with "a.b=v" overrides; unknown keys or bad values are errors naming file and key.
   static TrainConfig load(const std::string& path, const std::vector<std::string>& overrides = {});
   static TrainConfig from(simu::config::Reader& r);
 };
 
-// Outputs of an earlier run in cfg.run.out_dir (checkpoints/, adapter/, metrics.jsonl, tensorboard/):
-// a fresh run (not resuming) refuses them unless overwrite (simu::Error naming the config, out_dir
-// and what is there); with overwrite the lead process removes them first. Also refuses an empty
-// data.cache (naming the config file and key).
-void prepare_out_dir(const TrainConfig& cfg, bool resuming, bool overwrite, bool lead);
+// Outputs of an earlier run in cfg.run.out_dir (checkpoints/, adapter/, model/, metrics.jsonl,
+// tensorboard/): a fresh run (not resuming) refuses them unless overwrite (simu::Error naming the
+// config, out_dir and what is there); with overwrite the lead process removes them first. Also
+// refuses an empty data.cache (naming the config file and key; `build_hint` says how to make one).
+void prepare_out_dir(const TrainerConfig& cfg, bool resuming, bool overwrite, bool lead,
+                     const std::string& build_hint = "build one with pairs make / build_pairs");
 // The same for any training program: `outputs` (names under out_dir) of an earlier run are refused
 // unless overwrite (then removed by the lead process); nothing is checked when resuming.
 void prepare_run_dir(const std::string& config_file, const std::string& out_dir, const std::vector<std::string>& outputs,

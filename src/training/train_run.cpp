@@ -1,12 +1,11 @@
 #include "training/train_run.h"
 
-#include <c10/cuda/CUDAFunctions.h>
-
 #include "common/error.h"
 #include "common/log.h"
 #include "training/checkpoint.h"
 #include "training/cond_inputs.h"
 #include "training/generator_policy.h"
+#include "training/launcher.h"
 #include "training/pair_source.h"
 #include "training/trainer.h"
 
@@ -15,15 +14,7 @@ namespace simu::training {
 int64_t run_training(const TrainConfig& cfg, const TrainRunOptions& options) {
   const DistEnv& env = options.env;
   prepare_out_dir(cfg, !options.resume.empty(), options.overwrite, /*lead=*/env.rank == 0);
-  torch::Device device(torch::kCPU);
-  if (cfg.train.device == "cuda") {
-    if (!torch::cuda::is_available())
-      fail_hint("set train.device: cpu (slow) or run on a GPU machine", "train.device is cuda but no CUDA device is visible");
-    SIMU_CHECK(env.local_rank < static_cast<int>(torch::cuda::device_count()),
-               "LOCAL_RANK {} but only {} CUDA devices are visible", env.local_rank, torch::cuda::device_count());
-    device = torch::Device(torch::kCUDA, env.local_rank);
-    c10::cuda::set_device(static_cast<c10::DeviceIndex>(env.local_rank));
-  }
+  const torch::Device device = rank_device(cfg.train.device, env.local_rank);
   auto comm = Communicator::create(env, device, std::chrono::milliseconds(static_cast<int64_t>(cfg.dist.timeout_s * 1000)));
   auto model = make_generator_policy(cfg, device);
   Trainer trainer(cfg, *model, pair_cache_source(cfg.data.cache, cfg.data.prefetch), *comm, device);

@@ -596,3 +596,33 @@ TEST(Trainer, PairCacheSourceAndBadCache) {
   std::ofstream(dir + "/truncated.h5", std::ios::binary) << bytes.substr(0, bytes.size() / 3);
   expect_error(dir + "/truncated.h5");
 }
+
+// A run stopped early (run.stop_at_step, run.stop_after_s) writes a checkpoint and no export; resuming it with the full
+// run gives the uninterrupted run's adapter bit for bit (the schedule stays over train.steps).
+TEST(Trainer, StopAtStepThenResumeEqualsOneRun) {
+  auto pairs = simu::testing::toy_pairs(8, T, C, L, Cc, 22);
+  auto solo_comm = make_solo_communicator();
+  Communicator& comm = *solo_comm;
+  const std::string whole = simu::testing::temp_dir("stop_whole"), parts = simu::testing::temp_dir("stop_parts");
+  ToyPolicy a(C, Cc, R, 8);
+  Trainer(toy_config(whole, 5, 4, 2), a, memory_source(pairs), comm, torch::kCPU).run();
+  auto first = toy_config(parts, 5, 4, 2);
+  first.run.stop_at_step = 3;  // not a multiple of checkpoint_every (2): the stop itself checkpoints
+  ToyPolicy b(C, Cc, R, 8);
+  Trainer(first, b, memory_source(pairs), comm, torch::kCPU).run();
+  EXPECT_EQ(load_checkpoint(*latest_checkpoint(parts + "/checkpoints")).step, 3);
+  EXPECT_FALSE(std::filesystem::exists(parts + "/adapter")) << "a paused run exported";
+  ToyPolicy c(C, Cc, R, 8, 99);
+  Trainer tr(toy_config(parts, 5, 4, 2), c, memory_source(pairs), comm, torch::kCPU);
+  tr.resume(resolve_resume(parts + "/checkpoints", "latest"));
+  tr.run();
+  EXPECT_TRUE(torch::equal(a.A, c.A) && torch::equal(a.B, c.B)) << "adapters differ";
+  EXPECT_TRUE(std::filesystem::exists(parts + "/adapter/adapter_config.json"));
+  // run.stop_after_s: any positive time has passed after the first step.
+  const std::string timed = simu::testing::temp_dir("stop_timed");
+  auto cfg = toy_config(timed, 5, 4, 2);
+  cfg.run.stop_after_s = 1e-9;
+  ToyPolicy d(C, Cc, R, 8);
+  Trainer(cfg, d, memory_source(pairs), comm, torch::kCPU).run();
+  EXPECT_EQ(load_checkpoint(*latest_checkpoint(timed + "/checkpoints")).step, 1);
+}
