@@ -3,26 +3,33 @@
 // and translation to the depth, fits floor and walls (Manhattan rectification), refines tables, composes
 // the pre-simulation scene (world = the OpenCV camera, gravity = -up) and runs the physics probe with
 // in-process resampling. Exit 1 when any object was skipped (the others are reconstructed).
+// --gt (a shape-world scene's gt.json) adds each object's world-frame IoU against the ground truth before
+// and after the probe's correction to the report and prints it as a table (reconstruct/gt_compare.h).
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 
 #include <algorithm>
 #include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <optional>
 #include <memory>
 
 #include "common/cli.h"
 #include "common/error.h"
+#include "common/fs.h"
 #include "common/log.h"
 #include "pipeline/resample/lift.h"
 #include "pipeline/resample/model_options.h"
 #include "pipeline/physics/probe_batch.h"
+#include "pipeline/reconstruct/gt_compare.h"
 #include "pipeline/reconstruct/run.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"reconstruct: photo (image, masks + sidecar, depth + K or point map) -> aligned objects, floor and walls, "
                "tabletop refinement -> the physics probe (settle, resampling, MJCF, report, pictures)"};
   simu::reconstruct::ReconstructFiles files;
-  std::string out_dir, probe_config;
+  std::string out_dir, probe_config, gt_path;
   bool overwrite = false, no_align = false, no_tabletop = false, no_probe = false, no_model = false,
        no_coacd = false;
   simu::resample::ModelOptions model;
@@ -45,6 +52,8 @@ int main(int argc, char** argv) {
   app.add_flag("--no-model", no_model, "load no model: every object must bring its own mesh; the probe writes the resampling hand-off");
   app.add_option("--probe-config", probe_config, "probe config YAML (configs/probe.yaml; default built-in)");
   app.add_flag("--no-coacd", no_coacd, "one convex hull per mesh in the probe");
+  app.add_option("--gt", gt_path, "ground truth of a shape-world scene (world scenes' gt.json): per object the world-frame "
+                 "IoU before and after the probe's correction, in the report (gt_iou) and as a table");
   simu::resample::add_model_options(app, model);
   simu::cli::CommonOptions common;
   app.footer(simu::physics::probe_config_help());
@@ -63,6 +72,9 @@ int main(int argc, char** argv) {
     opt.overwrite = overwrite;
     opt.lift.seed = model.seed;
     simu::resample::check_output_dir(out_dir, overwrite);
+    // The ground truth is read before any model loads (a bad file stops the run early).
+    std::optional<simu::reconstruct::WorldGt> gt;
+    if (!gt_path.empty()) gt = simu::reconstruct::load_world_gt(gt_path);
     std::unique_ptr<simu::resample::Resampler> resampler;
     std::string banner;
     if (!no_model) {
@@ -83,6 +95,24 @@ int main(int argc, char** argv) {
                res.planes.up.y(), res.planes.up.z(), res.planes.up_source);
     fmt::print("seconds: {}\n-> {}/reconstruct_report.json, {}/input/scene.json{}\n", res.timings.dump(), out_dir, out_dir,
                opt.run_probe ? ", " + out_dir + "/probe/ (scene.xml, report.json)" : "");
+    // Against the ground truth: the pre-simulation scene (before) and the probe's final scene (after).
+    if (gt) {
+      namespace sp = simu::physics;
+      const std::string probe_dir = out_dir + "/probe";
+      const bool probed = opt.run_probe && std::filesystem::exists(probe_dir + "/scene.json");
+      const sp::Scene before = sp::load_scene(out_dir + "/input/scene.json");
+      const sp::Scene after = probed ? sp::load_scene(probe_dir + "/scene.json") : sp::Scene{};
+      nlohmann::json probe_report;
+      if (probed) probe_report = nlohmann::json::parse(std::ifstream(probe_dir + "/report.json"));
+      const auto rows = simu::reconstruct::compare_with_gt(before, after, simu::reconstruct::probe_outcomes(probe_report), *gt);
+      const std::string report_path = out_dir + "/reconstruct_report.json";
+      nlohmann::json report = nlohmann::json::parse(std::ifstream(report_path));
+      report["gt_iou"] = simu::reconstruct::gt_rows_json(rows, gt_path);
+      simu::fs::atomic_write(report_path, report.dump(2) + "\n");
+      fmt::print("\nworld-frame 3D IoU against the ground truth ({}): before = lifted and aligned (input/scene.json), "
+                 "after = the probe's final scene (probe/scene.json)\n{}", gt_path,
+                 simu::reconstruct::format_gt_table(rows));
+    }
     if (!banner.empty()) fmt::print(stderr, "{}\n", banner);
     return skipped > 0 ? 1 : 0;
   });

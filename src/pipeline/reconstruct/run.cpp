@@ -7,6 +7,7 @@
 #include "common/error.h"
 #include "common/fs.h"
 #include "common/log.h"
+#include "data/depth_io.h"
 #include "pipeline/physics/mesh.h"
 #include "pipeline/reconstruct/run_detail.h"
 #include "pipeline/reconstruct/synthetic_camera.h"
@@ -438,6 +439,11 @@ struct Run {
     sc.camera.R_world_cam = Mat3::Identity();
     sc.camera.t_world_cam = Vec3::Zero();
     sc.image_path = in.image_path;
+    // The point map goes with the scene: the probe's in-process resampling lifts from it (depth_path).
+    if (in.lift.pointmap.defined() && in.lift.pointmap.numel() > 0) {
+      sc.depth_path = (sfs::path(out_dir) / "input" / "pointmap.npy").string();
+      data::write_npy(sc.depth_path, in.lift.pointmap.to(torch::kCPU, torch::kFloat32).contiguous());
+    }
     sc.gravity = -res.planes.up;
     if (res.planes.floor) sc.floor = physics::Plane{"floor", res.planes.floor->plane.point, res.planes.floor->plane.normal};
     for (auto& w : res.planes.walls) sc.walls.push_back(physics::Plane{w.id, w.plane.point, w.plane.normal});
