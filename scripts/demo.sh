@@ -95,7 +95,8 @@ echo "  reconstruction       $R/reconstruct_report.json (gt_iou: the table above
 echo "  probe                $R/probe/report.json, $R/probe/scene.xml (MJCF)"
 echo "  pictures:"
 echo "    before/after       $R/probe/before_after.png   (input masks left, final shaded meshes right)"
-for f in "$R"/probe/candidates_*.png; do [ -e "$f" ] && echo "    candidates         $f   (every resampled candidate, the chosen one marked)"; done
+ls "$R"/probe/candidates_*.png >/dev/null 2>&1 || echo "    candidates         (none: no object was resampled with several candidates)"
+for f in "$R"/probe/candidates_*.png; do [ -e "$f" ] && echo "    candidates         $f   (every resampled candidate, the kept one marked)"; done
 echo "    side view          $R/probe/side_view.png      (floating and sinking show here)"
 echo "    overlay            $R/probe/overlay.png        (masks, OBBs before/target, crop masks)"
 echo "  machinery check      $OUT/pairs.h5, $OUT/train, $OUT/adapter (tiny random fixture)"

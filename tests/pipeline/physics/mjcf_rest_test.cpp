@@ -1,5 +1,5 @@
 // The probe's scene.xml is simulation-ready in every MuJoCo a user opens it in: for each committed
-// scene (tests/testdata/scenes/*) and the demo scene (configs/demo_scene.yaml, seed 21, as scripts/demo.sh
+// scene (tests/testdata/scenes/*) and the demo scene (configs/demo_scene.yaml, seed 21, as synth_bench --write
 // makes it), the written file is stepped 5 s from its written state and every free object must move
 // less than 2 mm without a MuJoCo warning, both in MuJoCo 2.2 (the library we link) and in the PyPI
 // `mujoco` of the project's venv (tests/pipeline/physics/mjcf_rest_check.py). The last test writes the file
