@@ -11,6 +11,7 @@
 #include "common/error.h"
 #include "common/log.h"
 #include "common/progress.h"
+#include "pipeline/resample/default_model.h"
 #include "pipeline/resample/pair_builder.h"
 
 namespace {
@@ -42,14 +43,15 @@ int main(int argc, char** argv) {
   simu::resample::PairBuilderConfig cfg;
   auto& rc = cfg.resampler;
   bool overwrite = false;
-  std::string preprocess_preset = "released";
+  std::string preprocess_preset;  // "" = the model's
   app.add_option("--manifest", manifest, "JSON lines, one pair per line (keys in docs/pair_cache.md)")->required();
   app.add_option("--out", cfg.out, "pair cache (.h5); an existing one is extended (resume)")->required();
   app.add_flag("--overwrite", overwrite, "replace an existing --out instead of skipping the pairs it holds");
   app.add_option("--generator-config", rc.generator_config, "Stage-1 generator config")->capture_default_str();
   app.add_option("--generator-weights", rc.generator_weights, "generator safetensors (checkpoints/README.md)");
   app.add_option("--generator-set", rc.generator_overrides, "generator config override a.b=v (repeatable)");
-  app.add_option("--embedder-config", rc.embedder_config, "condition embedder config")->required();
+  app.add_option("--embedder-config", rc.embedder_config,
+                 "condition embedder config (required with --generator-weights; none given: the shipped miniature)");
   app.add_option("--embedder-weights", rc.embedder_weights, "condition embedder safetensors");
   app.add_flag("--random-weights", rc.random_weights,
                "allow missing --*-weights: random init (torch seed 0) with a RANDOM WEIGHTS banner (tests, benchmarks)");
@@ -63,9 +65,8 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--device", rc.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--preprocess", preprocess_preset,
-                 "Stage-1 preprocessing preset: released (the released pipeline.yaml) | default (data/preprocess.h)")
-      ->capture_default_str()
-      ->check(CLI::IsMember({"released", "default"}));
+                 "Stage-1 preprocessing: released (the released pipeline.yaml) | default (data/preprocess.h) | "
+                 "FILE.yaml; empty = the model's (the shipped miniature's own sizes, else released)");
   app.add_option("--batch", cfg.batch, "pairs per batched embedder + sampling call")
       ->capture_default_str()
       ->check(CLI::PositiveNumber);
@@ -94,7 +95,10 @@ int main(int argc, char** argv) {
     else
       simu::fail("--dtype must be f16 or f32, got '{}'", dtype);
     cfg.resume = !overwrite;
-    cfg.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
+    // No weights at all: the shipped miniature (pipeline/resample/default_model.h), unless --random-weights.
+    simu::resample::apply_shipped_model(rc);
+    SIMU_CHECK(!rc.embedder_config.empty(), "build_pairs: --embedder-config is required (the pairs' conditions)");
+    cfg.preprocess = simu::resample::preprocess_choice(preprocess_preset, rc);
     // Ctrl-C / SIGTERM: finish the current batch, commit, exit.
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);

@@ -11,6 +11,7 @@
 #include <map>
 #include <mutex>
 
+#include "common/source_dir.h"
 #include "common/cli.h"
 #include "common/config.h"
 #include "common/error.h"
@@ -29,7 +30,7 @@ namespace {
 using namespace simu;
 
 struct Options {
-  std::string out, preprocess = std::string(SIMU_SOURCE_DIR) + "/configs/miniature/preprocess.yaml", scene_config;
+  std::string out, preprocess = simu::source_dir() + "/configs/miniature/preprocess.yaml", scene_config;
   int64_t counts[3] = {0, 0, 0};  // scenes per split
   uint64_t seed = 0;
   int resolution = 32, threads = 1;

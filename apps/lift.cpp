@@ -49,6 +49,7 @@ int main(int argc, char** argv) {
       const std::string bar(std::min<size_t>(banner.size(), 100), '!');
       fmt::print(stderr, "{}\n{}\n{}\n", bar, banner, bar);
     }
+    if (!model.shipped_note.empty()) fmt::print("{}\n", model.shipped_note);
     simu::resample::check_output_dir(out_dir, overwrite);
     auto inputs = simu::resample::load_lift_inputs(files);
     fmt::print("{}: {}x{}, {} object(s)\n", files.image, inputs.rgb.size(2), inputs.rgb.size(1), inputs.objects.size());

@@ -13,6 +13,7 @@
 #include "common/log.h"
 #include "pipeline/physics/probe.h"
 #include "pipeline/physics/probe_batch.h"
+#include "pipeline/resample/default_model.h"
 #include "pipeline/resample/probe_resampler.h"
 
 int main(int argc, char** argv) {
@@ -35,7 +36,7 @@ int main(int argc, char** argv) {
   simu::resample::ResamplerConfig rcfg;
   bool resample = false;
   uint64_t seed = 0;
-  std::string preprocess_preset = "released";
+  std::string preprocess_preset;  // "" = the model's
   app.add_flag("--resample", resample, "resample objects with rho >= threshold in-process (else write the hand-off)");
   app.add_option("--generator-config", rcfg.generator_config, "Stage-1 generator config")->capture_default_str();
   app.add_option("--generator-weights", rcfg.generator_weights, "generator safetensors (checkpoints/README.md)");
@@ -53,9 +54,8 @@ int main(int argc, char** argv) {
   app.add_option("--device", rcfg.device, "auto | cpu | cuda | cuda:N")->capture_default_str();
   app.add_option("--seed", seed, "sampling seed")->capture_default_str();
   app.add_option("--preprocess", preprocess_preset,
-                 "Stage-1 preprocessing preset: released (the released pipeline.yaml) | default (data/preprocess.h)")
-      ->capture_default_str()
-      ->check(CLI::IsMember({"released", "default"}));
+                 "Stage-1 preprocessing: released (the released pipeline.yaml) | default (data/preprocess.h) | "
+                 "FILE.yaml; empty = the model's (the shipped miniature's own sizes, else released)");
   simu::cli::CommonOptions common;
   app.footer(simu::physics::probe_config_help());
   return simu::cli::run(app, argc, argv, common, [&] {
@@ -71,7 +71,11 @@ int main(int argc, char** argv) {
       else if (const char* home = std::getenv("HOME")) cfg.collision.cache_dir = std::string(home) + "/.cache/simuscene/hulls";
     }
     std::unique_ptr<simu::resample::Resampler> resampler;
+    simu::data::PreprocessConfig preprocess;
     if (resample) {
+      // No weights at all: the shipped miniature (pipeline/resample/default_model.h), unless --random-weights.
+      simu::resample::apply_shipped_model(rcfg);
+      preprocess = simu::resample::preprocess_choice(preprocess_preset, rcfg);
       if (rcfg.embedder_config.empty())
         simu::fail_hint("pass --embedder-config (and --embedder-weights)", "--resample needs the condition embedder");
       resampler = std::make_unique<simu::resample::Resampler>(rcfg);
@@ -87,7 +91,7 @@ int main(int argc, char** argv) {
       factory = [&](const simu::physics::Scene& scene) -> simu::physics::ResampleFn {
         simu::resample::ProbeResamplerOptions ropt;
         ropt.seed = seed;
-        ropt.preprocess = simu::data::PreprocessConfig::preset_named(preprocess_preset);
+        ropt.preprocess = preprocess;
         auto inner = simu::resample::make_probe_resample_fn(*resampler, scene, ropt);
         return [inner, &model_mu](const std::vector<simu::physics::ProbeResampleRequest>& rq) {
           std::lock_guard<std::mutex> lock(model_mu);

@@ -11,6 +11,7 @@
 #include <algorithm>
 #include <filesystem>
 
+#include "common/source_dir.h"
 #include "common/cli.h"
 #include "common/error.h"
 #include "common/log.h"
@@ -25,7 +26,7 @@
 
 int main(int argc, char** argv) {
   CLI::App app{"Stage-1 pretraining throughput on synthetic samples (no cache needed)"};
-  std::string config = std::string(SIMU_SOURCE_DIR) + "/configs/miniature/train_stage1.yaml";
+  std::string config = simu::source_dir() + "/configs/miniature/train_stage1.yaml";
   std::string device = "cuda", precision = "bf16";
   int64_t batch = 256, micro = 0, steps = 30, warmup = 5, samples_n = 0, resolution = 32;
   double peak = 780;

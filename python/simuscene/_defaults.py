@@ -1,8 +1,9 @@
-"""Where the default Stage-1 model files come from: the one place to change when the miniature model ships.
+"""Where the default Stage-1 model files come from.
 
-Today the defaults are the released-size configs with no weights (``Stage1()`` then needs
-``random_weights=True`` or weight paths). When the miniature default model is shipped, this function
-returns its configs and weights and every caller picks them up.
+The defaults are the released-size configs with no weights. Given no weights at all (and not
+``random_weights=True``), the native core loads the shipped miniature instead (weights/miniature_cpu in
+the source tree, or $SIMU_DEFAULT_MODEL; docs/miniature.md): a small Stage-1 model trained on the
+procedural shape world, not SAM 3D. Weight paths select the released model.
 """
 
 from __future__ import annotations

@@ -107,7 +107,7 @@ class ProbeResult:
 
 def probe(scene: Scene, *, config: Optional[PathLike] = None, overrides: Optional[Mapping[str, Any]] = None,
           out: Optional[PathLike] = None, overwrite: bool = False, resampler: Optional[Stage1] = None, seed: int = 0,
-          preprocess: str = "released") -> ProbeResult:
+          preprocess: str = "model") -> ProbeResult:
     """Runs the physics probe (the ``probe`` program's work) on ``scene``.
 
     config: a probe YAML (configs/probe.yaml; None = the built-in defaults); overrides: {"key.path": value}

@@ -108,8 +108,9 @@ class LiftResult:
 class Stage1:
     """SAM 3D Objects Stage 1 (condition embedder, flow generator, sparse-structure decoder), loaded once.
 
-    Files default to ``simuscene._defaults.stage1_files()`` (the released-size configs; no weights yet:
-    pass the converted checkpoints, or ``random_weights=True`` for meaningless smoke-test shapes).
+    Files default to ``simuscene._defaults.stage1_files()``. With no weights at all, the shipped miniature
+    loads (weights/miniature_cpu: trained on the procedural shape world, not SAM 3D; docs/miniature.md);
+    pass the converted released checkpoints for SAM 3D, or ``random_weights=True`` for random weights.
     ``adapter`` loads a PEFT LoRA adapter directory. Every model call takes the object's lock, so one
     Stage1 serves many threads in turn; the calls release the GIL.
     """
@@ -175,7 +176,7 @@ class Stage1:
     def lift(self, image: ArrayLike, masks: Masks, *, pointmap: Optional[ArrayLike] = None,
              depth: Optional[ArrayLike] = None, K: Optional[Union[ArrayLike, Mapping[str, float]]] = None,
              crop_masks: Optional[Mapping[str, ArrayLike]] = None, seed: int = 0,
-             preprocess: str = "released") -> LiftResult:
+             preprocess: str = "model") -> LiftResult:
         """Lifts every object of one photo in one batched pass, as the ``lift`` program.
 
         image: uint8 RGB [H, W, 3] (as a file reads) or float [H, W, 3] in [0, 1].
@@ -183,6 +184,8 @@ class Stage1:
             (ids ``object_<i>``); each mask bool, uint8 (0/1 or 0/255) or float in [0, 1].
         pointmap: float [H, W, 3], OpenCV camera, inf/NaN invalid (MoGe's ``points``); K is then fitted
             to it unless given. depth: float metres [H, W] (needs K: a 3x3 matrix or {fx, fy, cx, cy}).
+        preprocess: "model" (the model's own: the shipped miniature's sizes, else the released preset),
+            "released", "default", or a YAML file of preprocessing keys.
         Per-object problems (empty mask, wrong size, no valid point) make that object not ok with an error
         naming it; the others are lifted. Whole-input problems raise InputError.
         """

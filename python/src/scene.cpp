@@ -16,6 +16,7 @@
 #include "pipeline/physics/probe.h"
 #include "pipeline/physics/probe_batch.h"
 #include "pipeline/physics/scene.h"
+#include "pipeline/resample/default_model.h"
 #include "pipeline/resample/probe_resampler.h"
 
 #ifdef SIMU_HAVE_OPENCV
@@ -418,7 +419,10 @@ void bind_scene(py::module_& m) {
         cfg.overwrite = overwrite;
         for (const auto& o : scene.objects)
           if (!o.error.empty()) log::warn("object '{}': {}", o.id, o.error);
-        const auto preset = reraise_as(ErrorKind::Config, [&] { return data::PreprocessConfig::preset_named(preprocess); });
+        const auto preset = reraise_as(ErrorKind::Config, [&] {
+          return stage1 ? simu::resample::preprocess_choice(preprocess, stage1->resampler->config())
+                        : data::PreprocessConfig::preset_named(preprocess == "model" ? "released" : preprocess);
+        });
         auto run = std::make_shared<ProbeRun>();
         run->settle_time = cfg.metrics_settle_time;
         run->out_dir = out_dir.empty() ? "" : stdfs::absolute(out_dir).lexically_normal().string();
@@ -445,7 +449,7 @@ void bind_scene(py::module_& m) {
       },
       py::arg("scene"), py::kw_only(), py::arg("config") = py::none(), py::arg("overrides") = py::none(),
       py::arg("out") = py::none(), py::arg("overwrite") = false, py::arg("resampler") = nullptr, py::arg("seed") = 0,
-      py::arg("preprocess") = "released", "Runs the physics probe (simuscene.probe wraps it).");
+      py::arg("preprocess") = "model", "Runs the physics probe (simuscene.probe wraps it).");
 }
 
 }  // namespace simu::py_bind

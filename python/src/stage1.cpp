@@ -9,6 +9,7 @@
 #include "lora/lora.h"
 #include "pipeline/physics/probe.h"
 #include "pipeline/physics/scene.h"
+#include "pipeline/resample/default_model.h"
 #include "pipeline/resample/lift.h"
 #include "pipeline/resample/model_options.h"
 #include "pipeline/reconstruct/run.h"
@@ -145,7 +146,7 @@ LiftRunPtr run_lift(Stage1& st, rs::LiftInputs inputs, uint64_t seed, const std:
   run->inputs = std::move(inputs);
   rs::LiftOptions opt;
   opt.seed = seed;
-  opt.preprocess = reraise_as(ErrorKind::Config, [&] { return data::PreprocessConfig::preset_named(preprocess); });
+  opt.preprocess = reraise_as(ErrorKind::Config, [&] { return rs::preprocess_choice(preprocess, st.resampler->config()); });
   {
     py::gil_scoped_release release;
     std::lock_guard<std::mutex> lock(st.mutex);
@@ -340,7 +341,7 @@ void bind_stage1(py::module_& m) {
              return run_lift(s, lift_inputs_from_py(image, masks, pointmap, depth, K, crop_masks), seed, preprocess);
            }, py::arg("image"), py::arg("masks"), py::kw_only(), py::arg("pointmap") = py::none(), py::arg("depth") = py::none(),
            py::arg("K") = py::none(), py::arg("crop_masks") = py::none(), py::arg("seed") = 0,
-           py::arg("preprocess") = "released")
+           py::arg("preprocess") = "model")
       .def("sample", [](Stage1& s, std::vector<at::Tensor> conds, uint64_t seed) {
              std::vector<rs::ResampleRequest> rq;
              const int64_t C = s.resampler->generator()->config().backbone.cond_channels;

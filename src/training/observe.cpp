@@ -194,7 +194,7 @@ void Progress::update(int64_t step, double loss, double accuracy, double lr, dou
   const int64_t done = step - start_;
   const double eta = done > 0 ? elapsed / done * (total_ - step) : NAN;
   const std::string acc = std::isnan(accuracy) ? "" : fmt::format(" {} {:.3f}", accuracy_label_, accuracy);
-  const std::string stats = fmt::format("loss {:.4f}{} lr {:.2e} {:.1f} {}/s ETA {}", loss, acc, lr, pairs_per_s, items_,
+  const std::string stats = fmt::format("loss {:.4f}{} lr {:.2e} {:.1f} {}/s ETA {}", loss, acc, lr, per_s, items_,
                                         format_duration(eta));
   if (tty_) {
     // Redrawn bar: [#####.....] step/total stats

@@ -155,7 +155,7 @@ TEST(Stage1Cache, RefusesBadRecords) {
 
 // The layout as h5py sees it: attributes, dtypes, shapes, chunking and values.
 TEST(Stage1Cache, H5pyReadsTheLayout) {
-  const std::string py = SIMU_PYTHON;
+  const std::string py = simu::testing::python_exe();
   if (std::system((py + " -c 'import h5py, numpy' >/dev/null 2>&1").c_str()) != 0) GTEST_SKIP() << "no h5py";
   const auto dir = simu::testing::temp_dir("s1cache_h5py");
   const auto path = write_cache(dir, "compact", 3);

@@ -1,6 +1,7 @@
 // Shape-latent targets of Stage-1 pretraining: the frozen encoder's posterior mean laid out as the
 // flow model's shape tokens (token (x k + y) k + z = grid cell [x, y, z], what models::shape_tokens_to_grid
 // undoes for the decoder), the random linear stand-in, and the checks against the flow model's latent.
+#include "common/source_dir.h"
 #include "models/ss_decoder.h"
 #include "models/ss_encoder.h"
 #include "test_util.h"
@@ -10,7 +11,7 @@ using namespace simu::training;
 
 namespace {
 
-const std::string kEncoder = std::string(SIMU_SOURCE_DIR) + "/tests/testdata/models/ss_encoder_small";
+const std::string kEncoder = simu::source_dir() + "/tests/testdata/models/ss_encoder_small";
 
 simu::models::LatentSpec shape_spec(int64_t channels, int64_t resolution) {
   simu::models::LatentSpec s;

@@ -1,5 +1,7 @@
 #include "pipeline/resample/lift.h"
 
+#include "pipeline/resample/default_model.h"
+
 #include <fmt/format.h>
 #include <fmt/ranges.h>
 #include <unistd.h>
@@ -73,7 +75,8 @@ namespace {
 // One object's checks (naming it) and its released preprocessing -> the resampler request; fills
 // out's crop box and point-map scale/shift. Throws with the object's id on any problem.
 ResampleRequest prepare_object(const LiftInputs& inputs, const LiftObjectInput& in, const torch::Tensor& valid,
-                               const torch::Tensor& pointmap_p3d, const LiftOptions& options, LiftedObject& out) {
+                               const torch::Tensor& pointmap_p3d, const data::PreprocessConfig& preprocess,
+                               LiftedObject& out) {
   const int64_t H = inputs.rgb.size(1), W = inputs.rgb.size(2);
   SIMU_CHECK(in.error.empty(), "{}", in.error);
   SIMU_CHECK(in.mask.defined(), "object '{}': no mask", in.id);
@@ -94,7 +97,7 @@ ResampleRequest prepare_object(const LiftInputs& inputs, const LiftObjectInput& 
   auto prepared = [&] {
     try {
       return data::prepare_condition_inputs(inputs.rgb.to(torch::kCPU, torch::kFloat32), mask, pointmap_p3d,
-                                            options.preprocess, crop);
+                                            preprocess, crop);
     } catch (const std::exception& e) {
       fail("object '{}': preprocessing failed: {}", in.id, e.what());
     }
@@ -116,6 +119,8 @@ ResampleRequest prepare_object(const LiftInputs& inputs, const LiftObjectInput& 
 
 LiftResult lift_objects(Resampler& resampler, const LiftInputs& inputs, const LiftOptions& options) {
   torch::NoGradGuard no_grad;
+  const data::PreprocessConfig preprocess =
+      options.preprocess ? *options.preprocess : preprocess_choice("model", resampler.config());
   SIMU_CHECK(resampler.embedder(), "lift: the resampler has no condition embedder (set embedder_config)");
   SIMU_CHECK(inputs.rgb.defined() && inputs.rgb.dim() == 3 && inputs.rgb.size(0) == 3,
              "lift: the image must be [3, H, W], got {}",
@@ -144,7 +149,7 @@ LiftResult lift_objects(Resampler& resampler, const LiftInputs& inputs, const Li
     auto& out = result.objects[i];
     out.id = inputs.objects[i].id;
     try {
-      batch.push_back(prepare_object(inputs, inputs.objects[i], valid, pointmap_p3d, options, out));
+      batch.push_back(prepare_object(inputs, inputs.objects[i], valid, pointmap_p3d, preprocess, out));
       batch_index.push_back(i);
     } catch (const std::exception& e) {
       out.ok = false;
@@ -354,8 +359,9 @@ void check_output_dir(const std::string& out_dir, bool overwrite) {
 nlohmann::json lift_run_info(Resampler& resampler, const LiftOptions& options, const std::string& precision,
                              bool random_weights) {
   const auto& c = resampler.config();
-  const auto& p = options.preprocess;
-  return {{"generator", {{"config", c.generator_config}, {"weights", c.generator_weights}}},
+  const auto p = options.preprocess ? *options.preprocess : preprocess_choice("model", resampler.config());
+  return {{"model", resampler.shipped_model_note().empty() ? std::string("given weights") : resampler.shipped_model_note()},
+          {"generator", {{"config", c.generator_config}, {"weights", c.generator_weights}}},
           {"decoder", {{"config", c.decoder_config}, {"weights", c.decoder_weights}}},
           {"embedder",
            {{"config", c.embedder_config},

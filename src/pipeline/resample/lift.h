@@ -72,7 +72,9 @@ struct LiftInputs {
 };
 
 struct LiftOptions {
-  data::PreprocessConfig preprocess;  // the Stage-1 condition preprocessing
+  // The Stage-1 condition preprocessing; unset = the model's (preprocess_choice("model", ...) of
+  // default_model.h: the shipped miniature's own sizes, else the released preset).
+  std::optional<data::PreprocessConfig> preprocess;
   uint64_t seed = 0;                  // sampling noise seed (noise per object and sample, in object order)
 };
 

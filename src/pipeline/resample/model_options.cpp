@@ -1,6 +1,7 @@
 #include "common/source_dir.h"
 #include "pipeline/resample/model_options.h"
 
+#include "pipeline/resample/default_model.h"
 #include "pipeline/resample/lift.h"
 
 #include <algorithm>
@@ -22,6 +23,10 @@ void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& f
   app.add_option("--embedder-config", c.embedder_config, "condition embedder config")->capture_default_str()->group(group);
   app.add_option("--embedder-weights", c.embedder_weights,
                  "condition embedder safetensors (the converted ss_generator.safetensors holds it)")
+      ->group(group);
+  app.add_option("--preprocess", o.preprocess,
+                 "condition preprocessing: released | default | FILE.yaml (data::PreprocessConfig keys); empty = the "
+                 "model's (the shipped miniature's own sizes, else released)")
       ->group(group);
   if (flags.adapter) app.add_option("--adapter", c.adapter_dir, "PEFT LoRA adapter directory (optional)")->group(group);
   app.add_flag("--random-weights", o.random_weights, "allow missing weight files: random init (smoke runs, benchmarks)")
@@ -56,6 +61,11 @@ void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& f
 }
 
 std::string finish_model_options(ModelOptions& o) {
+  // No weights at all: the shipped miniature (default_model.h), unless --random-weights.
+  o.config.random_weights = o.random_weights;
+  o.shipped_note = apply_shipped_model(o.config);
+  if (!o.preprocess.empty()) o.config.preprocess = o.preprocess;
+  (void)preprocess_choice("model", o.config);  // a bad --preprocess fails here, before the models load
   const std::string banner = check_lift_weights(o.config, o.random_weights);
   apply_precision(o.config, o.precision);
   o.config.step_cache.enabled = o.step_cache_interval > 0;

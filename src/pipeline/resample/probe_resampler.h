@@ -7,6 +7,8 @@
 
 #include <string>
 
+#include <optional>
+
 #include "data/preprocess.h"
 #include "pipeline/physics/probe.h"
 #include "pipeline/resample/resampler.h"
@@ -18,7 +20,7 @@ using physics::ResampleFn;
 using physics::Scene;
 
 struct ProbeResamplerOptions {
-  data::PreprocessConfig preprocess;  // the official Stage-1 preprocessing
+  std::optional<data::PreprocessConfig> preprocess;  // unset = the model's (LiftOptions::preprocess)
   uint64_t seed = 0;                  // sampling noise seed
 };
 

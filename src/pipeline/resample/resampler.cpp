@@ -1,5 +1,7 @@
 #include "pipeline/resample/resampler.h"
 
+#include "pipeline/resample/default_model.h"
+
 #include <ATen/CPUGeneratorImpl.h>
 #include <ATen/Parallel.h>
 
@@ -42,6 +44,7 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   r.field("generator_overrides", c.generator_overrides);
   r.field("embedder_config", c.embedder_config);
   r.field("embedder_weights", c.embedder_weights);
+  r.field("preprocess", c.preprocess);
   r.field("random_weights", c.random_weights);
   r.field("device", c.device);
   r.field("steps", c.steps);
@@ -112,6 +115,8 @@ void Resampler::load_adapter(const std::string& dir) {
 
 Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
     : config_(std::move(config)), device_(pick_device(config_.device)) {
+  // No weights at all: the shipped miniature (default_model.h), unless --random-weights.
+  shipped_note_ = apply_shipped_model(config_);
   precision_ = models::parse_precision(config_.precision, device_, "resampler precision");
   models::check_precision(precision_, device_, "resampler precision");
   // Weights: a missing file is an error naming its flag, unless random weights were asked for.

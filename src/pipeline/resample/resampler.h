@@ -53,6 +53,10 @@ struct ResamplerConfig {
   std::vector<std::string> generator_overrides;  // "a.b=v" edits of the generator config
   std::string embedder_config;    // condition embedder config; "" = requests must carry tokens
   std::string embedder_weights;   // its safetensors (official prefix stripped when present)
+  // The condition preprocessing the model expects: "" = the released preset, else a preset name or a
+  // YAML file (preprocess_choice in default_model.h; the shipped miniature sets its file). Programs use it
+  // unless their own preprocessing flag names another.
+  std::string preprocess;
   // Missing weight files are an error naming the flag (--generator-weights, --decoder-weights,
   // --embedder-weights) unless this is set: then those modules keep their random init and a
   // RANDOM WEIGHTS banner is logged (random_weights_banner(), for reports). Benchmarks and demos only.
@@ -164,6 +168,9 @@ class Resampler {
   // Non-empty when some module runs on random weights (random_weights): a one-line banner naming them,
   // to print in outputs and reports.
   const std::string& random_weights_banner() const { return random_banner_; }
+  // Set when no weights were given and the shipped miniature was loaded (default_model.h): says which
+  // model this is, and that it is not SAM 3D. "" otherwise.
+  const std::string& shipped_model_note() const { return shipped_note_; }
   // The sampler options every resample() call uses, and the values among them the config changed.
   models::SampleOptions sample_options() const;
   models::SamplerOverrides sampler_overrides() const;
@@ -176,7 +183,7 @@ class Resampler {
   models::SparseStructureDecoder decoder_{nullptr};
   models::CondEmbedder embedder_{nullptr};
   bool has_adapter_ = false;
-  std::string random_banner_;
+  std::string random_banner_, shipped_note_;
 };
 
 // Per batch row k: outs[k]'s latents (row k of `latents`, on the CPU) and its pose decoded in
