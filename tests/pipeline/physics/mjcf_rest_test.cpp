@@ -19,6 +19,7 @@
 
 #include "common/config.h"
 #include "common/log.h"
+#include "test_files.h"
 #include "pipeline/physics/mjcf.h"
 #include "pipeline/physics/probe.h"
 #include "pipeline/physics/synthetic.h"

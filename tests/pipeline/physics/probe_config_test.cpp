@@ -17,6 +17,7 @@
 #include <fstream>
 
 #include "common/error.h"
+#include "test_files.h"
 #include "pipeline/physics/probe.h"
 #include "pipeline/physics/probe_batch.h"
 #include "pipeline/physics/physics_test_util.h"
