@@ -128,7 +128,7 @@ def main() -> None:
             sys.exit(f"{manifest_path}: not found (make the folder first with --vae and --stage1)")
         manifest = json.loads(manifest_path.read_text())
     for summary in a.eval:
-        manifest.setdefault("evaluation", {})[str(os.path.relpath(summary.parent, ROOT))] = json.loads(summary.read_text())
+        manifest.setdefault("evaluation", {})[str(os.path.relpath(summary.parent, ROOT))] = {k: v for k, v in json.loads(summary.read_text()).items() if k != "objects"}
     atomic_write(manifest_path, (json.dumps(manifest, indent=1) + "\n").encode())
     print(f"wrote {manifest_path} ({manifest.get('bytes', 0) / 1e6:.2f} MB of weights)")
 
