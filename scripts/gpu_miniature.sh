@@ -1,54 +1,113 @@
 #!/usr/bin/env bash
-# Stage-1 pretraining of the CPU miniature (configs/miniature_cpu) on one GPU inside a fixed time budget,
-# for a device call that holds one machine once: configure and build the two programs, build the stage-1
-# cache on every core, measure the training rate (bench_train_stage1), size train.steps so that the run
-# ends (with its EMA export) before the deadline, train, and copy the model and curves to $OUT.
-#   device run (carry .carry/prefix runs/ss_vae_cpu/weights):
-#     DEADLINE_S=270 SCENES=12000 bash scripts/gpu_miniature.sh
-# Needs the frozen encoder of train_ss_vae (configs/miniature_cpu/ss_vae.yaml) in runs/ss_vae_cpu/weights.
-set -euo pipefail
+# The miniature (configs/miniature by default) trained from nothing on one GPU, in device calls of at most
+# ~10 minutes that continue each other while the machine stays warm (docs/miniature.md). Every stage
+# is skipped when its output is already in $STATE (a repo-ignored folder the machine keeps between
+# calls), and each call stops before its own deadline:
+#   1. configure and build the programs (skipped when built);
+#   2. train_ss_vae (VAE_STEPS) beside build_stage1_data (SCENES train scenes on the other cores);
+#   3. bench_train_stage1 once: the measured rate sizes train.steps for TRAIN_S seconds of training
+#      in all, over the calls (cosine schedule over those steps);
+#   4. train_stage1 --resume latest until this call's deadline (a checkpoint at the stop);
+#   5. when the steps are done: ship the folder (scripts/ship_miniature.py) and eval_lift on the test
+#      split (EVAL_COUNT objects, clean and corrupted point maps) and the held-out family;
+#   6. pack what comes back into $OUT (metrics, logs, the run's exports, evaluations; <= 15 MB parts).
+#   device run (carry .carry/prefix), the same command each call:
+#     DEADLINE_S=560 bash scripts/gpu_miniature.sh
+set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 t0=$(date +%s)
 source "$ROOT/scripts/gpu_env.sh"
 OUTD="${OUT:-/tmp/gpu_miniature_out}"
 mkdir -p "$OUTD"
-DEADLINE="${DEADLINE_S:-270}"   # seconds from the start of this script to the end of the export
-SCENES="${SCENES:-12000}"
+CFG="${CONFIG_DIR:-configs/miniature}"
+DEADLINE="${DEADLINE_S:-560}"   # seconds from this script's start to the end of its packing
+SCENES="${SCENES:-20000}"
+VAE_STEPS="${VAE_STEPS:-2000}"
+TRAIN_S="${TRAIN_S:-950}"       # stage-1 training seconds over all calls (sizes train.steps)
 BATCH="${BATCH:-256}"
-BUILD=/tmp/build-gpu-miniature
-ENC="$ROOT/runs/ss_vae_cpu/weights"
-[ -f "$ENC/ss_encoder.safetensors" ] || { echo "error: $ENC/ss_encoder.safetensors missing (train_ss_vae, carried)" >&2; exit 1; }
+EVAL_COUNT="${EVAL_COUNT:-500}"
+RES="${RESOLUTION:-32}"
+STATE="$ROOT/runs/gpu_mini"
+BUILD="$STATE/build"
+LOG="$OUTD/call.log"
+mkdir -p "$STATE"
 elapsed() { echo $(( $(date +%s) - t0 )); }
+say() { echo "[gpu $(elapsed) s] $*" | tee -a "$LOG"; }
+say "start; state: $(ls "$STATE" | tr '\n' ' ')"
 
-gpu_configure "$BUILD" "$OUTD/configure.log" -DSIMU_BUILD_TESTS=OFF -DSIMU_BUILD_PYTHON=OFF -DSIMU_CUDA_KERNELS=OFF || exit 1
-ninja -C "$BUILD" train_stage1 build_stage1_data bench_train_stage1 >"$OUTD/build.log" 2>&1 ||
-  { grep -B2 -A8 -E "error|FAILED" "$OUTD/build.log" | head -60; exit 1; }
-echo "[gpu] configure+build: $(elapsed) s on $(nproc) cores"
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader || true
+# 1. Build (once per machine).
+if [ ! -x "$BUILD/train_stage1" ] || [ ! -x "$BUILD/eval_lift" ]; then
+  gpu_configure "$BUILD" "$OUTD/configure.log" -DSIMU_BUILD_TESTS=OFF -DSIMU_BUILD_PYTHON=OFF -DSIMU_CUDA_KERNELS=OFF || exit 1
+  ninja -C "$BUILD" train_ss_vae build_stage1_data train_stage1 bench_train_stage1 eval_lift >"$OUTD/build.log" 2>&1 ||
+    { grep -B2 -A8 -E "error|FAILED" "$OUTD/build.log" | head -60; exit 1; }
+  say "built on $(nproc) cores"
+fi
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$LOG"
 
-# The cache: the same command as on the CPU but fewer scenes (the budget).
-"$BUILD/build_stage1_data" --out /tmp/stage1.h5 --train "$SCENES" --val 300 --test 0 \
-  --preprocess configs/miniature_cpu/preprocess.yaml --resolution 16 --threads "$(nproc)" 2>&1 | tail -n 2
-echo "[gpu] cache: $(elapsed) s"
+# 2. The VAE (GPU, 8 data workers) beside the stage-1 cache (the remaining cores).
+VAE="$STATE/ss_vae"
+vae_pid=""
+if [ ! -f "$VAE/weights/ss_encoder.safetensors" ]; then
+  "$BUILD/train_ss_vae" --config "$CFG/ss_vae.yaml" --set "train.steps=$VAE_STEPS" --set run.out_dir="$VAE" \
+    --set run.progress=false --set run.log_every=100 --set eval.every="$VAE_STEPS" --overwrite >"$STATE/vae.log" 2>&1 &
+  vae_pid=$!
+fi
+if [ ! -f "$STATE/stage1.h5" ]; then
+  "$BUILD/build_stage1_data" --out "$STATE/stage1.h5" --train "$SCENES" --val 300 --test 0 \
+    --preprocess "$CFG/preprocess.yaml" --resolution "$RES" --threads "$(( $(nproc) - 2 ))" >"$STATE/cache.log" 2>&1 ||
+    { tail -5 "$STATE/cache.log"; exit 1; }
+  say "cache: $(tail -n 1 "$STATE/cache.log")"
+fi
+if [ -n "$vae_pid" ]; then
+  wait "$vae_pid" || { tail -20 "$STATE/vae.log"; exit 1; }
+  say "vae: $(grep -o '"test/iou_seen":[0-9.]*\|"test/iou_held_out":[0-9.]*' "$VAE/metrics.jsonl" | tail -2 | tr '\n' ' ')"
+fi
+ENC="$VAE/weights"
 
-# The rate, on synthetic samples (bf16, batch $BATCH): the samples/s column of the table row.
-"$BUILD/bench_train_stage1" --config configs/miniature_cpu/train_stage1.yaml --device cuda --precision bf16 \
-  --batch "$BATCH" --steps 20 --warmup 5 --resolution 16 | tee "$OUTD/bench_train_stage1.txt"
-rate=$(awk -F'|' '/^\| cuda/ {gsub(/ /, "", $8); print $8}' "$OUTD/bench_train_stage1.txt" | tail -n 1)
-left=$(( DEADLINE - $(elapsed) - 20 ))
-steps=$(python3 -c "print(max(50, int(0.8 * $left * float('$rate') / $BATCH)))")
-echo "[gpu] rate $rate samples/s, $left s left: train.steps $steps"
+# 3. The rate, once: sizes train.steps.
+if [ ! -f "$STATE/steps" ]; then
+  "$BUILD/bench_train_stage1" --config "$CFG/train_stage1.yaml" --device cuda --precision bf16 \
+    --batch "$BATCH" --steps 20 --warmup 5 --resolution "$RES" | tee "$STATE/bench_train_stage1.txt"
+  rate=$(awk -F'|' '/^\| cuda/ {gsub(/ /, "", $8); print $8}' "$STATE/bench_train_stage1.txt" | tail -n 1)
+  python3 -c "print(max(100, int(0.85 * $TRAIN_S * float('$rate') / $BATCH)))" >"$STATE/steps"
+  say "rate $rate samples/s: train.steps $(cat "$STATE/steps") for $TRAIN_S s"
+fi
+STEPS=$(cat "$STATE/steps")
 
-"$BUILD/train_stage1" --config configs/miniature_cpu/train_stage1.yaml \
-  --set train.device=cuda --set train.precision=bf16 --set "data.global_batch=$BATCH" --set "data.micro_batch=$BATCH" \
-  --set "train.steps=$steps" --set data.cache=/tmp/stage1.h5 --set run.out_dir=/tmp/stage1_run \
-  --set "targets.encoder_config=$ENC/ss_encoder.json" --set "targets.encoder_weights=$ENC/ss_encoder.safetensors" \
-  --set run.checkpoint_every=0 --set "run.stop_after_s=$((left + 10))" --set run.log_every=100 --set run.progress=false 2>&1 | tail -n 5
-echo "[gpu] trained: $(elapsed) s"
-# The export; when the rate was misjudged and the safety stop came first, the checkpoint's EMA instead.
-if [ -d /tmp/stage1_run/model ]; then cp -r /tmp/stage1_run/model "$OUTD/model"
-else ck=$(ls -d /tmp/stage1_run/checkpoints/step_* | sort -V | tail -n 1); mkdir -p "$OUTD/checkpoint"
-  cp "$ck"/{model,extra}.safetensors "$ck"/train_state.json "$OUTD/checkpoint/"; fi
-cp /tmp/stage1_run/metrics.jsonl "$OUTD/"
-ls -la "$OUTD"/model "$OUTD"/checkpoint 2>/dev/null || true
+# 4. Stage 1 until this call's deadline (what is left after packing, ~40 s, and the evaluation's ~150 s
+#    when the steps would end in this call).
+RUN="$STATE/stage1"
+if [ ! -d "$RUN/model" ]; then
+  left=$(( DEADLINE - $(elapsed) - 40 ))
+  resume=()
+  [ -d "$RUN/checkpoints" ] && resume=(--resume latest)
+  "$BUILD/train_stage1" --config "$CFG/train_stage1.yaml" "${resume[@]}" \
+    --set train.device=cuda --set train.precision=bf16 --set "data.global_batch=$BATCH" --set "data.micro_batch=$BATCH" \
+    --set "train.steps=$STEPS" --set data.cache="$STATE/stage1.h5" --set run.out_dir="$RUN" \
+    --set "targets.encoder_config=$ENC/ss_encoder.json" --set "targets.encoder_weights=$ENC/ss_encoder.safetensors" \
+    --set run.checkpoint_every=1000 --set "run.stop_after_s=$left" --set run.log_every=100 --set run.progress=false \
+    >>"$STATE/stage1.log" 2>&1 || { tail -20 "$STATE/stage1.log"; }
+  say "stage1: $(grep -c '"step"' "$RUN/metrics.jsonl" 2>/dev/null) logged steps; last: $(tail -n 1 "$RUN/metrics.jsonl" | cut -c1-300)"
+fi
+
+# 5. Ship and evaluate once the steps are done.
+if [ -d "$RUN/model" ] && [ ! -f "$STATE/eval_test/summary.json" ]; then
+  python3 scripts/ship_miniature.py --vae "$VAE" --stage1 "$RUN" --out "$STATE/miniature" \
+    --preprocess "$CFG/preprocess.yaml" >"$STATE/ship.log" 2>&1 || tail -5 "$STATE/ship.log"
+  for split in test heldout; do
+    n=$EVAL_COUNT; [ "$split" = heldout ] && n=$(( EVAL_COUNT / 5 ))
+    SIMU_DEFAULT_MODEL="$STATE/miniature" "$BUILD/eval_lift" --world "$split" --count "$n" --seed 0 --depth both \
+      --device cuda --no-pictures --out "$STATE/eval_$split" --overwrite >"$STATE/eval_$split.log" 2>&1 ||
+      tail -5 "$STATE/eval_$split.log"
+    say "eval $split: $(tail -n 3 "$STATE/eval_$split.log" | tr '\n' ' ' | cut -c1-400)"
+  done
+fi
+
+# 6. What comes back: one archive in parts of <= 15 MB (runs' metrics and logs; exports once made).
+cd "$STATE"
+items=(steps bench_train_stage1.txt vae.log cache.log stage1.log ss_vae/metrics.jsonl ss_vae/eval.json ss_vae/weights
+       stage1/metrics.jsonl stage1/model miniature eval_test eval_heldout eval_test.log eval_heldout.log ship.log)
+have=(); for i in "${items[@]}"; do [ -e "$i" ] && have+=("$i"); done
+tar czf /tmp/mini_back.tgz "${have[@]}" && split -b 15M -d /tmp/mini_back.tgz "$OUTD/mini_back.tgz.part"
+say "packed: $(du -sh /tmp/mini_back.tgz | cut -f1) (${have[*]})"

@@ -7,6 +7,7 @@
 #include <fmt/ranges.h>
 #include <zlib.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstring>
 
@@ -157,21 +158,23 @@ void unshuffle(const uint8_t* in, uint8_t* out, size_t n, size_t elem) {
 }
 }  // namespace
 
-RecordPipeline check_record_layout(hid_t dset, const std::string& file, const std::string& name) {
+RecordPipeline check_record_layout(hid_t dset, const std::string& file, const std::string& name, bool multi_record) {
   const auto dims = dataset_dims(dset);
   H5Id dcpl(H5Dget_create_plist(dset));
-  // Chunks of one record: [1, dims[1], ...].
+  // Chunks of one record: [1, dims[1], ...] (multi_record: [k, dims[1], ...], k >= 1).
   std::vector<hsize_t> chunk(dims.size(), 0);
   const bool chunked = H5Pget_layout(dcpl.get()) == H5D_CHUNKED &&
                        H5Pget_chunk(dcpl.get(), static_cast<int>(chunk.size()), chunk.data()) == static_cast<int>(dims.size());
   std::vector<int64_t> want(dims.begin(), dims.end());
-  if (!want.empty()) want[0] = 1;
-  if (!chunked || std::vector<int64_t>(chunk.begin(), chunk.end()) != want)
+  if (!want.empty()) want[0] = multi_record && chunked && chunk[0] >= 1 ? static_cast<int64_t>(chunk[0]) : 1;
+  if (!chunked || std::vector<int64_t>(chunk.begin(), chunk.end()) != want || (!want.empty() && want[0] > (1 << 20)))
     fail_hint("docs/pair_cache.md: per-record datasets are chunked one record at a time; rewrite the cache",
-              "pair cache '{}': dataset '{}' is stored {}, expected chunks of one record [{}]", file, name,
+              "pair cache '{}': dataset '{}' is stored {}, expected chunks of {} [{}]", file, name,
               chunked ? fmt::format("in chunks [{}]", fmt::join(chunk, ", ")) : std::string("unchunked"),
-              fmt::join(want, ", "));
-  return record_pipeline(dcpl.get(), file, name);
+              multi_record ? "whole records" : "one record", fmt::join(want, ", "));
+  auto p = record_pipeline(dcpl.get(), file, name);
+  p.rows = want.empty() ? 1 : want[0];
+  return p;
 }
 
 namespace {
@@ -200,35 +203,40 @@ struct ChunkFile {
 }  // namespace
 
 RecordChunks locate_record_chunks(hid_t dset, int64_t start, int64_t count, const std::string& file,
-                                  const std::string& name) {
+                                  const std::string& name, bool multi_record) {
   RecordChunks c;
   c.file = file;
   c.name = name;
   c.start = start;
-  c.pipe = check_record_layout(dset, file, name);
+  c.count = count;
+  c.pipe = check_record_layout(dset, file, name, multi_record);
   const auto dims = dataset_dims(dset);
   H5Id ftype(H5Dget_type(dset));
   c.fsize = H5Tget_size(ftype.get());
   c.per = 1;  // elements per record
   for (size_t k = 1; k < dims.size(); ++k) c.per *= static_cast<size_t>(dims[k]);
-  const size_t chunk_bytes = c.per * c.fsize;
+  const int64_t rows = c.pipe.rows;
+  const size_t chunk_bytes = c.per * c.fsize * static_cast<size_t>(rows);
   if (c.per == 0 || count <= 0) return c;
   const ChunkFile cf(dset, file);
-  // A record's stored size is bounded by what one record can take (gzip adds at most ~0.1% + 12 bytes).
+  // A chunk's stored size is bounded by what its records can take (gzip adds at most ~0.1% + 12 bytes).
   const uint64_t limit = c.pipe.deflate >= 0 ? chunk_bytes + chunk_bytes / 100 + 1024 : chunk_bytes;
   std::vector<hsize_t> off(dims.size(), 0);
-  for (int64_t r = start; r < start + count; ++r) {
+  c.first_chunk = start / rows;
+  const int64_t last_chunk = (start + count - 1) / rows;
+  for (int64_t ch = c.first_chunk; ch <= last_chunk; ++ch) {
+    const int64_t r = ch * rows;  // the chunk's first record (named in errors)
     off[0] = static_cast<hsize_t>(r);
     unsigned mask = 0;
     haddr_t addr = HADDR_UNDEF;
     hsize_t nbytes = 0;
     if (H5Dget_chunk_info_by_coord(dset, off.data(), &mask, &addr, &nbytes) < 0)
       fail("pair cache '{}': record {}: cannot locate the chunk of dataset '{}': {}", file, r, name, h5_error());
-    // Inside the file and no larger than a record may take.
+    // Inside the file and no larger than its records may take.
     if (addr == HADDR_UNDEF || nbytes == 0)
       fail("pair cache '{}': record {}: dataset '{}' has no stored chunk (never written)", file, r, name);
     if (nbytes > limit || addr > cf.length || cf.base + addr > cf.length || nbytes > cf.length - cf.base - addr)
-      fail("pair cache '{}': record {}: dataset '{}' indexes a chunk of {} bytes at offset {} (a record takes at most "
+      fail("pair cache '{}': record {}: dataset '{}' indexes a chunk of {} bytes at offset {} (a chunk takes at most "
            "{}; the file has {}): the chunk index is corrupted",
            file, r, name, nbytes, addr, limit, cf.length);
     c.offset.push_back(cf.base + addr);
@@ -239,7 +247,9 @@ RecordChunks locate_record_chunks(hid_t dset, int64_t start, int64_t count, cons
 }
 
 void decode_record_chunks(const RecordChunks& c, void* buf) {
-  const size_t chunk_bytes = c.per * c.fsize;
+  const size_t record_bytes = c.per * c.fsize;
+  const int64_t rows = c.pipe.rows;
+  const size_t chunk_bytes = record_bytes * static_cast<size_t>(rows);
   if (c.offset.empty() || chunk_bytes == 0) return;
   const int fd = ::open(c.file.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) fail("pair cache '{}': cannot open for reading: {}", c.file, std::strerror(errno));
@@ -247,39 +257,47 @@ void decode_record_chunks(const RecordChunks& c, void* buf) {
     int fd;
     ~Closer() { ::close(fd); }
   } closer{fd};
-  std::vector<uint8_t> raw, plain(chunk_bytes);
+  // One-record chunks decode straight into buf; chunks of several records into `whole`, then the
+  // wanted records are copied out.
+  std::vector<uint8_t> raw, plain(chunk_bytes), whole(rows > 1 ? chunk_bytes : 0);
   auto* out = static_cast<uint8_t*>(buf);
   for (size_t i = 0; i < c.offset.size(); ++i) {
-    const int64_t r = c.start + static_cast<int64_t>(i);
+    const int64_t first = (c.first_chunk + static_cast<int64_t>(i)) * rows;  // the chunk's first record
     raw.resize(c.nbytes[i]);
     for (size_t got = 0; got < raw.size();) {
       const ssize_t n = ::pread(fd, raw.data() + got, raw.size() - got, static_cast<off_t>(c.offset[i] + got));
-      if (n <= 0) fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}'", c.file, r, c.name);
+      if (n <= 0) fail("pair cache '{}': record {}: cannot read the chunk of dataset '{}'", c.file, first, c.name);
       got += static_cast<size_t>(n);
     }
-    // Filters in reverse: gzip (the last one), then shuffle; each must give exactly one record's bytes.
-    uint8_t* dst = out + i * chunk_bytes;
+    // Filters in reverse: gzip (the last one), then shuffle; each must give exactly one chunk's bytes.
+    uint8_t* dst = rows > 1 ? whole.data() : out + static_cast<size_t>(first - c.start) * record_bytes;
     const bool shuffled = c.pipe.shuffle >= 0 && !(c.mask[i] & (1u << c.pipe.shuffle)) && c.fsize > 1;
     uint8_t* inflated = shuffled ? plain.data() : dst;
     if (c.pipe.deflate >= 0 && !(c.mask[i] & (1u << c.pipe.deflate))) {
       uLongf got = static_cast<uLongf>(chunk_bytes);
       const int z = uncompress(inflated, &got, raw.data(), static_cast<uLong>(raw.size()));
       if (z != Z_OK || got != chunk_bytes)
-        fail("pair cache '{}': record {}: dataset '{}': gzip data does not inflate to one record ({} bytes): {}",
-             c.file, r, c.name, chunk_bytes, z == Z_OK ? fmt::format("{} bytes", got) : fmt::format("zlib error {}", z));
+        fail("pair cache '{}': record {}: dataset '{}': gzip data does not inflate to one chunk ({} bytes): {}",
+             c.file, first, c.name, chunk_bytes, z == Z_OK ? fmt::format("{} bytes", got) : fmt::format("zlib error {}", z));
     } else if (raw.size() != chunk_bytes) {
-      fail("pair cache '{}': record {}: dataset '{}' stores {} bytes uncompressed, a record is {} bytes", c.file, r,
+      fail("pair cache '{}': record {}: dataset '{}' stores {} bytes uncompressed, a chunk is {} bytes", c.file, first,
            c.name, raw.size(), chunk_bytes);
     } else {
       std::memcpy(inflated, raw.data(), chunk_bytes);
     }
-    if (shuffled) unshuffle(plain.data(), dst, c.per, c.fsize);
+    // Shuffle works over the chunk's elements (all of its records).
+    if (shuffled) unshuffle(plain.data(), dst, c.per * static_cast<size_t>(rows), c.fsize);
+    if (rows > 1) {
+      const int64_t lo = std::max(first, c.start), hi = std::min(first + rows, c.start + c.count);
+      std::memcpy(out + static_cast<size_t>(lo - c.start) * record_bytes, whole.data() + static_cast<size_t>(lo - first) * record_bytes,
+                  static_cast<size_t>(hi - lo) * record_bytes);
+    }
   }
 }
 
 void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
-                      const std::string& name) {
-  const RecordChunks chunks = locate_record_chunks(dset, start, count, file, name);
+                      const std::string& name, bool multi_record) {
+  const RecordChunks chunks = locate_record_chunks(dset, start, count, file, name, multi_record);
   if (chunks.per == 0 || count <= 0) return;
   H5Id ftype(H5Dget_type(dset));
   const size_t msize = H5Tget_size(mtype);
@@ -318,7 +336,7 @@ void extend_rows(hid_t dset, int64_t n, const std::string& file, const std::stri
 
 // Creates an extendible dataset [0, row...] with chunks [chunk_rows, row...], optionally shuffle+gzip.
 H5Id create_rows_dataset(hid_t file, const std::string& name, hid_t ftype, const std::vector<int64_t>& row,
-                         hsize_t chunk_rows, bool compress, const std::string& path) {
+                         hsize_t chunk_rows, bool compress, const std::string& path, size_t chunk_cache_bytes) {
   std::vector<hsize_t> dims{0}, maxdims{H5S_UNLIMITED}, chunk{chunk_rows};
   for (auto r : row) {
     dims.push_back(static_cast<hsize_t>(r));
@@ -333,7 +351,11 @@ H5Id create_rows_dataset(hid_t file, const std::string& name, hid_t ftype, const
     check_ok(H5Pset_shuffle(dcpl.get()), path, "shuffle filter of " + name);
     check_ok(H5Pset_deflate(dcpl.get(), kGzipLevel), path, "gzip filter of " + name);
   }
-  return H5Id(check_id(H5Dcreate2(file, name.c_str(), ftype, space.get(), H5P_DEFAULT, dcpl.get(), H5P_DEFAULT),
+  H5Id dapl(H5Pcreate(H5P_DATASET_ACCESS));
+  // 1.0: chunks written whole leave the cache first.
+  if (chunk_cache_bytes > 0)
+    check_ok(H5Pset_chunk_cache(dapl.get(), 521, chunk_cache_bytes, 1.0), path, "chunk cache of " + name);
+  return H5Id(check_id(H5Dcreate2(file, name.c_str(), ftype, space.get(), H5P_DEFAULT, dcpl.get(), dapl.get()),
                        path, "create dataset " + name));
 }
 

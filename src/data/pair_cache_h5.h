@@ -87,32 +87,40 @@ void read_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf,
 // The filter pipeline of a per-record dataset: shuffle and/or gzip, at their pipeline positions.
 struct RecordPipeline {
   int shuffle = -1, deflate = -1;  // position in the pipeline, -1 when absent
+  int64_t rows = 1;                // records per chunk
 };
 // Fails unless a per-record dataset is stored as docs/pair_cache.md says (chunks of one record
 // [1, ...], filters shuffle and/or gzip only), naming the file and dataset; returns its pipeline.
-RecordPipeline check_record_layout(hid_t dset, const std::string& file, const std::string& name);
+// With multi_record, chunks of k >= 1 whole records ([k, ...]: the stage-1 cache's bulk datasets,
+// docs/stage1_cache.md) are accepted too.
+RecordPipeline check_record_layout(hid_t dset, const std::string& file, const std::string& name,
+                                   bool multi_record = false);
 // Rows [start, start+count) of a per-record dataset (latents, condition, inputs), read chunk by chunk
 // through the raw chunk API with every size checked before it is used (libhdf5 1.10's own read path
 // copies out of bounds on some corrupted chunk indexes). The dataset must be stored as
 // docs/pair_cache.md says: chunks of one record ([1, ...]), filters shuffle and/or gzip only; the
 // stored type is converted to mtype. Throws naming the file, record and dataset.
 void read_record_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, void* buf, const std::string& file,
-                      const std::string& name);
+                      const std::string& name, bool multi_record = false);
 // read_record_rows in two steps, so that many records' bytes can be decoded on several threads:
 // locate_record_chunks (HDF5 calls: under the HDF5 lock) finds where each record's chunk is stored and
 // checks it against the file (the layout as read_record_rows requires); decode_record_chunks reads
 // those bytes (pread), inflates and unshuffles them into buf in the stored type (count * per * fsize
 // bytes; no HDF5 call: any thread, without the lock). Errors name the file, record and dataset.
+// Chunks of k records (multi_record) are located once per chunk: libhdf5 1.10 finds a chunk by
+// walking its index from the first chunk (H5Dget_chunk_info_by_coord), so the cost of a lookup grows
+// with the chunk's position and a whole-file load of one-record chunks is quadratic in the records.
 struct RecordChunks {
   std::string file, name;
   RecordPipeline pipe;
   size_t per = 0, fsize = 0;             // elements per record, bytes per stored element
-  int64_t start = 0;                     // the first record
-  std::vector<uint64_t> offset, nbytes;  // each record's chunk: file offset and stored bytes
+  int64_t start = 0, count = 0;          // the records wanted
+  int64_t first_chunk = 0;               // the chunk holding record `start` (= start / pipe.rows)
+  std::vector<uint64_t> offset, nbytes;  // each chunk's file offset and stored bytes, from first_chunk on
   std::vector<uint32_t> mask;            // its filter mask
 };
 RecordChunks locate_record_chunks(hid_t dset, int64_t start, int64_t count, const std::string& file,
-                                  const std::string& name);
+                                  const std::string& name, bool multi_record = false);
 void decode_record_chunks(const RecordChunks& chunks, void* buf);
 // Writes rows [start, start+count) of dimension 0 from buf.
 void write_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, const void* buf, const std::string& file,
@@ -120,8 +128,10 @@ void write_rows(hid_t dset, hid_t mtype, int64_t start, int64_t count, const voi
 // Grows dimension 0 of a dataset to n rows.
 void extend_rows(hid_t dset, int64_t n, const std::string& file, const std::string& name);
 // Creates an extendible dataset [0, row...] with chunks [chunk_rows, row...], optionally shuffle+gzip.
+// chunk_cache_bytes > 0 sizes the dataset's raw chunk cache (a writer appending one record at a time
+// to chunks of several records keeps the open chunk there, so each chunk is compressed once).
 H5Id create_rows_dataset(hid_t file, const std::string& name, hid_t ftype, const std::vector<int64_t>& row,
-                         hsize_t chunk_rows, bool compress, const std::string& path);
+                         hsize_t chunk_rows, bool compress, const std::string& path, size_t chunk_cache_bytes = 0);
 // Attribute writers (scalar int64, int64 vector, variable-length UTF-8 string); replace existing ones.
 void write_attr_int(hid_t obj, const char* name, int64_t v, const std::string& path);
 void write_attr_ints(hid_t obj, const char* name, const std::vector<int64_t>& v, const std::string& path);

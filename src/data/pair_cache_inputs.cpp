@@ -118,8 +118,9 @@ static const std::string& input_dtype(size_t k, const CacheInfo& info) {
   return is_pointmap_input(k) ? info.pointmap_dtype : info.image_dtype;
 }
 
-void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n) {
+void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n, bool multi_record) {
   auto& info = h.info;
+  h.multi_record = multi_record;
   const auto& names = condition_input_names();
   for (size_t k = 0; k < names.size(); ++k) {
     h.inputs[k] = open_dataset(h.file.get(), names[k].c_str(), path);
@@ -132,7 +133,7 @@ void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n) {
     if (k == 1) allowed = {info.image_dtype};
     if (k == 5) allowed = {info.pointmap_dtype};
     const auto dt = check_dataset(h.inputs[k].get(), names[k].c_str(), allowed, shape, path);
-    check_record_layout(h.inputs[k].get(), path, names[k]);
+    check_record_layout(h.inputs[k].get(), path, names[k], multi_record);
     if (k == 0) info.image_dtype = dt;
     if (k == 4) info.pointmap_dtype = dt;
   }
@@ -142,11 +143,11 @@ torch::Tensor read_input_rows(const CacheHandles& h, size_t k, int64_t start, in
   const auto& info = h.info;
   const auto& name = condition_input_names()[k];
   const auto& dt = input_dtype(k, info);
-  if (dt != "uint8") return read_float_rows(h.inputs[k].get(), dt, start, count, info.path, name);
+  if (dt != "uint8") return read_float_rows(h.inputs[k].get(), dt, start, count, info.path, name, h.multi_record);
   const int64_t side = input_side(k, info);
   auto raw = torch::empty({count, input_channels(k), side, side}, torch::kByte);
   H5Id mt = storage_mem_type(dt);
-  read_record_rows(h.inputs[k].get(), mt.get(), start, count, raw.data_ptr(), info.path, name);
+  read_record_rows(h.inputs[k].get(), mt.get(), start, count, raw.data_ptr(), info.path, name, h.multi_record);
   auto out = torch::empty(raw.sizes(), torch::kFloat32);
   const uint8_t* src = raw.data_ptr<uint8_t>();
   float* dst = out.data_ptr<float>();
@@ -154,8 +155,10 @@ torch::Tensor read_input_rows(const CacheHandles& h, size_t k, int64_t start, in
   return out;
 }
 
-void create_input_datasets(CacheHandles& h, const InputsLayout& layout, const std::string& path) {
+void create_input_datasets(CacheHandles& h, const InputsLayout& layout, const std::string& path,
+                           hsize_t chunk_rows) {
   auto& info = h.info;
+  h.multi_record = chunk_rows > 1;
   info.input_size = {layout.image_size, layout.pointmap_size};
   info.image_dtype = storage_name(layout.image_dtype);
   info.pointmap_dtype = storage_name(layout.pointmap_dtype);
@@ -165,7 +168,9 @@ void create_input_datasets(CacheHandles& h, const InputsLayout& layout, const st
     const auto& dt = input_dtype(k, info);
     H5Id ftype = dt == "uint8" ? H5Id(H5Tcopy(H5T_STD_U8LE)) : dt == "float16" ? make_f16_type() : H5Id(H5Tcopy(H5T_IEEE_F32LE));
     const int64_t side = input_side(k, info);
-    h.inputs[k] = create_rows_dataset(h.file.get(), names[k], ftype.get(), {input_channels(k), side, side}, 1, true, path);
+    const size_t chunk_bytes = chunk_rows * static_cast<size_t>(input_channels(k) * side * side) * H5Tget_size(ftype.get());
+    h.inputs[k] = create_rows_dataset(h.file.get(), names[k], ftype.get(), {input_channels(k), side, side}, chunk_rows,
+                                      true, path, chunk_rows > 1 ? 2 * chunk_bytes + (1 << 16) : 0);
   }
 }
 

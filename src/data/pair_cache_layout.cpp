@@ -252,12 +252,12 @@ int64_t first_nonfinite_row(const torch::Tensor& t, int64_t rows) {
 
 // Reads rows [start, start+count) of a float dataset as a float32 tensor [count, ...].
 torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t start, int64_t count,
-                              const std::string& path, const std::string& name) {
+                              const std::string& path, const std::string& name, bool multi_record) {
   auto dims = dataset_dims(dset);
   dims[0] = count;
   auto t = torch::empty(dims, torch::TensorOptions().dtype(torch_type(dtype)));
   H5Id mt = float_mem_type(dtype);
-  read_record_rows(dset, mt.get(), start, count, t.data_ptr(), path, name);
+  read_record_rows(dset, mt.get(), start, count, t.data_ptr(), path, name, multi_record);
   return dtype == "float16" ? half_to_float(t) : t;
 }
 

@@ -27,6 +27,7 @@ struct CacheHandles {
   h5::H5Id inputs[6];  // inputs mode: the datasets of condition_input_names(), in that order
   CacheInfo info;
   bool half = false;  // latents/cond stored as float16
+  bool multi_record = false;  // inputs chunked by several records (the stage-1 cache)
 
   ~CacheHandles() { close(); }
   // Every open dataset (those of the file's mode).
@@ -55,12 +56,15 @@ bool is_pointmap_input(size_t k);
 // float(q) * float(1/255), rounded once (OpenCV's convertTo scale). kLevels[255] == 1.0f.
 float u8_level(uint8_t q);
 // Opens and checks the six datasets of an inputs-mode file (N records) into h.inputs, fills
-// info.image_dtype / pointmap_dtype.
-void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n);
+// info.image_dtype / pointmap_dtype. multi_record: chunks of several records are accepted (the
+// stage-1 cache's layout; check_record_layout).
+void open_input_datasets(CacheHandles& h, const std::string& path, int64_t n, bool multi_record = false);
 // Rows [start, start+count) of condition input k decoded to float32 [count, ch, s, s].
 torch::Tensor read_input_rows(const CacheHandles& h, size_t k, int64_t start, int64_t count);
-// Creates the six empty extendible datasets of a fresh inputs-mode file.
-void create_input_datasets(CacheHandles& h, const InputsLayout& layout, const std::string& path);
+// Creates the six empty extendible datasets of a fresh inputs-mode file, chunks of chunk_rows
+// records (the pair cache: 1; chunk_rows > 1 gives each dataset a chunk cache of two chunks).
+void create_input_datasets(CacheHandles& h, const InputsLayout& layout, const std::string& path,
+                           hsize_t chunk_rows = 1);
 // One record's input k in the dataset's storage dtype (contiguous CPU [ch, s, s]); throws naming
 // the file, pair id and dataset when it has the wrong shape or values the storage cannot hold.
 torch::Tensor encode_input(size_t k, const torch::Tensor& value, const CacheInfo& info, const std::string& path,
@@ -106,6 +110,6 @@ int64_t first_nonfinite_row(const torch::Tensor& t, int64_t rows);
 
 // Reads rows [start, start+count) of a float dataset as a float32 tensor [count, ...].
 torch::Tensor read_float_rows(hid_t dset, const std::string& dtype, int64_t start, int64_t count,
-                              const std::string& path, const std::string& name);
+                              const std::string& path, const std::string& name, bool multi_record = false);
 
 }  // namespace simu::data::layout

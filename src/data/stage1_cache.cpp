@@ -27,6 +27,10 @@ namespace {
 
 constexpr const char* kStage1Format = "simu.stage1_cache";
 constexpr const char* kStage1CreatedBy = "simuscene_resampler Stage1CacheWriter";
+// Records per chunk of the six inputs and the occupancy (docs/stage1_cache.md): a whole-cache load
+// locates each chunk once, and libhdf5 1.10's lookup cost grows with the chunk's position
+// (pair_cache_h5.h, locate_record_chunks), so fewer, larger chunks keep the load linear in practice.
+constexpr hsize_t kRecordChunk = 16;
 
 // Runs fn; a simu::Error from the pair cache's helpers is rethrown naming this cache.
 template <class F>
@@ -112,14 +116,14 @@ void open_stage1(Handles& s, const std::string& path, Stage1CacheInfo& info) {
   s.h.info.path = path;
   s.h.info.size = n;
   s.h.info.input_size = info.input_size;
-  renamed([&] { open_input_datasets(s.h, path, n); });
+  renamed([&] { open_input_datasets(s.h, path, n, /*multi_record=*/true); });
   info.image_dtype = s.h.info.image_dtype;
   info.pointmap_dtype = s.h.info.pointmap_dtype;
   const int64_t R = info.occupancy_resolution;
   renamed([&] {
     s.occupancy = open_dataset(root, "occupancy", path);
     check_dataset(s.occupancy.get(), "occupancy", {"uint8"}, {n, R, R, R}, path);
-    check_record_layout(s.occupancy.get(), path, "occupancy");
+    check_record_layout(s.occupancy.get(), path, "occupancy", /*multi_record=*/true);
     for (const auto& [name, k] : stage1_pose_latents()) {
       s.pose.push_back(open_dataset(root, pose_dataset(name).c_str(), path));
       check_dataset(s.pose.back().get(), pose_dataset(name).c_str(), {"float32"}, {n, k}, path);
@@ -233,9 +237,10 @@ Stage1CacheWriter::Stage1CacheWriter(const std::string& path, const InputsLayout
     write_attr_str(f, "pose_convention", pose_convention, tmp_path_);
     write_attr_str(f, "created_by", kStage1CreatedBy, tmp_path_);
     m.s.h.info.path = tmp_path_;
-    renamed([&] { create_input_datasets(m.s.h, layout, tmp_path_); });
+    renamed([&] { create_input_datasets(m.s.h, layout, tmp_path_, kRecordChunk); });
     H5Id stype = make_vlen_string_type();
-    m.s.occupancy = create_rows_dataset(f, "occupancy", H5T_STD_U8LE, {m.R, m.R, m.R}, 1, true, tmp_path_);
+    m.s.occupancy = create_rows_dataset(f, "occupancy", H5T_STD_U8LE, {m.R, m.R, m.R}, kRecordChunk, true, tmp_path_,
+                                        2 * kRecordChunk * static_cast<size_t>(m.R * m.R * m.R) + (1 << 16));
     for (const auto& [name, k] : stage1_pose_latents())
       m.s.pose.push_back(create_rows_dataset(f, pose_dataset(name), H5T_IEEE_F32LE, {k}, kScalarChunk, true, tmp_path_));
     m.s.scale = create_rows_dataset(f, "pointmap_scale", H5T_IEEE_F32LE, {3}, kScalarChunk, true, tmp_path_);
@@ -412,9 +417,9 @@ Stage1Rows Stage1CacheReader::read_rows(int64_t start, int64_t count) const {
       H5Id mt = storage_mem_type(dt);
       H5Id ft(H5Dget_type(dset));
       if (H5Tequal(ft.get(), mt.get()) > 0)
-        pending.push_back({locate_record_chunks(dset, start, count, path, name), out});
-      else
-        read_record_rows(dset, mt.get(), start, count, out.data_ptr(), path, name);  // converting (e.g. big-endian)
+        pending.push_back({locate_record_chunks(dset, start, count, path, name, /*multi_record=*/true), out});
+      else  // converting (e.g. big-endian)
+        read_record_rows(dset, mt.get(), start, count, out.data_ptr(), path, name, /*multi_record=*/true);
     };
     for (size_t k = 0; k < names.size(); ++k) {
       const bool point = is_pointmap_input(k), mask = is_mask_input(k);

@@ -56,21 +56,24 @@ std::string write_cache(const std::string& dir, const std::string& storage, int 
 
 // Every field comes back as written (exact storage: bit for bit; compact: the images are 8-bit levels,
 // decoded as the documented product, and the point maps float16-rounded), with the info and counts.
+// 37 records: the bulk datasets' chunks of 16 records (docs/stage1_cache.md) end in a partial chunk,
+// and reads start and end inside chunks.
 TEST(Stage1Cache, RoundTrip) {
   const auto dir = simu::testing::temp_dir("s1cache_rt");
+  constexpr int N = 37;
   for (const std::string storage : {"exact", "compact"}) {
-    const auto path = write_cache(dir, storage, 5);
+    const auto path = write_cache(dir, storage, N);
     const auto reader = Stage1CacheReader::open(path);
     const auto& info = reader.info();
-    EXPECT_EQ(info.size, 5);
+    EXPECT_EQ(info.size, N);
     EXPECT_EQ(info.occupancy_resolution, R);
     EXPECT_EQ(info.input_size, (std::vector<int64_t>{S, P}));
     EXPECT_EQ(info.pose_convention, "ScaleShiftInvariant");
     EXPECT_EQ(info.created_by, "unit test");
     EXPECT_EQ(info.image_dtype, storage == "exact" ? "float32" : "uint8");
-    EXPECT_EQ(info.counts[0] + info.counts[1] + info.counts[2], 5);
-    EXPECT_EQ(info.counts[0], 2);  // records 0 and 3
-    for (int i = 0; i < 5; ++i) {
+    EXPECT_EQ(info.counts[0] + info.counts[1] + info.counts[2], N);
+    EXPECT_EQ(info.counts[0], 13);  // records 0, 3, ..., 36
+    for (int i = 0; i < N; ++i) {
       const auto want = make_record(i);
       const auto got = reader.read(i);
       EXPECT_EQ(got.id, want.id);
@@ -98,6 +101,18 @@ TEST(Stage1Cache, RoundTrip) {
     EXPECT_EQ(rows.inputs.at("image").scalar_type(), storage == "exact" ? torch::kFloat32 : torch::kByte);
     EXPECT_TRUE(torch::equal(rows.occupancy[1], make_record(2).occupancy));
     EXPECT_TRUE(torch::equal(rows.pose.at("scale")[2], make_record(3).pose.at("scale")));
+    // Across chunk boundaries (records 13..34: chunks 0, 1 and 2), and one whole chunk.
+    for (const auto& [start, count] : std::vector<std::pair<int64_t, int64_t>>{{13, 22}, {16, 16}, {36, 1}}) {
+      const auto span = reader.read_rows(start, count);
+      ASSERT_EQ(span.occupancy.size(0), count);
+      for (int64_t j = 0; j < count; ++j) {
+        const auto want = make_record(static_cast<int>(start + j));
+        EXPECT_TRUE(torch::equal(span.occupancy[j], want.occupancy)) << "record " << start + j;
+        // Masks are stored as the 8-bit levels 0 / 255.
+        EXPECT_TRUE(torch::equal(span.inputs.at("mask")[j], (want.inputs.at("mask") * 255).to(torch::kByte)))
+            << "record " << start + j;
+      }
+    }
   }
 }
 
@@ -175,10 +190,10 @@ a = f.attrs
 assert a["format"] == "simu.stage1_cache" and int(a["schema_version"]) == 1
 assert list(a["input_size"]) == [14, 8] and int(a["occupancy_resolution"]) == 4
 assert a["pose_convention"] == "ScaleShiftInvariant"
-assert f["image"].dtype == np.uint8 and f["image"].shape == (3, 3, 14, 14) and f["image"].chunks == (1, 3, 14, 14)
+assert f["image"].dtype == np.uint8 and f["image"].shape == (3, 3, 14, 14) and f["image"].chunks == (16, 3, 14, 14)
 assert f["mask"].dtype == np.uint8 and f["pointmap"].dtype == np.float16 and f["pointmap"].shape == (3, 3, 8, 8)
 occ = f["occupancy"]
-assert occ.dtype == np.uint8 and occ.shape == (3, 4, 4, 4) and occ.chunks == (1, 4, 4, 4) and occ.compression == "gzip"
+assert occ.dtype == np.uint8 and occ.shape == (3, 4, 4, 4) and occ.chunks == (16, 4, 4, 4) and occ.compression == "gzip"
 assert np.array_equal(occ[2].astype(np.float32), np.fromfile(d + "/occ.bin", np.float32).reshape(4, 4, 4))
 for name, k in (("6drotation_normalized", 6), ("scale", 3), ("translation", 3), ("translation_scale", 1)):
     assert f["pose_" + name].dtype == np.float32 and f["pose_" + name].shape == (3, k), name
