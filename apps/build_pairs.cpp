@@ -9,10 +9,13 @@
 
 #include "common/cli.h"
 #include "common/error.h"
+#include "common/fs.h"
 #include "common/log.h"
 #include "common/progress.h"
 #include "pipeline/resample/default_model.h"
 #include "pipeline/resample/pair_builder.h"
+
+#include <nlohmann/json.hpp>
 
 namespace {
 std::atomic<bool> g_stop{false};
@@ -32,6 +35,34 @@ void print_report(const std::string& manifest, const std::string& out, const sim
   for (const auto& issue : report.issues)
     fmt::print("  {}:{}: {}{}\n", manifest, issue.line, issue.id.empty() ? "" : "'" + issue.id + "': ",
                issue.message);
+  // The filter, per kind: judged, kept, dropped, mean IoU of both sides.
+  for (auto kind : {simu::data::PairKind::OcclusionCompletion, simu::data::PairKind::CleanPreservation}) {
+    int64_t n = 0, kept = 0;
+    double pos = 0, neg = 0;
+    for (const auto& r : report.filtered)
+      if (r.kind == kind) ++n, kept += r.kept, pos += r.iou_pos, neg += r.iou_neg;
+    if (n == 0) continue;
+    fmt::print("filter {}: {} judged, {} kept, {} dropped (x+ not closer to the ground truth); mean IoU x+ {:.3f}, x- {:.3f}\n",
+               kind == simu::data::PairKind::OcclusionCompletion ? "occlusion_completion" : "clean_preservation", n, kept,
+               n - kept, pos / n, neg / n);
+  }
+}
+
+// --report: the same as JSON (written atomically).
+void write_report_json(const std::string& path, const std::string& manifest, const simu::resample::PairBuilderConfig& cfg,
+                       const simu::resample::PairBuildReport& report) {
+  nlohmann::json j = {{"manifest", manifest}, {"out", cfg.out}, {"records", report.records}, {"written", report.written},
+                      {"skipped_existing", report.skipped_existing}, {"cache_size", report.cache_size},
+                      {"interrupted", report.interrupted}, {"seconds", report.seconds}, {"filter_gt", cfg.filter_gt},
+                      {"seed", cfg.seed}};
+  j["issues"] = nlohmann::json::array();
+  for (const auto& i : report.issues) j["issues"].push_back({{"line", i.line}, {"id", i.id}, {"message", i.message}});
+  j["filtered"] = nlohmann::json::array();
+  for (const auto& r : report.filtered)
+    j["filtered"].push_back({{"id", r.id},
+                             {"kind", r.kind == simu::data::PairKind::OcclusionCompletion ? "occlusion_completion" : "clean_preservation"},
+                             {"iou_pos", r.iou_pos}, {"iou_neg", r.iou_neg}, {"kept", r.kept}});
+  simu::fs::atomic_write(path, j.dump(2) + "\n");
 }
 }  // namespace
 
@@ -58,8 +89,15 @@ int main(int argc, char** argv) {
   app.add_option("--precision", rc.precision, "fp16 | bf16 | fp32 | auto (fp16 on CUDA as released, fp32 on CPU)")
       ->capture_default_str();
   app.add_option("--adapter", rc.adapter_dir, "PEFT LoRA adapter on the generator (default: the base model)");
-  app.add_option("--decoder-config", rc.decoder_config, "sparse-structure decoder config (loaded, unused)")
+  app.add_option("--decoder-config", rc.decoder_config, "sparse-structure decoder config (used by --filter-gt)")
       ->capture_default_str();
+  app.add_option("--decoder-weights", rc.decoder_weights, "decoder safetensors (--filter-gt)");
+  app.add_flag("--filter-gt", cfg.filter_gt,
+               "keep a pair only when x+ is closer than x- to the record's gt_occupancy (decoded occupancy IoU; "
+               "the paper's filter; world pairs writes gt_occupancy)");
+  std::string report_path;
+  app.add_option("--report", report_path, "also write the run's report as JSON: counts, skipped records, the filter's "
+                                          "per-pair IoUs");
   app.add_option("--steps", rc.steps, "Stage-1 sampling steps (official inference: 25)")->capture_default_str();
   app.add_option("--cfg-strength", rc.cfg_strength, "classifier-free guidance strength (official inference: 7)")
       ->capture_default_str();
@@ -105,6 +143,7 @@ int main(int argc, char** argv) {
     simu::Progress progress{"build_pairs", "records"};
     const auto report = simu::resample::build_pairs(manifest, cfg, std::ref(progress), &g_stop);
     print_report(manifest, cfg.out, report);
+    if (!report_path.empty()) write_report_json(report_path, manifest, cfg, report);
     return report.interrupted ? 130 : 0;
   });
 }

@@ -6,6 +6,11 @@
 //       with that target's occluders removed).
 //   world scenes --objects DIR --out OUT   one test scene per mesh file of DIR (OBJ/PLY/STL/GLB/glTF, any
 //       units: normalised to the canonical convention, size read in m / cm / mm), placed first.
+//   world pairs --completion N --preservation N --seed S --out DIR [--resolution R] [--clean]
+//       FM-DPO preference pairs from train-split scenes (pipeline/world/pairs.h): per scene image.png and
+//       pointmap.npy, per pair <object>/ with its masks, the edited image and point map (completion) or
+//       the corrupted mask (preservation) and the ground truth's filled occupancy (occupancy.npy, R^3
+//       uint8, the stage-1 cache's frame); DIR/manifest.jsonl for `build_pairs --filter-gt`.
 //   world shapes [--count N] [--seed S]   a family x split table of N instances per family.
 //   world sheet --out FILE [--per-family K] [--cell PX]   a contact sheet of every family.
 #include "common/cli.h"
@@ -16,11 +21,15 @@
 #include "common/progress.h"
 #include "data/depth_io.h"
 #include "pipeline/world/corrupt.h"
+#include "pipeline/world/pairs.h"
 #include "pipeline/world/scene.h"
 #include "pipeline/world/scene_io.h"
 #include "pipeline/world/shapes.h"
+#include "pipeline/physics/overlay.h"
+#include "pipeline/world/voxelize.h"
 
 #include <fmt/format.h>
+#include <nlohmann/json.hpp>
 
 #include <algorithm>
 #include <cctype>
@@ -128,6 +137,115 @@ void run_scenes(const ScenesOptions& o, const std::vector<std::string>& sets) {
   fmt::print("wrote {} {} scenes to {}\n", seeds.size(), to_string(split), o.out);
 }
 
+// `world pairs` settings.
+struct PairsOptions {
+  std::string out, config;
+  int completion = 0, preservation = 0, resolution = 16, threads = 1, targets = 1;
+  uint64_t seed = 0;
+  bool clean = false, overwrite = false;
+};
+
+// Preference pairs from train scenes, taken in scene-seed order until both counts are met (scenes are
+// made `threads` at a time, then used in order, so the output does not depend on the thread count).
+void run_pairs(const PairsOptions& o, const std::vector<std::string>& sets) {
+  SIMU_CHECK(o.completion >= 0 && o.preservation >= 0 && o.completion + o.preservation > 0,
+             "--completion {} / --preservation {}: ask for at least one pair", o.completion, o.preservation);
+  SceneConfig cfg;
+  CorruptionConfig ccfg;
+  PairPlanConfig pcfg;
+  if (!o.config.empty() || !sets.empty()) {
+    const YAML::Node root = o.config.empty() ? simu::config::load_text("{}", "--set", sets) : simu::config::load_file(o.config, sets);
+    simu::config::Reader r(root, o.config.empty() ? "--set" : o.config);
+    auto scene = r.child("scene");
+    cfg = SceneConfig::from(scene);
+    auto corruption = r.child("corruption");
+    ccfg = CorruptionConfig::from(corruption);
+    r.finish();
+  }
+  // At least one occluded target per scene (the completion kind's supply).
+  cfg.targets = std::max(cfg.targets, o.targets);
+  pcfg.completion_min = cfg.visible_min, pcfg.completion_max = cfg.visible_max;
+  simu::fs::check_overwrite(o.out, o.overwrite, "--out");
+  std::filesystem::create_directories(o.out);
+  struct Made {
+    WorldScene scene;
+    std::vector<PlannedPair> pairs;
+  };
+  int want[2] = {o.completion, o.preservation}, got[2] = {0, 0}, scenes_used = 0, scenes_made = 0;
+  std::string manifest;
+  simu::Progress progress{"world pairs", "pairs"};
+  uint64_t next = o.seed;
+  const int chunk = std::max(1, o.threads);
+  while ((got[0] < want[0] || got[1] < want[1]) && scenes_made < 100000) {
+    std::vector<uint64_t> seeds;
+    for (int k = 0; k < chunk; ++k) {
+      seeds.push_back(next_scene_seed(Split::Train, next));
+      next = seeds.back() + 1;
+    }
+    std::vector<Made> made(seeds.size());
+    simu::parallel_for_each(int64_t(seeds.size()), o.threads, [&](int64_t k) {
+      made[size_t(k)].scene = make_scene(cfg, seeds[size_t(k)], Split::Train);
+      made[size_t(k)].pairs = plan_pairs(made[size_t(k)].scene, pcfg, seeds[size_t(k)]);
+    });
+    scenes_made += int(seeds.size());
+    for (auto& m : made) {
+      const WorldScene& s = m.scene;
+      const std::string sdir = s.name;
+      bool used = false;
+      for (auto& p : m.pairs) {
+        const int kind = p.completion ? 0 : 1;
+        if (got[kind] >= want[kind]) continue;
+        const WorldObject& obj = s.objects[size_t(p.object)];
+        const std::string odir = sdir + "/" + obj.id;
+        const std::string abs = o.out + "/" + odir;
+        std::filesystem::create_directories(abs);
+        if (!used) {
+          // The scene's image and point map (corrupted as the stage-1 cache's are, unless --clean).
+          write_png(o.out + "/" + sdir + "/image.png", Picture{s.camera.width, s.camera.height, s.rgb});
+          write_pointmap(o.out + "/" + sdir + "/pointmap.npy", o.clean ? s.pointmap : corrupt_pointmap(s.pointmap, ccfg, s.seed));
+          used = true;
+        }
+        simu::physics::write_mask(abs + "/mask.png", obj.modal);
+        const auto grid = voxelize_filled(obj.shape.mesh, o.resolution);
+        simu::data::write_npy(abs + "/occupancy.npy",
+                              torch::from_blob(const_cast<uint8_t*>(grid.data()), {o.resolution, o.resolution, o.resolution}, torch::kUInt8));
+        nlohmann::json j = {{"id", odir + (p.completion ? "/completion" : "/preservation")},
+                            {"kind", p.completion ? "occlusion_completion" : "clean_preservation"},
+                            {"image", sdir + "/image.png"},
+                            {"mask", odir + "/mask.png"},
+                            {"pointmap", sdir + "/pointmap.npy"},
+                            {"gt_occupancy", odir + "/occupancy.npy"}};
+        if (p.completion) {
+          write_png(abs + "/edited.png", Picture{p.edited.camera.width, p.edited.camera.height, p.edited.rgb});
+          write_pointmap(abs + "/edited_pointmap.npy", o.clean ? p.edited.pointmap : corrupt_pointmap(p.edited.pointmap, ccfg, s.seed));
+          simu::physics::write_mask(abs + "/full_mask.png", p.full_mask);
+          j["full_image"] = odir + "/edited.png";
+          j["full_mask"] = odir + "/full_mask.png";
+          j["full_pointmap"] = odir + "/edited_pointmap.npy";
+        } else {
+          simu::physics::write_mask(abs + "/corrupted_mask.png", p.corrupted);
+          j["corrupted_mask"] = odir + "/corrupted_mask.png";
+        }
+        manifest += j.dump() + "\n";
+        ++got[kind];
+        progress(got[0] + got[1], want[0] + want[1]);
+      }
+      scenes_used += used;
+    }
+  }
+  SIMU_CHECK(got[0] >= want[0] && got[1] >= want[1], "world pairs: {} scenes gave only {} completion and {} preservation pairs",
+             scenes_made, got[0], got[1]);
+  simu::fs::atomic_write(o.out + "/manifest.jsonl", manifest);
+  const nlohmann::json summary = {{"completion", got[0]}, {"preservation", got[1]}, {"scenes_made", scenes_made},
+                                  {"scenes_used", scenes_used}, {"first_seed", o.seed}, {"last_seed", next - 1},
+                                  {"resolution", o.resolution}, {"point_maps", o.clean ? "clean" : "corrupted"},
+                                  {"completion_visible", {pcfg.completion_min, pcfg.completion_max}},
+                                  {"full_min", pcfg.full_min}, {"preserve_min", pcfg.preserve_min}};
+  simu::fs::atomic_write(o.out + "/pairs.json", summary.dump(2) + "\n");
+  fmt::print("wrote {} completion + {} preservation pairs from {} of {} train scenes to {}/manifest.jsonl\n", got[0], got[1],
+             scenes_used, scenes_made, o.out);
+}
+
 // A family x split table of instances seed .. seed + count - 1.
 void run_shapes(int count, uint64_t seed) {
   fmt::print("{:<12} {:>7} {:>7} {:>7}  {:>13}  {}\n", "family", "train", "val", "test", "size (m)", "note");
@@ -178,6 +296,19 @@ int main(int argc, char** argv) {
   auto* shapes = app.add_subcommand("shapes", "Print a family x split table of instances");
   shapes->add_option("--count", shape_count, "instances per family")->capture_default_str()->check(CLI::PositiveNumber);
   shapes->add_option("--seed", shape_seed, "first instance seed")->capture_default_str();
+  PairsOptions po;
+  auto* pairs = app.add_subcommand("pairs", "Write FM-DPO preference pairs (both kinds) of train scenes and their build_pairs manifest");
+  pairs->add_option("--completion", po.completion, "occlusion-completion pairs")->capture_default_str();
+  pairs->add_option("--preservation", po.preservation, "clean-preservation pairs")->capture_default_str();
+  pairs->add_option("--seed", po.seed, "the first scene seed tried (train seeds only)")->capture_default_str();
+  pairs->add_option("--out", po.out, "output folder (manifest.jsonl, pairs.json, one subfolder per scene)")->required();
+  pairs->add_flag("--overwrite", po.overwrite, "write into an existing --out folder");
+  pairs->add_option("--config", po.config, "YAML/JSON with `scene:` (SceneConfig) and `corruption:` sections");
+  pairs->add_option("--targets", po.targets, "occluded targets per scene (at least)")->capture_default_str();
+  pairs->add_option("--resolution", po.resolution, "side R of the ground truth's occupancy: the decoder's (16: weights/miniature_cpu; 32: configs/miniature)")
+      ->capture_default_str()->check(CLI::Range(2, 256));
+  pairs->add_flag("--clean", po.clean, "clean point maps (default: corrupted as a monocular estimator would)");
+  pairs->add_option("--threads", po.threads, "scenes made in parallel")->capture_default_str()->check(CLI::PositiveNumber);
   std::string sheet_out;
   int per_family = 6, cell = 128;
   uint64_t sheet_seed = 0;
@@ -189,8 +320,10 @@ int main(int argc, char** argv) {
   return simu::cli::run(app, argc, argv, common, [&] {
     if (*scenes) {
       run_scenes(so, common.sets);
+    } else if (*pairs) {
+      run_pairs(po, common.sets);
     } else {
-      SIMU_CHECK(common.sets.empty(), "--set {}: only `world scenes` reads a config", common.sets.empty() ? "" : common.sets.front());
+      SIMU_CHECK(common.sets.empty(), "--set {}: only `world scenes` and `world pairs` read a config", common.sets.empty() ? "" : common.sets.front());
       if (*shapes) run_shapes(shape_count, shape_seed);
       if (*sheet) {
         write_png(sheet_out, family_contact_sheet(per_family, cell, sheet_seed));

@@ -17,6 +17,7 @@
 #include "common/random.h"
 #include "common/fs.h"
 #include "common/log.h"
+#include "data/depth_io.h"
 #include "data/safetensors.h"
 
 namespace simu::resample {
@@ -81,6 +82,15 @@ PreparedPair prepare_pair(const PairManifestRecord& r, const data::PreprocessCon
 }  // namespace
 
 torch::Tensor load_pointmap_file(const std::string& path) {
+  if (path.size() > 4 && path.compare(path.size() - 4, 4, ".npy") == 0) {
+    auto pm = data::read_npy(path).to(torch::kFloat32);
+    SIMU_CHECK(pm.dim() == 3 && pm.size(2) == 3, "{}: an .npy point map is [H, W, 3] (OpenCV camera), got [{}]", path,
+               fmt::join(pm.sizes(), ", "));
+    // OpenCV (x right, y down) -> PyTorch3D (x left, y up).
+    pm = pm.permute({2, 0, 1}).contiguous();
+    pm.slice(0, 0, 2).neg_();
+    return pm;
+  }
   auto file = data::SafeTensorsFile::open(path);
   const auto keys = file.keys();
   std::string key;
@@ -278,6 +288,57 @@ void add_pair_issue(PairBuildReport& report, const std::string& manifest_path, i
   report.issues.push_back({line, id, message});
 }
 
+// The paper's filter (PairBuilderConfig::filter_gt): both sides of every pair decoded in one call, each
+// occupancy (logits > 0) compared with the record's ground truth by IoU; a pair is kept when x+ is
+// the closer one. Dropped pairs (and records without a usable ground truth, reported as issues) get
+// an undefined shape_pos, which append_batch skips.
+void filter_batch(Resampler& resampler, const std::vector<PreparedPair>& batch, std::vector<torch::Tensor>& shape_pos,
+                  const std::vector<torch::Tensor>& shape_neg, const std::string& manifest_path, PairBuildReport& report) {
+  std::vector<size_t> judged;
+  std::vector<torch::Tensor> gts;
+  for (size_t k = 0; k < batch.size(); ++k) {
+    const auto& r = batch[k].record;
+    try {
+      SIMU_CHECK(!r.gt_occupancy.empty(), "the filter needs 'gt_occupancy' (build_pairs --filter-gt)");
+      auto gt = data::read_npy(r.gt_occupancy);
+      SIMU_CHECK(gt.dim() == 3 && gt.size(0) == gt.size(1) && gt.size(1) == gt.size(2),
+                 "gt_occupancy {} is [{}], expected [R, R, R]", r.gt_occupancy, fmt::join(gt.sizes(), ", "));
+      gts.push_back(gt.ne(0));
+      judged.push_back(k);
+    } catch (const std::exception& e) {
+      add_pair_issue(report, manifest_path, r.line, r.id, e.what());
+      shape_pos[k] = torch::Tensor();
+    }
+  }
+  if (judged.empty()) return;
+  std::vector<torch::Tensor> lat;
+  for (size_t k : judged) lat.push_back(shape_pos[k]);
+  for (size_t k : judged) lat.push_back(shape_neg[k]);
+  torch::NoGradGuard no_grad;
+  const auto occ = resampler.decode_logits(torch::stack(lat, 0).to(resampler.device())).gt(0).to(torch::kCPU);  // [2n, 1, R, R, R]
+  const int64_t n = static_cast<int64_t>(judged.size());
+  for (int64_t j = 0; j < n; ++j) {
+    const size_t k = judged[static_cast<size_t>(j)];
+    const auto& r = batch[k].record;
+    const auto& gt = gts[static_cast<size_t>(j)];
+    if (gt.size(0) != occ.size(2)) {
+      add_pair_issue(report, manifest_path, r.line, r.id,
+                     fmt::format("gt_occupancy {} is {}^3, the decoder makes {}^3", r.gt_occupancy, gt.size(0), occ.size(2)));
+      shape_pos[k] = torch::Tensor();
+      continue;
+    }
+    // IoU of two boolean grids (two empty grids agree: 1).
+    auto iou = [&](const torch::Tensor& a) {
+      const double uni = (a | gt).sum().item<double>();
+      return uni == 0 ? 1.0 : (a & gt).sum().item<double>() / uni;
+    };
+    PairFilterRow row{r.id, r.kind, iou(occ[j][0]), iou(occ[n + j][0]), false};
+    row.kept = row.iou_pos > row.iou_neg;
+    if (!row.kept) shape_pos[k] = torch::Tensor();
+    report.filtered.push_back(row);
+  }
+}
+
 // Appends the pairs of a sampled batch to the cache (a non-finite output is a bad record, not a
 // broken cache).
 void append_batch(const std::vector<PreparedPair>& batch, const BatchTokens& bt, const std::vector<torch::Tensor>& shape_pos,
@@ -285,6 +346,7 @@ void append_batch(const std::vector<PreparedPair>& batch, const BatchTokens& bt,
                   PairBuildReport& report, bool inputs_mode) {
   for (size_t k = 0; k < batch.size(); ++k) {
     const auto& r = batch[k].record;
+    if (!shape_pos[k].defined()) continue;  // dropped by the filter
     data::PairRecord rec;
     rec.id = r.id;
     rec.kind = r.kind;
@@ -374,6 +436,7 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
     const BatchTokens bt = embed_batch(resampler, batch, !inputs_mode);
     std::vector<torch::Tensor> shape_pos, shape_neg;
     sample_both_sides(resampler, cfg, batch, bt, &shape_pos, &shape_neg);
+    if (cfg.filter_gt) filter_batch(resampler, batch, shape_pos, shape_neg, manifest_path, report);
     append_batch(batch, bt, shape_pos, shape_neg, manifest_path, sink, report, inputs_mode);
     done += static_cast<int64_t>(batch.size());
     if (progress) progress(done, total);
@@ -394,7 +457,7 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
              manifest_path);
   auto rc = cfg.resampler;
   rc.num_samples = 1;
-  rc.use_decoder = false;  // latents only
+  rc.use_decoder = cfg.filter_gt;  // latents only, unless the filter decodes them
   Resampler resampler(rc);
   return build_pairs(manifest_path, cfg, resampler, progress, stop);
 }

@@ -48,6 +48,8 @@ namespace simu::resample {
 //   pointmap        optional point map of `image` (safetensors, see load_pointmap_file)
 //   full_pointmap   optional, kind 0: point map of `full_image` (default: `pointmap`)
 //   weight          optional loss weight (default 1.0 kind 0, 0.1 kind 1)
+//   gt_occupancy    optional .npy uint8 [R, R, R]: the object's filled occupancy in the decoder's
+//                   canonical frame (world pairs writes it); used by PairBuilderConfig::filter_gt
 // Images: anything OpenCV reads (PNG, JPEG, ...); masks: grey (object > 0), RGBA (alpha) or RGB (max).
 // Unknown keys are errors. Blank lines and lines starting with '#' are skipped.
 struct PairManifestRecord {
@@ -55,7 +57,7 @@ struct PairManifestRecord {
   std::string id;
   data::PairKind kind = data::PairKind::OcclusionCompletion;
   float weight = 1.0f;
-  std::string image, mask, full_image, full_mask, corrupted_mask, pointmap, full_pointmap;
+  std::string image, mask, full_image, full_mask, corrupted_mask, pointmap, full_pointmap, gt_occupancy;
 };
 
 // Parses one manifest line (already known not to be blank or a comment). Throws simu::Error (without
@@ -78,7 +80,9 @@ struct ManifestParse {
 ManifestParse parse_manifest(const std::string& text, const std::string& base_dir);
 
 // Point map file: safetensors holding one tensor (or one named "pointmap") [3, H, W] or [H, W, 3],
-// float, points in the PyTorch3D camera frame (x left, y up, z forward; NaN = invalid). Returns [3, H, W].
+// float, points in the PyTorch3D camera frame (x left, y up, z forward; NaN = invalid); or an .npy
+// [H, W, 3] in the OpenCV camera frame (x right, y down: what lift --pointmap and `world` read and
+// write), turned into PyTorch3D's by negating x and y. Returns [3, H, W].
 torch::Tensor load_pointmap_file(const std::string& path);
 
 // The point map used when a record has none: a fronto-parallel plane at depth 1 seen by a pinhole
@@ -103,6 +107,18 @@ struct PairBuilderConfig {
   bool resume = true;                 // an existing `out` is kept and extended; false replaces it
   int64_t commit_every = 256;         // pairs between commits of `out` (0: only at the end)
   std::string created_by = "build_pairs";
+  // The paper's filter: decode both sides of every pair whose record has gt_occupancy and drop the
+  // pair unless x+ is closer to the ground truth than x- (occupancy IoU, logits > 0). Needs the
+  // decoder (its weights) in the resampler; a record without gt_occupancy is an issue.
+  bool filter_gt = false;
+};
+
+// What the filter measured for one pair.
+struct PairFilterRow {
+  std::string id;
+  data::PairKind kind = data::PairKind::OcclusionCompletion;
+  double iou_pos = 0, iou_neg = 0;
+  bool kept = false;
 };
 
 struct PairBuildReport {
@@ -112,6 +128,7 @@ struct PairBuildReport {
   int64_t cache_size = 0;        // pairs in the cache at the end
   bool interrupted = false;      // stopped by the stop flag (what was done is committed)
   std::vector<PairIssue> issues;  // bad records, in line order; skipped
+  std::vector<PairFilterRow> filtered;  // filter_gt: every pair it judged, kept or dropped, in build order
   double seconds = 0;
 };
 

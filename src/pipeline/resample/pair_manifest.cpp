@@ -40,10 +40,10 @@ PairManifestRecord parse_manifest_line(const std::string& text, const std::strin
   SIMU_CHECK(j.is_object(), "expected a JSON object, got {}", j.type_name());
   static const std::set<std::string> known = {"id",        "kind",          "weight",   "image",
                                               "mask",      "full_image",    "full_mask", "corrupted_mask",
-                                              "pointmap",  "full_pointmap"};
+                                              "pointmap",  "full_pointmap", "gt_occupancy"};
   for (const auto& item : j.items())
     SIMU_CHECK(known.count(item.key()), "unknown key '{}' (known: id, kind, weight, image, mask, full_image, "
-               "full_mask, corrupted_mask, pointmap, full_pointmap)", item.key());
+               "full_mask, corrupted_mask, pointmap, full_pointmap, gt_occupancy)", item.key());
   PairManifestRecord r;
   r.id = string_field(j, "id");
   SIMU_CHECK(!r.id.empty(), "missing 'id'");
@@ -72,6 +72,7 @@ PairManifestRecord parse_manifest_line(const std::string& text, const std::strin
   r.image = path("image", true);
   r.mask = path("mask", true);
   r.pointmap = path("pointmap", false);
+  r.gt_occupancy = path("gt_occupancy", false);
   if (occ) {
     r.full_image = path("full_image", true);
     r.full_mask = path("full_mask", true);
