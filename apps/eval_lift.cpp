@@ -70,6 +70,10 @@ int main(int argc, char** argv) {
       ->group("Evaluation");
   app.add_flag("--overwrite", overwrite, "replace an existing output folder")->group("Evaluation");
   app.add_flag("--no-pictures", no_pictures, "skip the per-object pictures")->group("Evaluation");
+  app.add_flag("--amodal-crop", opt.amodal_crop,
+               "crop from the object's amodal mask (the ground truth's: an ideal OBB-guided crop, the resampling input "
+               "the FM-DPO pairs are made for) instead of its modal mask")
+      ->group("Evaluation");
   // Testing only (hidden): each prediction replaced by its ground truth, no model run; every metric is
   // then at its ideal value (the CI check of the metric path).
   app.add_flag("--gt-as-prediction", opt.gt_as_prediction, "")->group("");

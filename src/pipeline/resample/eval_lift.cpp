@@ -41,9 +41,10 @@ std::string safe_name(const std::string& id) {
   return s;
 }
 
-// The scene's image and a point map as lift's inputs, with one modal mask per chosen object.
+// The scene's image and a point map as lift's inputs, with one modal mask per chosen object (and its
+// amodal mask as the crop mask with amodal_crop).
 LiftInputs lift_inputs(const world::WorldScene& s, const world::PointMap& pm, const std::vector<int>& chosen,
-                       const std::vector<std::string>& ids) {
+                       const std::vector<std::string>& ids, bool amodal_crop) {
   const int H = s.camera.height, W = s.camera.width;
   LiftInputs in;
   in.rgb = torch::from_blob(const_cast<uint8_t*>(s.rgb.data()), {H, W, 3}, torch::kUInt8)
@@ -58,6 +59,10 @@ LiftInputs lift_inputs(const world::WorldScene& s, const world::PointMap& pm, co
     LiftObjectInput o;
     o.id = ids[k];
     o.mask = torch::from_blob(const_cast<uint8_t*>(m.data.data()), {m.height, m.width}, torch::kUInt8).to(torch::kFloat32);
+    if (amodal_crop) {
+      const auto& a = s.objects[chosen[k]].amodal;
+      o.crop_mask = torch::from_blob(const_cast<uint8_t*>(a.data.data()), {a.height, a.width}, torch::kUInt8).to(torch::kFloat32);
+    }
     in.objects.push_back(o);
   }
   return in;
@@ -272,6 +277,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
       e.bucket = visibility_bucket(o.visible_fraction);
       e.gt.canonical = o.shape.mesh;
       e.gt.scale = o.scale, e.gt.R = o.R, e.gt.t = o.t;
+      e.camera = scene.camera;
       ids.push_back(e.id);
       res.objects.push_back(std::move(e));
     }
@@ -294,7 +300,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
           const auto t0 = Clock::now();
           LiftOptions lo;
           lo.seed = noise;
-          lifted = lift_objects(m == 0 ? *models.base : *models.compare, lift_inputs(scene, pm, chosen, ids), lo);
+          lifted = lift_objects(m == 0 ? *models.base : *models.compare, lift_inputs(scene, pm, chosen, ids, opt.amodal_crop), lo);
           res.seconds_lift += since(t0);
         }
         for (size_t k = 0; k < nk; ++k) {
@@ -322,6 +328,8 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
         const EvalObject& obj = res.objects[row.object];
         try {
           row.metrics = physics::shape_metrics(preds[i], obj.gt, obj.symmetry, opt.metrics);
+          row.pred_t = preds[i].t;
+          row.pred_size = preds[i].size();
           pred_world[i] = preds[i].world();
         } catch (const std::exception& e) {
           // A prediction the metrics cannot score (a degenerate mesh or pose) is that object's failure.

@@ -45,6 +45,9 @@ struct EvalLiftOptions {
   int bootstrap_resamples = 10000;
   bool pictures = true;          // pictures/<object>_<depth>.png
   bool gt_as_prediction = false; // testing: each prediction replaced by its ground truth (no model runs)
+  // The resampling input of the paper (probe --resample): the crop box and background removal from the
+  // object's amodal mask (here the ground truth's, an ideal OBB-guided crop) instead of its modal mask.
+  bool amodal_crop = false;
   int threads = 0;               // metric threads (0: every core; the lift runs on torch's threads)
 };
 
@@ -75,6 +78,7 @@ struct EvalObject {
   std::string bucket;
   physics::PlacedShape gt;     // canonical mesh and world pose
   physics::Symmetry symmetry;  // of gt.scaled()
+  physics::Camera camera;      // the scene's camera (its pose in the world)
 };
 
 // One object under one depth kind and one model.
@@ -84,6 +88,8 @@ struct EvalRow {
   bool ok = false;             // lifted (at least one usable sample)
   std::string error;           // why not, naming the object
   physics::ShapeMetrics metrics;  // when ok
+  physics::Vec3 pred_t = physics::Vec3::Zero();  // when ok: the prediction's world translation (m)
+  double pred_size = 0;                          // and its longest side (m)
   std::string picture;         // path relative to the output folder ("" when none)
 };
 

@@ -99,6 +99,14 @@ json object_row(const EvalLiftResult& r, const EvalRow& row) {
     j["rot_err_deg"] = m.rot_err_deg;
     j["trans_err"] = m.trans_err;
     j["scale_err_pct"] = m.scale_err_pct;
+    // The translations in the camera frame (OpenCV: x right, y down, z forward; metres) and the sizes:
+    // where a pose error comes from (depth along the ray or across it, scale).
+    const auto& cam = o.camera;
+    const physics::Vec3 pc = cam.R_world_cam.transpose() * (row.pred_t - cam.t_world_cam);
+    const physics::Vec3 gc = cam.R_world_cam.transpose() * (o.gt.t - cam.t_world_cam);
+    j["pred_t_cam"] = {pc.x(), pc.y(), pc.z()};
+    j["gt_t_cam"] = {gc.x(), gc.y(), gc.z()};
+    j["pred_size_m"] = row.pred_size;
   }
   if (!row.picture.empty()) j["picture"] = row.picture;
   return j;
@@ -128,6 +136,7 @@ json eval_summary(const EvalLiftResult& r, const EvalLiftOptions& opt, const std
   s["settings"] = {{"visible", {opt.visible_lo, opt.visible_hi}},
                    {"count", r.objects.size()},
                    {"seed", opt.seed},
+                   {"crop", opt.amodal_crop ? "amodal (ground truth)" : "modal"},
                    {"depth", r.depths},
                    {"object_size_m", opt.object_size},
                    {"gt_as_prediction", opt.gt_as_prediction},
