@@ -65,12 +65,14 @@ if [ -n "$vae_pid" ]; then
 fi
 ENC="$VAE/weights"
 
-# 3. The rate, once: sizes train.steps.
+# 3. The rate, once: sizes train.steps. The benchmark times the model's step on synthetic samples; the
+#    real step also computes the frozen encoder's targets and decodes the batch: on 2026-11-29 it took
+#    0.20 s against the benchmark's 0.099 s (configs/miniature, batch 256), hence STEP_FACTOR.
 if [ ! -f "$STATE/steps" ]; then
   "$BUILD/bench_train_stage1" --config "$CFG/train_stage1.yaml" --device cuda --precision bf16 \
     --batch "$BATCH" --steps 20 --warmup 5 --resolution "$RES" | tee "$STATE/bench_train_stage1.txt"
   rate=$(awk -F'|' '/^\| cuda/ {gsub(/ /, "", $8); print $8}' "$STATE/bench_train_stage1.txt" | tail -n 1)
-  python3 -c "print(max(100, int(0.85 * $TRAIN_S * float('$rate') / $BATCH)))" >"$STATE/steps"
+  python3 -c "print(max(100, int(0.85 * $TRAIN_S * float('$rate') / $BATCH / ${STEP_FACTOR:-2.0})))" >"$STATE/steps"
   say "rate $rate samples/s: train.steps $(cat "$STATE/steps") for $TRAIN_S s"
 fi
 STEPS=$(cat "$STATE/steps")
@@ -108,6 +110,9 @@ fi
 cd "$STATE"
 items=(steps bench_train_stage1.txt vae.log cache.log stage1.log ss_vae/metrics.jsonl ss_vae/eval.json ss_vae/weights
        stage1/metrics.jsonl stage1/model miniature eval_test eval_heldout eval_test.log eval_heldout.log ship.log)
+# No export yet: the newest checkpoint comes back instead (train_stage1 --resume latest --set
+# train.steps=<its step> exports its EMA anywhere; ~56 MB, 4 parts).
+if [ ! -d stage1/model ] && [ -d stage1/checkpoints ]; then items+=("$(ls -d stage1/checkpoints/step_* | sort -V | tail -n 1)"); fi
 have=(); for i in "${items[@]}"; do [ -e "$i" ] && have+=("$i"); done
 tar czf /tmp/mini_back.tgz "${have[@]}" && split -b 15M -d /tmp/mini_back.tgz "$OUTD/mini_back.tgz.part"
 say "packed: $(du -sh /tmp/mini_back.tgz | cut -f1) (${have[*]})"

@@ -86,6 +86,10 @@ def main() -> None:
     ap.add_argument("--commands", type=Path, default=ROOT / "scripts/make_miniature.sh",
                     help="the script whose commands made the weights (recorded in the manifest)")
     ap.add_argument("--note", default="", help="free text recorded in the manifest (how this run differed)")
+    ap.add_argument("--name", default="SimuScene CPU miniature", help="the model's name (programs print it)")
+    ap.add_argument("--description", default="a small SAM 3D Stage-1 model (MoT flow model 96 ch x 3 blocks, "
+                    "DINOv2-architecture embedder, 16^3 sparse-structure VAE) trained from scratch on the procedural "
+                    "shape world", help="one line on what the model is (programs print it)")
     a = ap.parse_args()
     out: Path = a.out
     manifest_path = out / "manifest.json"
@@ -110,9 +114,8 @@ def main() -> None:
                  "decoder_config": "ss_decoder.json", "decoder_weights": "ss_decoder.safetensors",
                  "preprocess": "preprocess.yaml"}
         manifest = {
-            "name": "SimuScene CPU miniature",
-            "description": "a small SAM 3D Stage-1 model (MoT flow model 96 ch x 3 blocks, DINOv2-architecture "
-                           "embedder, 16^3 sparse-structure VAE) trained from scratch on the procedural shape world",
+            "name": a.name,
+            "description": a.description,
             "files": files,
             "sha256": {f: sha256(out / f) for f in sorted(set(files.values()))},
             "bytes": sum((out / f).stat().st_size for f in set(files.values())),
