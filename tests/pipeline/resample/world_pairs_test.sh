@@ -4,7 +4,8 @@
 # the shipped miniature (CPU) samples both sides of each, decodes them and keeps a pair only when x+
 # is closer to the ground-truth occupancy than x-. Checked (tests/pipeline/resample/world_pairs_check.py):
 # the manifest's keys and files, both kinds, every pair judged, the kept ones exactly those with
-# IoU(x+) > IoU(x-), and the cache holding exactly the kept ids.
+# IoU(x+) > IoU(x-), and the cache holding exactly the kept ids. Then 3 FM-DPO steps of the miniature's
+# recipe (configs/miniature_cpu/lora.yaml) on that cache: finite losses and a PEFT adapter of rank 8.
 #   bash tests/pipeline/resample/world_pairs_test.sh BUILD_DIR REPO_ROOT
 set -euo pipefail
 if [[ $# -ne 2 ]]; then
@@ -21,3 +22,19 @@ cd "$REPO"
 "$BUILD/build_pairs" --manifest "$TMP/pairs/manifest.jsonl" --out "$TMP/pairs.h5" --device cpu --filter-gt \
   --report "$TMP/report.json" --batch 6
 "$PY" "$REPO/tests/pipeline/resample/world_pairs_check.py" "$TMP/pairs" "$TMP/report.json" "$TMP/pairs.h5"
+[ -f "$TMP/pairs.h5" ] || { echo "the filter kept no pair: no FM-DPO steps to run"; exit 0; }
+"$BUILD/train_fmdpo" --config configs/miniature_cpu/lora.yaml --set "data.cache=$TMP/pairs.h5" --set train.steps=3 \
+  --set optim.warmup_steps=1 --set data.global_batch=1 --set data.micro_batch=1 --set run.out_dir="$TMP/fmdpo" \
+  --set run.checkpoint_every=0 --set run.log_every=1
+"$PY" - "$TMP/fmdpo" <<'PYEOF'
+import json, math, sys
+d = sys.argv[1]
+rows = [json.loads(l) for l in open(d + "/metrics.jsonl") if l.strip()]
+assert len(rows) == 3 and all(math.isfinite(r["loss"]) for r in rows), rows
+# Step 1: LoRA's B starts at zero, so policy == reference and the DPO loss is -log sigmoid(0) = log 2
+# (fp32 flow losses of one pair: far below the 1e-4 allowed).
+assert abs(rows[0]["loss"] - math.log(2)) < 1e-4, rows[0]
+cfg = json.load(open(d + "/adapter/adapter_config.json"))
+assert cfg["r"] == 8 and cfg["lora_alpha"] == 16, cfg
+print("fmdpo ok: losses", [round(r["loss"], 4) for r in rows])
+PYEOF
