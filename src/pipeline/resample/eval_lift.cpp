@@ -18,6 +18,7 @@
 #include "pipeline/physics/pictures.h"
 #include "pipeline/resample/lift.h"
 #include "pipeline/world/shapes.h"
+#include "pipeline/world/voxelize.h"
 
 namespace simu::resample {
 
@@ -68,17 +69,34 @@ LiftInputs lift_inputs(const world::WorldScene& s, const world::PointMap& pm, co
   return in;
 }
 
-// The placed prediction of a lifted object: its first usable sample at its scene pose.
-bool prediction(const LiftedObject& o, PlacedShape& out) {
+// The placed prediction of a lifted object: its first usable sample at its scene pose (and that sample's
+// index in *sample).
+bool prediction(const LiftedObject& o, PlacedShape& out, size_t* sample = nullptr) {
   for (size_t k = 0; k < o.samples.size(); ++k)
     if (o.samples[k].ok && k < o.scene_poses.size()) {
       out.canonical = o.samples[k].mesh;
       out.scale = o.scene_poses[k].scale;
       out.R = o.scene_poses[k].R;
       out.t = o.scene_poses[k].t;
+      if (sample) *sample = k;
       return true;
     }
   return false;
+}
+
+// IoU of a sample's occupied voxels (coords [N, 3] int32, (x, y, z) of an R^3 grid, flat index
+// x R^2 + y R + z as the decoder's [R, R, R] output) with a filled grid of the same layout.
+double grid_iou(const torch::Tensor& coords, const std::vector<uint8_t>& gt, int64_t R) {
+  std::vector<uint8_t> pred(gt.size(), 0);
+  const auto c = coords.to(torch::kCPU, torch::kInt64).contiguous();
+  const int64_t* p = c.data_ptr<int64_t>();
+  for (int64_t i = 0; i < c.size(0); ++i) {
+    const int64_t x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
+    if (x >= 0 && y >= 0 && z >= 0 && x < R && y < R && z < R) pred[size_t((x * R + y) * R + z)] = 1;
+  }
+  int64_t inter = 0, uni = 0;
+  for (size_t i = 0; i < gt.size(); ++i) inter += pred[i] && gt[i], uni += pred[i] || gt[i];
+  return uni == 0 ? 1.0 : double(inter) / double(uni);
 }
 
 // Where the objects come from: scenes of a split (every object in range) or one given instance per
@@ -287,6 +305,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
     });
     res.seconds_metrics += since(t_metrics0);
     const uint64_t noise = derive(opt.seed, kNoise, scene.seed);
+    std::map<std::pair<int, int64_t>, std::vector<uint8_t>> gt_grids;  // (object, R) -> filled occupancy
     for (const std::string& depth : res.depths) {
       world::PointMap pm = scene.pointmap;
       if (depth == "corrupted") pm = world::corrupt_pointmap(scene.pointmap, opt.corruption, derive(opt.seed, kCorruption, scene.seed));
@@ -312,8 +331,16 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
           if (opt.gt_as_prediction) {
             preds[m * nk + k] = obj.gt;
             row.ok = true;
+            row.shape_iou = 1.0;
           } else {
-            row.ok = prediction(lifted.objects[k], preds[m * nk + k]);
+            size_t sample = 0;
+            row.ok = prediction(lifted.objects[k], preds[m * nk + k], &sample);
+            if (row.ok) {
+              const int64_t R = occupancy_resolution(m == 0 ? *models.base : *models.compare);
+              auto& gt = gt_grids[{row.object, R}];
+              if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(R));
+              row.shape_iou = grid_iou(lifted.objects[k].samples[sample].coords, gt, R);
+            }
             if (!row.ok)
               row.error = lifted.objects[k].error.empty() ? fmt::format("object {}: no usable sample", obj.id)
                                                           : lifted.objects[k].error;

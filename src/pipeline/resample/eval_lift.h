@@ -90,6 +90,10 @@ struct EvalRow {
   physics::ShapeMetrics metrics;  // when ok
   physics::Vec3 pred_t = physics::Vec3::Zero();  // when ok: the prediction's world translation (m)
   double pred_size = 0;                          // and its longest side (m)
+  // When ok: the shape alone, pose left out: IoU of the sample's occupancy grid (R^3, the decoder's)
+  // with the ground truth's filled occupancy at R in the same canonical voxel frame (world/voxelize.h:
+  // the grids the model was trained on; the measure build_pairs --filter-gt uses). No symmetry search.
+  double shape_iou = 0;
   std::string picture;         // path relative to the output folder ("" when none)
 };
 

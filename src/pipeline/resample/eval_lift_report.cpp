@@ -22,20 +22,21 @@ using json = nlohmann::json;
 // (IoU and F-scores: a missing shape overlaps nothing) or is left out (distances and errors).
 struct MetricSpec {
   const char* key;
-  std::function<double(const physics::ShapeMetrics&)> value;
+  std::function<double(const EvalRow&)> value;
   bool median;
   bool failed_zero;
 };
 
 const std::vector<MetricSpec>& metric_specs() {
   static const std::vector<MetricSpec> specs{
-      {"iou_mean", [](const physics::ShapeMetrics& m) { return m.iou; }, false, true},
-      {"fscore_1cm", [](const physics::ShapeMetrics& m) { return m.fscore.at(0).f; }, false, true},
-      {"fscore_2cm", [](const physics::ShapeMetrics& m) { return m.fscore.at(1).f; }, false, true},
-      {"chamfer_mean", [](const physics::ShapeMetrics& m) { return m.chamfer; }, false, false},
-      {"rot_err_deg_median", [](const physics::ShapeMetrics& m) { return m.rot_err_deg; }, true, false},
-      {"trans_err_median", [](const physics::ShapeMetrics& m) { return m.trans_err; }, true, false},
-      {"scale_err_pct_median", [](const physics::ShapeMetrics& m) { return m.scale_err_pct; }, true, false},
+      {"iou_mean", [](const EvalRow& r) { return r.metrics.iou; }, false, true},
+      {"fscore_1cm", [](const EvalRow& r) { return r.metrics.fscore.at(0).f; }, false, true},
+      {"fscore_2cm", [](const EvalRow& r) { return r.metrics.fscore.at(1).f; }, false, true},
+      {"chamfer_mean", [](const EvalRow& r) { return r.metrics.chamfer; }, false, false},
+      {"rot_err_deg_median", [](const EvalRow& r) { return r.metrics.rot_err_deg; }, true, false},
+      {"trans_err_median", [](const EvalRow& r) { return r.metrics.trans_err; }, true, false},
+      {"scale_err_pct_median", [](const EvalRow& r) { return r.metrics.scale_err_pct; }, true, false},
+      {"shape_iou_mean", [](const EvalRow& r) { return r.shape_iou; }, false, true},
   };
   return specs;
 }
@@ -46,7 +47,7 @@ constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 std::vector<double> values_of(const MetricSpec& spec, const std::vector<const EvalRow*>& rows) {
   std::vector<double> v;
   v.reserve(rows.size());
-  for (const EvalRow* r : rows) v.push_back(r->ok ? spec.value(r->metrics) : (spec.failed_zero ? 0.0 : kNaN));
+  for (const EvalRow* r : rows) v.push_back(r->ok ? spec.value(*r) : (spec.failed_zero ? 0.0 : kNaN));
   return v;
 }
 
@@ -99,6 +100,7 @@ json object_row(const EvalLiftResult& r, const EvalRow& row) {
     j["rot_err_deg"] = m.rot_err_deg;
     j["trans_err"] = m.trans_err;
     j["scale_err_pct"] = m.scale_err_pct;
+    j["shape_iou"] = row.shape_iou;
     // The translations in the camera frame (OpenCV: x right, y down, z forward; metres) and the sizes:
     // where a pose error comes from (depth along the ray or across it, scale).
     const auto& cam = o.camera;
@@ -227,7 +229,7 @@ std::string format_summary_table(const json& s) {
       if (!s["deltas"][depth].contains(bucket) || s["deltas"][depth][bucket].at("n").get<int>() == 0) continue;
       const json& d = s["deltas"][depth][bucket];
       std::string line = fmt::format("    {:<11} n {:>4}", bucket, d.at("n").get<int>());
-      for (const char* key : {"iou_mean", "fscore_2cm"}) {
+      for (const char* key : {"iou_mean", "fscore_2cm", "shape_iou_mean"}) {
         const json& m = d.at(key);
         line += fmt::format("  {} {} [{}, {}]", key, num(m["delta"], "{:+.3f}"), num(m["ci95"][0], "{:+.3f}"),
                             num(m["ci95"][1], "{:+.3f}"));
