@@ -84,20 +84,6 @@ bool prediction(const LiftedObject& o, PlacedShape& out, size_t* sample = nullpt
   return false;
 }
 
-// IoU of a sample's occupied voxels (coords [N, 3] int32, (x, y, z) of an R^3 grid, flat index
-// x R^2 + y R + z as the decoder's [R, R, R] output) with a filled grid of the same layout.
-double grid_iou(const torch::Tensor& coords, const std::vector<uint8_t>& gt, int64_t R) {
-  std::vector<uint8_t> pred(gt.size(), 0);
-  const auto c = coords.to(torch::kCPU, torch::kInt64).contiguous();
-  const int64_t* p = c.data_ptr<int64_t>();
-  for (int64_t i = 0; i < c.size(0); ++i) {
-    const int64_t x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
-    if (x >= 0 && y >= 0 && z >= 0 && x < R && y < R && z < R) pred[size_t((x * R + y) * R + z)] = 1;
-  }
-  int64_t inter = 0, uni = 0;
-  for (size_t i = 0; i < gt.size(); ++i) inter += pred[i] && gt[i], uni += pred[i] || gt[i];
-  return uni == 0 ? 1.0 : double(inter) / double(uni);
-}
 
 // Where the objects come from: scenes of a split (every object in range) or one given instance per
 // object placed among random ones (held-out family, external meshes).
@@ -137,6 +123,20 @@ std::vector<std::string> depth_kinds(const std::string& depth) {
   if (depth == "corrupted") return {"corrupted"};
   if (depth == "both") return {"clean", "corrupted"};
   fail_hint("--depth clean | corrupted | both", "--depth: unknown value '{}'", depth);
+}
+
+double occupancy_iou(const torch::Tensor& coords, const std::vector<uint8_t>& gt, int64_t R) {
+  SIMU_CHECK(static_cast<int64_t>(gt.size()) == R * R * R, "occupancy_iou: a grid of {} bytes is not {}^3", gt.size(), R);
+  std::vector<uint8_t> pred(gt.size(), 0);
+  const auto c = coords.to(torch::kCPU, torch::kInt64).contiguous();
+  const int64_t* p = c.data_ptr<int64_t>();
+  for (int64_t i = 0; i < c.size(0); ++i) {
+    const int64_t x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
+    if (x >= 0 && y >= 0 && z >= 0 && x < R && y < R && z < R) pred[size_t((x * R + y) * R + z)] = 1;
+  }
+  int64_t inter = 0, uni = 0;
+  for (size_t i = 0; i < gt.size(); ++i) inter += pred[i] && gt[i], uni += pred[i] || gt[i];
+  return uni == 0 ? 1.0 : double(inter) / double(uni);
 }
 
 std::pair<double, double> parse_visible_range(const std::string& text) {
@@ -339,7 +339,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
               const int64_t R = occupancy_resolution(m == 0 ? *models.base : *models.compare);
               auto& gt = gt_grids[{row.object, R}];
               if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(R));
-              row.shape_iou = grid_iou(lifted.objects[k].samples[sample].coords, gt, R);
+              row.shape_iou = occupancy_iou(lifted.objects[k].samples[sample].coords, gt, R);
             }
             if (!row.ok)
               row.error = lifted.objects[k].error.empty() ? fmt::format("object {}: no usable sample", obj.id)

@@ -56,6 +56,11 @@ struct EvalLiftOptions {
 void validate_eval_options(const EvalLiftOptions& options);
 // Which depth kinds the options ask for ("clean", "corrupted"); throws naming --depth otherwise.
 std::vector<std::string> depth_kinds(const std::string& depth);
+
+// EvalRow::shape_iou: IoU of a sample's occupied voxels (coords [N, 3] integer, (x, y, z) of an R^3
+// grid; flat index (x R + y) R + z, the decoder's [R, R, R] layout; coordinates outside the grid are
+// ignored) with a filled grid of that layout (R^3 bytes, non-zero = occupied). Two empty grids: 1.
+double occupancy_iou(const torch::Tensor& coords, const std::vector<uint8_t>& grid, int64_t R);
 // "LO-HI" as fractions ("0.4-0.7") or percentages ("40-70": either bound above 1 means percent).
 // Throws simu::Error naming --visible when malformed, out of [0, 1] or LO > HI.
 std::pair<double, double> parse_visible_range(const std::string& text);

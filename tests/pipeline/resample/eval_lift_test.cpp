@@ -17,6 +17,7 @@
 #include <map>
 #include <set>
 
+#include "common/error.h"
 #include "common/fs.h"
 #include "pipeline/physics/mesh.h"
 #include "pipeline/resample/eval_lift.h"
@@ -85,6 +86,21 @@ TEST(EvalLift, OptionParsers) {
 // Hand-made rows: three objects in two buckets, compare = base + 0.1 on every score, one base lift failed.
 // Means and medians are worked out by hand; the paired difference of every resample is exactly the
 // shift where both models lifted, so its interval is a point.
+// shape_iou's grid IoU, counted by hand on a 4^3 grid in the decoder's layout (flat (x R + y) R + z):
+// the ground truth x in 0..2, y = 0, z in 0..1 (6 voxels); the sample x in 0..2, y = 0, z = 0 (3 voxels,
+// all inside) -> 3 / 6. The same coordinates read in another axis order would give 2 / 7.
+TEST(EvalLift, OccupancyIouInTheDecodersLayout) {
+  const int64_t R = 4;
+  std::vector<uint8_t> gt(R * R * R, 0);
+  for (int64_t x = 0; x < 3; ++x)
+    for (int64_t z = 0; z < 2; ++z) gt[size_t((x * R + 0) * R + z)] = 1;
+  const auto coords = torch::tensor({0, 0, 0, 1, 0, 0, 2, 0, 0, 9, 0, 0}, torch::kInt32).reshape({4, 3});  // (9,0,0): outside, ignored
+  EXPECT_DOUBLE_EQ(simu::resample::occupancy_iou(coords, gt, R), 0.5);
+  EXPECT_DOUBLE_EQ(simu::resample::occupancy_iou(torch::zeros({0, 3}, torch::kInt32), std::vector<uint8_t>(R * R * R, 0), R), 1.0);
+  EXPECT_DOUBLE_EQ(simu::resample::occupancy_iou(torch::zeros({0, 3}, torch::kInt32), gt, R), 0.0);
+  EXPECT_THROW(simu::resample::occupancy_iou(coords, gt, 5), simu::Error);
+}
+
 TEST(EvalLift, SummaryAggregatesAndPairedDeltas) {
   sr::EvalLiftResult r;
   r.depths = {"clean"};
