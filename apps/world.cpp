@@ -66,18 +66,24 @@ void parse_visible(const std::string& s, SceneConfig& cfg) {
   }
 }
 
+// The `scene:` and `corruption:` sections of --config (YAML/JSON) with the --set edits; defaults when
+// neither is given.
+void read_world_config(const std::string& config, const std::vector<std::string>& sets, SceneConfig& cfg,
+                       CorruptionConfig& ccfg) {
+  if (config.empty() && sets.empty()) return;
+  const YAML::Node root = config.empty() ? simu::config::load_text("{}", "--set", sets) : simu::config::load_file(config, sets);
+  simu::config::Reader r(root, config.empty() ? "--set" : config);
+  auto scene = r.child("scene");
+  cfg = SceneConfig::from(scene);
+  auto corruption = r.child("corruption");
+  ccfg = CorruptionConfig::from(corruption);
+  r.finish();
+}
+
 void run_scenes(const ScenesOptions& o, const std::vector<std::string>& sets) {
   SceneConfig cfg;
   CorruptionConfig ccfg;
-  if (!o.config.empty() || !sets.empty()) {
-    const YAML::Node root = o.config.empty() ? simu::config::load_text("{}", "--set", sets) : simu::config::load_file(o.config, sets);
-    simu::config::Reader r(root, o.config.empty() ? "--set" : o.config);
-    auto scene = r.child("scene");
-    cfg = SceneConfig::from(scene);
-    auto corruption = r.child("corruption");
-    ccfg = CorruptionConfig::from(corruption);
-    r.finish();
-  }
+  read_world_config(o.config, sets, cfg, ccfg);
   const Split split = parse_split(o.split, "--split");
   if (o.targets >= 0) cfg.targets = o.targets;
   if (!o.visible.empty()) parse_visible(o.visible, cfg);
@@ -153,15 +159,7 @@ void run_pairs(const PairsOptions& o, const std::vector<std::string>& sets) {
   SceneConfig cfg;
   CorruptionConfig ccfg;
   PairPlanConfig pcfg;
-  if (!o.config.empty() || !sets.empty()) {
-    const YAML::Node root = o.config.empty() ? simu::config::load_text("{}", "--set", sets) : simu::config::load_file(o.config, sets);
-    simu::config::Reader r(root, o.config.empty() ? "--set" : o.config);
-    auto scene = r.child("scene");
-    cfg = SceneConfig::from(scene);
-    auto corruption = r.child("corruption");
-    ccfg = CorruptionConfig::from(corruption);
-    r.finish();
-  }
+  read_world_config(o.config, sets, cfg, ccfg);
   // At least one occluded target per scene (the completion kind's supply).
   cfg.targets = std::max(cfg.targets, o.targets);
   pcfg.completion_min = cfg.visible_min, pcfg.completion_max = cfg.visible_max;
