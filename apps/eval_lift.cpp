@@ -16,6 +16,7 @@
 #include "common/config.h"
 #include "common/error.h"
 #include "common/fs.h"
+#include "pipeline/reconstruct/eval_align.h"
 #include "pipeline/resample/eval_lift.h"
 #include "pipeline/resample/lift.h"
 #include "pipeline/resample/model_options.h"
@@ -24,7 +25,7 @@ int main(int argc, char** argv) {
   CLI::App app{"eval_lift: lift shape-world objects (or a folder of meshes placed in world scenes) and score shape "
                "and pose against the ground truth in the world frame -> OUT/summary.json, pictures"};
   simu::resample::EvalLiftOptions opt;
-  std::string visible = "0-100", compare_adapter, out_dir, config_path;
+  std::string visible = "0-100", compare_adapter, out_dir, config_path, align = "none";
   bool overwrite = false, no_pictures = false;
   simu::resample::ModelOptions model;
   auto* world = app.add_option("--world", opt.world, "objects from the shape world: test | val | train | heldout (the "
@@ -69,10 +70,21 @@ int main(int argc, char** argv) {
       ->required()
       ->group("Evaluation");
   app.add_flag("--overwrite", overwrite, "replace an existing output folder")->group("Evaluation");
+  app.add_option("--threads", opt.threads, "metric and alignment threads (0: every core; the lift runs on torch's "
+                                          "threads, OMP_NUM_THREADS)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber)
+      ->group("Evaluation");
   app.add_flag("--no-pictures", no_pictures, "skip the per-object pictures")->group("Evaluation");
   app.add_flag("--amodal-crop", opt.amodal_crop,
                "crop from the object's amodal mask (the ground truth's: an ideal OBB-guided crop, the resampling input "
                "the FM-DPO pairs are made for) instead of its modal mask")
+      ->group("Evaluation");
+  app.add_option("--align", align, "pose refinement before scoring: none (the lift's pose) | simuscene (the "
+                                    "translation-scale alignment to the point map that `reconstruct` runs, "
+                                    "docs/reconstruct.md)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"none", "simuscene"}))
       ->group("Evaluation");
   // Testing only (hidden): each prediction replaced by its ground truth, no model run; every metric is
   // then at its ideal value (the CI check of the metric path).
@@ -84,6 +96,8 @@ int main(int argc, char** argv) {
   return simu::cli::run(app, argc, argv, common, [&] {
     std::tie(opt.visible_lo, opt.visible_hi) = simu::resample::parse_visible_range(visible);
     opt.pictures = !no_pictures;
+    opt.refine_name = align;
+    if (align == "simuscene") opt.refine = simu::reconstruct::alignment_refiner({});
     simu::resample::validate_eval_options(opt);  // before the models load
     if (!config_path.empty() || !common.sets.empty()) {
       YAML::Node node = config_path.empty() ? YAML::Node(YAML::NodeType::Map) : simu::config::load_file(config_path);

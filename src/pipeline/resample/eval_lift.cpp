@@ -354,6 +354,17 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
         if (!row.ok) return;
         const EvalObject& obj = res.objects[row.object];
         try {
+          if (opt.refine) {
+            row.lifted_t = preds[i].t;
+            row.lifted_size = preds[i].size();
+            RefineInput ri;
+            ri.camera = &obj.camera;
+            ri.pointmap = &pm;
+            ri.modal = &scene.objects[chosen[i % nk]].modal;
+            ri.id = obj.id;
+            row.refine_note = opt.refine(preds[i], ri);
+            row.refined = row.refine_note.empty();
+          }
           row.metrics = physics::shape_metrics(preds[i], obj.gt, obj.symmetry, opt.metrics);
           row.pred_t = preds[i].t;
           row.pred_size = preds[i].size();

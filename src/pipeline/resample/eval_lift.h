@@ -20,6 +20,7 @@
 #include <nlohmann/json.hpp>
 
 #include <cstdint>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -29,6 +30,21 @@
 #include "pipeline/world/scene.h"
 
 namespace simu::resample {
+
+// The inputs of a pose refinement of one prediction (EvalLiftOptions::refine): the scene's camera (its
+// pose in the world, intrinsics), the point map the lift saw (OpenCV camera frame) and the object's
+// modal mask.
+struct RefineInput {
+  const physics::Camera* camera = nullptr;
+  const world::PointMap* pointmap = nullptr;
+  const physics::BinaryMask* modal = nullptr;
+  std::string id;  // the object, for messages
+};
+// A pose refinement run on every lifted prediction before it is scored (eval_lift --align: the
+// SimuScene alignment of src/pipeline/reconstruct, set by the program since that library sits above
+// this one). It may change the prediction's scale and translation (world frame). Returns "" when it
+// changed the pose, else why not (the lifted pose is then kept and the reason goes in the row).
+using PoseRefiner = std::function<std::string(physics::PlacedShape& prediction, const RefineInput& input)>;
 
 struct EvalLiftOptions {
   std::string world;             // train | val | test | heldout ("" with objects_dir)
@@ -44,11 +60,14 @@ struct EvalLiftOptions {
   physics::ShapeMetricsConfig metrics;
   int bootstrap_resamples = 10000;
   bool pictures = true;          // pictures/<object>_<depth>.png
-  bool gt_as_prediction = false; // testing: each prediction replaced by its ground truth (no model runs)
+  bool gt_as_prediction = false; // testing: each prediction replaced by its ground truth (no model runs;
+                                 // `refine`, when set, still runs on it)
   // The resampling input of the paper (probe --resample): the crop box and background removal from the
   // object's amodal mask (here the ground truth's, an ideal OBB-guided crop) instead of its modal mask.
   bool amodal_crop = false;
   int threads = 0;               // metric threads (0: every core; the lift runs on torch's threads)
+  PoseRefiner refine;            // optional: run on each prediction before scoring (see PoseRefiner)
+  std::string refine_name = "none";  // what `refine` is, for summary.json
 };
 
 // Checks the options before any work: exactly one of world / objects_dir, a known split, a mesh folder
@@ -100,6 +119,12 @@ struct EvalRow {
   // the grids the model was trained on; the measure build_pairs --filter-gt uses). No symmetry search.
   double shape_iou = 0;
   std::string picture;         // path relative to the output folder ("" when none)
+  // With EvalLiftOptions::refine: whether it changed the pose, else why not; the lifted pose's world
+  // translation and longest side before it.
+  bool refined = false;
+  std::string refine_note;
+  physics::Vec3 lifted_t = physics::Vec3::Zero();
+  double lifted_size = 0;
 };
 
 struct EvalLiftResult {

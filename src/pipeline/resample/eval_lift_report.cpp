@@ -109,6 +109,13 @@ json object_row(const EvalLiftResult& r, const EvalRow& row) {
     j["pred_t_cam"] = {pc.x(), pc.y(), pc.z()};
     j["gt_t_cam"] = {gc.x(), gc.y(), gc.z()};
     j["pred_size_m"] = row.pred_size;
+    if (!row.refine_note.empty() || row.refined) {
+      const physics::Vec3 lc = cam.R_world_cam.transpose() * (row.lifted_t - cam.t_world_cam);
+      j["refined"] = row.refined;
+      if (!row.refined) j["refine_note"] = row.refine_note;
+      j["lifted_t_cam"] = {lc.x(), lc.y(), lc.z()};
+      j["lifted_size_m"] = row.lifted_size;
+    }
   }
   if (!row.picture.empty()) j["picture"] = row.picture;
   return j;
@@ -122,6 +129,9 @@ json aggregate_rows(const EvalLiftResult&, const std::vector<const EvalRow*>& ro
   int failed = 0;
   for (const EvalRow* r : rows) failed += r->ok ? 0 : 1;
   j["n_failed"] = failed;
+  int refined = 0;
+  for (const EvalRow* r : rows) refined += r->refined ? 1 : 0;
+  j["n_refined"] = refined;
   for (const MetricSpec& spec : metric_specs()) j[spec.key] = number(statistic(spec, values_of(spec, rows)));
   return j;
 }
@@ -139,6 +149,7 @@ json eval_summary(const EvalLiftResult& r, const EvalLiftOptions& opt, const std
                    {"count", r.objects.size()},
                    {"seed", opt.seed},
                    {"crop", opt.amodal_crop ? "amodal (ground truth)" : "modal"},
+                   {"refine", opt.refine_name},
                    {"depth", r.depths},
                    {"object_size_m", opt.object_size},
                    {"gt_as_prediction", opt.gt_as_prediction},

@@ -1,0 +1,22 @@
+// The SimuScene alignment (align.h) as eval_lift's pose refinement: eval_lift --align simuscene scores
+// each lifted object after the translation-scale alignment the reconstruct pipeline runs on it, so the
+// table measures the pose users get from `reconstruct` as well as the raw lift.
+//
+//   resample::EvalLiftOptions opt;
+//   opt.refine = reconstruct::alignment_refiner({});
+//   opt.refine_name = "simuscene";
+#pragma once
+
+#include "pipeline/reconstruct/align.h"
+#include "pipeline/resample/eval_lift.h"
+
+namespace simu::reconstruct {
+
+// A PoseRefiner that moves the prediction into the camera frame (OpenCV, the point map's), runs
+// align_translation_scale with `config` (the rotation kept; the observed points = the point map's valid
+// points under the modal mask; the full point map for the occlusion test) and writes the aligned
+// isotropic scale factor and translation back in the world frame. Not aligned (the pose kept, the
+// reason returned): too few points, no visible vertex, a point map or mask of another size.
+resample::PoseRefiner alignment_refiner(const AlignConfig& config);
+
+}  // namespace simu::reconstruct
