@@ -44,7 +44,11 @@ int main(int argc, char** argv) {
   app.add_option("--decoder-weights", rcfg.decoder_weights, "decoder safetensors");
   app.add_option("--embedder-config", rcfg.embedder_config, "condition embedder config");
   app.add_option("--embedder-weights", rcfg.embedder_weights, "condition embedder safetensors");
-  app.add_option("--adapter", rcfg.adapter_dir, "PEFT LoRA adapter directory");
+  app.add_option("--adapter", rcfg.adapter_dir, "PEFT LoRA adapter directory (default with the shipped miniature: "
+                                              "its FM-DPO resampling adapter)");
+  bool base_resampling = false;
+  app.add_flag("--base-resampling", base_resampling,
+               "with the shipped miniature: resample with the base model, not its FM-DPO adapter");
   app.add_option("--num-samples", rcfg.num_samples, "shapes drawn per object")->capture_default_str();
   app.add_option("--steps", rcfg.steps, "Stage-1 sampling steps (official inference: 25)")->capture_default_str();
   app.add_option("--precision", rcfg.precision, "fp16 | bf16 | fp32 | auto (fp16 on CUDA as released, fp32 on CPU)")
@@ -74,6 +78,7 @@ int main(int argc, char** argv) {
     simu::data::PreprocessConfig preprocess;
     if (resample) {
       // No weights at all: the shipped miniature (pipeline/resample/default_model.h), unless --random-weights.
+      rcfg.shipped_resample_adapter = !base_resampling;
       simu::resample::apply_shipped_model(rcfg);
       preprocess = simu::resample::preprocess_choice(preprocess_preset, rcfg);
       if (rcfg.embedder_config.empty())

@@ -55,6 +55,11 @@ int main(int argc, char** argv) {
   app.add_option("--gt", gt_path, "ground truth of a shape-world scene (world scenes' gt.json): per object the world-frame "
                  "IoU before and after the probe's correction, in the report (gt_iou) and as a table");
   simu::resample::add_model_options(app, model);
+  bool base_resampling = false;
+  app.add_flag("--base-resampling", base_resampling,
+               "with the shipped miniature: the probe resamples with the base model, not its FM-DPO adapter (the "
+               "first lift always runs the base model)")
+      ->group("Model");
   simu::cli::CommonOptions common;
   app.footer(simu::physics::probe_config_help());
   return simu::cli::run(app, argc, argv, common, [&] {
@@ -78,6 +83,7 @@ int main(int argc, char** argv) {
     std::unique_ptr<simu::resample::Resampler> resampler;
     std::string banner;
     if (!no_model) {
+      model.config.shipped_resample_adapter = !base_resampling;
       banner = simu::resample::finish_model_options(model);
       if (!banner.empty()) fmt::print(stderr, "\n*** {} ***\n\n", banner);
       resampler = std::make_unique<simu::resample::Resampler>(model.config);

@@ -41,6 +41,12 @@ ModelFolder ModelFolder::load(const std::string& dir) {
   m.decoder_config = file("decoder_config");
   m.decoder_weights = file("decoder_weights");
   m.preprocess = file("preprocess");
+  if (f.contains("resample_adapter")) {
+    m.resample_adapter = file("resample_adapter");
+    SIMU_CHECK(std::filesystem::exists(m.resample_adapter + "/adapter_config.json"),
+               "{}: files.resample_adapter: {} holds no adapter_config.json (a PEFT adapter folder)", path,
+               m.resample_adapter);
+  }
   return m;
 }
 
@@ -63,10 +69,18 @@ std::string apply_shipped_model(ResamplerConfig& c) {
   c.decoder_config = m.decoder_config;
   c.decoder_weights = m.decoder_weights;
   if (c.preprocess.empty()) c.preprocess = m.preprocess;
+  std::string with_adapter;
+  if (c.shipped_resample_adapter && c.adapter_dir.empty() && !m.resample_adapter.empty()) {
+    c.adapter_dir = m.resample_adapter;
+    c.adapter_resample_only = true;
+    with_adapter = fmt::format(" Resampling uses its FM-DPO adapter ({}; the first lift the base model; "
+                               "--base-resampling: the base model for both).",
+                               m.resample_adapter);
+  }
   const std::string note = fmt::format(
       "model: {} ({}): {}; not SAM 3D. Pass --generator-weights, --embedder-weights and --decoder-weights for "
-      "the released model, or --random-weights",
-      m.name, dir, m.description);
+      "the released model, or --random-weights.{}",
+      m.name, dir, m.description, with_adapter);
   simu::log::info("{}", note);
   return note;
 }

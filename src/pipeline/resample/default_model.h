@@ -19,14 +19,16 @@ struct ModelFolder {
   std::string dir, name, description;
   std::string generator_config, generator_weights, embedder_config, embedder_weights, decoder_config,
       decoder_weights, preprocess;
+  std::string resample_adapter;  // optional (files.resample_adapter): the FM-DPO adapter folder for resampling
   // Reads dir/manifest.json; every file must exist (simu::Error naming the manifest and the key).
   static ModelFolder load(const std::string& dir);
 };
 
 // When c names no weight file at all, is not a random-weights run, and keeps the default configs
 // (nothing to contradict): fills c with the shipped model (configs, weights, preprocessing) and returns
-// a one-line note for logs and reports ("" when c is left as it was). A missing shipped folder leaves
-// c as it was (the usual missing-weights error follows).
+// a one-line note for logs and reports ("" when c is left as it was). With c.shipped_resample_adapter,
+// no c.adapter_dir and a folder that has one, its resampling adapter too (adapter_resample_only). A
+// missing shipped folder leaves c as it was (the usual missing-weights error follows).
 std::string apply_shipped_model(ResamplerConfig& c);
 
 // The preprocessing a choice names: "" or "model" = the model's (c.preprocess; the released preset when

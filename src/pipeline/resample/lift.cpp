@@ -160,7 +160,17 @@ LiftResult lift_objects(Resampler& resampler, const LiftInputs& inputs, const Li
   result.seconds.preprocess = seconds_since(t0);
   if (batch.empty()) return result;
 
-  // Every object in one batched call: embedder, sampling, decoder, marching cubes, pose decoding.
+  // Every object in one batched call: embedder, sampling, decoder, marching cubes, pose decoding. An
+  // adapter for resampling only is off in a first lift (the base model runs, as in the paper) and on
+  // again after; a resampling call keeps it on.
+  struct AdapterOff {
+    Resampler& r;
+    bool off;
+    ~AdapterOff() {
+      if (off) r.set_adapter_enabled(true);
+    }
+  } adapter_off{resampler, resampler.adapter_resample_only() && !options.resampling};
+  if (adapter_off.off) resampler.set_adapter_enabled(false);
   const auto rs = resampler.resample(batch, options.seed);
   result.seconds.embed = rs.seconds_embed;
   result.seconds.sample = rs.seconds_sample;

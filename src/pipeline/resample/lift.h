@@ -76,6 +76,9 @@ struct LiftOptions {
   // default_model.h: the shipped miniature's own sizes, else the released preset).
   std::optional<data::PreprocessConfig> preprocess;
   uint64_t seed = 0;                  // sampling noise seed (noise per object and sample, in object order)
+  // A resampling call (the probe's, probe_resampler.h) rather than the first lift: an adapter loaded for
+  // resampling only (Resampler::adapter_resample_only) stays on; in a first lift it is switched off.
+  bool resampling = false;
 };
 
 // The outcome for one object.

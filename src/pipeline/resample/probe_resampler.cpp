@@ -141,6 +141,7 @@ ResampleFn make_probe_resample_fn(Resampler& resampler, const Scene& scene, Prob
     LiftOptions lo;
     lo.preprocess = options.preprocess;
     lo.seed = options.seed;
+    lo.resampling = true;  // an adapter for resampling only stays on
     LiftResult lifted;
     try {
       lifted = lift_objects(resampler, in, lo);  // one batched resampling call for every object

@@ -104,6 +104,10 @@ class RandomInitSeed {
 };
 }  // namespace
 
+void Resampler::set_adapter_enabled(bool enabled) {
+  if (has_adapter_) simu::lora::set_lora_enabled(*generator_, enabled);
+}
+
 void Resampler::load_adapter(const std::string& dir) {
   simu::lora::load_peft(dir, *generator_);
   generator_->to(device_);

@@ -50,6 +50,15 @@ struct ResamplerConfig {
   std::string decoder_config = simu::source_dir() + "/configs/ss_decoder.yaml";
   std::string decoder_weights;    // safetensors; "" keeps the random init (benchmarks only)
   std::string adapter_dir;        // PEFT adapter directory; "" = base model
+  // The adapter is switched off inside lift_objects (the first lift runs the base model, as the paper
+  // does) and on for every other resample() call (the probe's resampling). Set with the shipped
+  // model's resampling adapter (shipped_resample_adapter).
+  bool adapter_resample_only = false;
+  // With the shipped model (default_model.h: no weights given) and no adapter_dir: also load the model
+  // folder's resampling adapter (its manifest's files.resample_adapter, the FM-DPO adapter of
+  // docs/results.md) with adapter_resample_only. probe --resample and reconstruct set it (their
+  // --base-resampling clears it); lift, eval_lift, build_pairs and the Python module keep the base.
+  bool shipped_resample_adapter = false;
   std::vector<std::string> generator_overrides;  // "a.b=v" edits of the generator config
   std::string embedder_config;    // condition embedder config; "" = requests must carry tokens
   std::string embedder_weights;   // its safetensors (official prefix stripped when present)
@@ -162,6 +171,10 @@ class Resampler {
   // graphs kept so far.
   void set_cuda_graphs(bool on);
   bool has_adapter() const { return has_adapter_; }
+  // The adapter is for resampling only (ResamplerConfig::adapter_resample_only with an adapter loaded).
+  bool adapter_resample_only() const { return has_adapter_ && config_.adapter_resample_only; }
+  // Switches the loaded adapter's LoRA layers on or off for later calls (no-op without an adapter).
+  void set_adapter_enabled(bool enabled);
   // Loads a PEFT adapter directory into the generator (simu::lora::load_peft; adapters already there are
   // replaced by the directory's), as the constructor does for config.adapter_dir.
   void load_adapter(const std::string& dir);

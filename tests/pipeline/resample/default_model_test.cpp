@@ -16,7 +16,10 @@
 #include "common/fs.h"
 #include "common/source_dir.h"
 #include "pipeline/resample/default_model.h"
+#include "pipeline/resample/lift.h"
 #include "pipeline/resample/resampler.h"
+#include "pipeline/world/scene.h"
+#include "pipeline/world/shapes.h"
 #include "test_files.h"
 
 namespace sr = simu::resample;
@@ -147,4 +150,87 @@ TEST(ShippedModel, TheShippedFolderLoads) {
   const auto e = nlohmann::json::parse(simu::fs::read_file(m.embedder_config));
   EXPECT_EQ(pre.image_size, e.at("dino_image_input_size").get<int>());
   EXPECT_EQ(pre.pointmap_size, e.at("pointpatch").at("input_size").get<int>());
+}
+
+// The folder's resampling adapter (files.resample_adapter) is taken only where a program asks for it
+// (shipped_resample_adapter) and gave no adapter of its own; a folder naming one that is not a PEFT
+// folder is refused naming the key.
+TEST(ShippedModel, ResampleAdapterOnlyWhereAsked) {
+  const auto dir = fake_folder("mf_adapter", R"({"generator_config": "g.yaml", "generator_weights": "w.safetensors",
+      "embedder_config": "e.json", "embedder_weights": "w.safetensors", "decoder_config": "d.json",
+      "decoder_weights": "d.safetensors", "preprocess": "p.yaml", "resample_adapter": "adapter"})");
+  std::filesystem::create_directories(dir + "/adapter");
+  const auto e = simu::testing::error_of([&] { sr::ModelFolder::load(dir); });
+  EXPECT_NE(e.find("files.resample_adapter"), std::string::npos) << e;
+  write(dir + "/adapter/adapter_config.json", "{}");
+  DefaultModelEnv env(dir);
+  // Not asked (lift, eval_lift, build_pairs): the base model alone.
+  sr::ResamplerConfig base;
+  sr::apply_shipped_model(base);
+  EXPECT_TRUE(base.adapter_dir.empty());
+  EXPECT_FALSE(base.adapter_resample_only);
+  // Asked (probe --resample, reconstruct): the adapter, for resampling only, and the note says so.
+  sr::ResamplerConfig asked;
+  asked.shipped_resample_adapter = true;
+  const auto note = sr::apply_shipped_model(asked);
+  EXPECT_EQ(asked.adapter_dir, dir + "/adapter");
+  EXPECT_TRUE(asked.adapter_resample_only);
+  EXPECT_NE(note.find("FM-DPO adapter"), std::string::npos) << note;
+  // The user's own adapter wins and applies everywhere.
+  sr::ResamplerConfig own;
+  own.shipped_resample_adapter = true;
+  own.adapter_dir = "mine";
+  sr::apply_shipped_model(own);
+  EXPECT_EQ(own.adapter_dir, "mine");
+  EXPECT_FALSE(own.adapter_resample_only);
+  simu::fs::remove_tree(dir);
+}
+
+// With the shipped folder's adapter for resampling only: a first lift equals the base model's lift
+// bit for bit (the adapter is off), a resampling call (LiftOptions::resampling) does not (it is on),
+// and after the first lift the adapter is on again.
+TEST(ShippedModel, ResampleAdapterIsOffInTheFirstLift) {
+  const std::string dir = simu::source_dir() + "/weights/miniature_cpu";
+  if (!std::filesystem::exists(dir + "/manifest.json")) GTEST_SKIP() << dir << " is not in this checkout";
+  if (sr::ModelFolder::load(dir).resample_adapter.empty()) GTEST_SKIP() << dir << " ships no resampling adapter";
+  // One shape-world test scene, its first two objects.
+  simu::world::SceneConfig sc;
+  uint64_t seed = 0;
+  while (simu::world::scene_split_of(seed) != simu::world::Split::Test) ++seed;
+  const auto scene = simu::world::make_scene(sc, seed, simu::world::Split::Test);
+  ASSERT_GE(scene.objects.size(), 2u);
+  const int H = scene.camera.height, W = scene.camera.width;
+  sr::LiftInputs in;
+  in.rgb = torch::from_blob(const_cast<uint8_t*>(scene.rgb.data()), {H, W, 3}, torch::kUInt8)
+               .permute({2, 0, 1}).to(torch::kFloat32).div(255.0).contiguous();
+  in.pointmap = torch::from_blob(const_cast<float*>(scene.pointmap.xyz.data()), {H, W, 3}, torch::kFloat32).clone();
+  in.camera = scene.camera;
+  for (int k = 0; k < 2; ++k) {
+    const auto& m = scene.objects[k].modal;
+    in.objects.push_back({"obj" + std::to_string(k),
+                          torch::from_blob(const_cast<uint8_t*>(m.data.data()), {m.height, m.width}, torch::kUInt8)
+                              .to(torch::kFloat32),
+                          {}, ""});
+  }
+  sr::ResamplerConfig c;
+  c.device = "cpu";
+  sr::Resampler base(c);
+  c.shipped_resample_adapter = true;
+  sr::Resampler tuned(c);
+  ASSERT_TRUE(tuned.adapter_resample_only());
+  EXPECT_FALSE(base.has_adapter());
+  sr::LiftOptions lo;
+  lo.seed = 3;
+  const auto a = sr::lift_objects(base, in, lo), b = sr::lift_objects(tuned, in, lo);
+  lo.resampling = true;
+  const auto r = sr::lift_objects(tuned, in, lo);
+  for (size_t k = 0; k < 2; ++k) {
+    ASSERT_TRUE(a.objects[k].ok && b.objects[k].ok && r.objects[k].ok) << a.objects[k].error << b.objects[k].error;
+    const auto& la = a.objects[k].samples[0].latents.at("shape");
+    EXPECT_TRUE(torch::equal(la, b.objects[k].samples[0].latents.at("shape"))) << "first lift, object " << k;
+    EXPECT_FALSE(torch::equal(la, r.objects[k].samples[0].latents.at("shape"))) << "resampling, object " << k;
+  }
+  // The first lift switched it back on: a second resampling call repeats the first.
+  const auto r2 = sr::lift_objects(tuned, in, lo);
+  EXPECT_TRUE(torch::equal(r.objects[0].samples[0].latents.at("shape"), r2.objects[0].samples[0].latents.at("shape")));
 }

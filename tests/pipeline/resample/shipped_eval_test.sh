@@ -6,7 +6,8 @@
 # clean and corrupted point maps), and fails when a recorded metric falls below its recorded value
 # minus the manifest's stated tolerance (tests/pipeline/resample/shipped_eval_check.py says where the
 # tolerance comes from). A change that silently breaks the model path (loading, preprocessing,
-# embedder, sampler, decoder, pose) moves these far more than the tolerance.
+# embedder, sampler, decoder, pose) moves these far more than the tolerance. Then the shipped FM-DPO
+# resampling adapter's recorded paired deltas (manifest "ci_check_adapter"), when there is one.
 set -euo pipefail
 if [[ $# -ne 2 ]]; then
   echo "usage: $0 BUILD_DIR REPO_ROOT" >&2
@@ -23,3 +24,11 @@ trap 'rm -rf "$TMP"' EXIT
 mapfile -t ARGS < <("$PY" -c 'import json,sys; [print(a) for a in json.load(open(sys.argv[1]))["ci_check"]["args"]]' "$MANIFEST")
 (cd "$REPO" && "$BUILD/eval_lift" "${ARGS[@]}" --device cpu --no-pictures --out "$TMP/eval")
 "$PY" "$REPO/tests/pipeline/resample/shipped_eval_check.py" "$MANIFEST" "$TMP/eval/summary.json"
+# The shipped resampling adapter (weights/miniature_cpu/adapter), when the manifest records its check:
+# base and base + adapter on the recorded objects; each recorded paired delta must hold (an adapter
+# that no longer loads or no longer applies gives a delta of exactly 0).
+if "$PY" -c 'import json,sys; sys.exit(0 if "ci_check_adapter" in json.load(open(sys.argv[1])) else 1)' "$MANIFEST"; then
+  mapfile -t AARGS < <("$PY" -c 'import json,sys; [print(a) for a in json.load(open(sys.argv[1]))["ci_check_adapter"]["args"]]' "$MANIFEST")
+  (cd "$REPO" && "$BUILD/eval_lift" "${AARGS[@]}" --device cpu --no-pictures --out "$TMP/eval_adapter")
+  "$PY" "$REPO/tests/pipeline/resample/shipped_eval_check.py" "$MANIFEST" "$TMP/eval_adapter/summary.json" adapter
+fi
