@@ -12,7 +12,8 @@
 #   4. a scene of the shape world's TEST split, which no training saw (world scenes --split test), with
 #      one object occluded to 20-60% visible; floor, wall and table labelled from its label image
 #   5. reconstruct: every object lifted by the miniature, aligned to the point map, floor / wall / table
-#      fitted, then the physics probe (penetration, stretch or in-process resampling best of 4, final
+#      fitted, then the physics probe (penetration, stretch or in-process resampling best of 4 with the
+#      miniature's FM-DPO adapter, weights/miniature_cpu/adapter, docs/results.md; final
 #      settle, MJCF, report, pictures); --gt gt.json scores each object against the ground truth in
 #      the world frame (voxel IoU) before the probe's correction (lifted and aligned) and after it
 #   6. the table, and the pictures to look at (before_after.png, candidates_<id>.png, side_view.png)
@@ -76,7 +77,7 @@ for o in gt["objects"]:
           + ("  (occluded target)" if o["target"] else ""))
 PYEOF
 
-echo "== 5/6 reconstruct with the shipped miniature: lift, align, floor / wall / table, probe (resampling best of 4), ground truth"
+echo "== 5/6 reconstruct with the shipped miniature: lift, align, floor / wall / table, probe (resampling best of 4 with its FM-DPO adapter), ground truth"
 echo "   model: $MODEL (a miniature trained on a synthetic world, NOT SAM 3D)"
 rc=0
 "$BUILD/reconstruct" --image "$scene/image.png" --masks "$scene/labels.png" --objects "$scene/objects.json" \
