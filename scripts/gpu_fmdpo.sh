@@ -13,9 +13,17 @@
 #      EVALS_ALL name, in parallel;
 #   4. pack what comes back into $OUT: every run's metrics.jsonl and adapter, every summary.json.
 #   Adapters already in $STATE/runs (carried from an earlier call's pack) are not trained again.
-#   device run (carry .carry/prefix without lib/coacd, and data/pairs_cpu.h5, made by
-#   scripts/fmdpo_miniature.sh):
-#     DEADLINE_S=560 bash scripts/gpu_fmdpo.sh
+#   Environment: TRAIN_RUNS ("variant:seed ..."), EVALS_40_70 / EVALS_ALL ("run_sS:count ..."),
+#   EVAL_WORLD (test | val: val is the split for choosing among variants), EVAL_JOBS, JOBS, COUNT.
+#   device run (carry .carry/prefix/usr/{include,lib/x86_64-linux-gnu,lib/libgloo.so,share,src}, i.e.
+#   without lib/coacd, to stay under 64 MiB; data/pairs_cpu.h5, made by scripts/fmdpo_miniature.sh;
+#   runs/gpu_fmdpo/runs to reuse adapters). The 2026-11-29 calls, in order (docs/results.md):
+#     DEADLINE_S=570 bash scripts/gpu_fmdpo.sh      # build, 17 runs; its first 500-object eval ran out
+#     EVALS_40_70="recipe_s0:200 ... lr1e-4_steps3000_s1:200" EVALS_ALL="" EVAL_JOBS=17 \
+#       DEADLINE_S=585 bash scripts/gpu_fmdpo.sh    # the ablation table (test, 200 objects each)
+#     TRAIN_RUNS="beta5:0 beta5:1 beta20:0 beta20:1" EVAL_WORLD=val \
+#       EVALS_40_70="recipe_s0:200 recipe_s1:200 beta5_s0:200 ... beta50_s1:200" EVALS_ALL="" EVAL_JOBS=8 \
+#       DEADLINE_S=500 bash scripts/gpu_fmdpo.sh    # the beta choice on val
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
