@@ -80,6 +80,8 @@ int main(int argc, char** argv) {
     // The ground truth is read before any model loads (a bad file stops the run early).
     std::optional<simu::reconstruct::WorldGt> gt;
     if (!gt_path.empty()) gt = simu::reconstruct::load_world_gt(gt_path);
+    // ... and gives the probe its boxes (the 3D AABB IoU / ABO of the headline metrics, camera frame).
+    if (gt) opt.gt_boxes = simu::reconstruct::gt_boxes_in_camera(*gt);
     std::unique_ptr<simu::resample::Resampler> resampler;
     std::string banner;
     if (!no_model) {

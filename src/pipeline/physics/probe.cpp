@@ -120,7 +120,9 @@ void simulate_diagnostics(Ctx& c, const std::vector<int>& placed, int i, Diagnos
   try {
     World w = build_world(c, placed, {i}, false, nullptr, {}, 1, /*detect=*/true);
     bool ok = resolve_penetration(c, w, i, &d.dt_pen, &d.pen_iterations, &d.pen_max_depth, &why);
-    if (ok && so.dof == PoseDof::Free) {
+    if (ok && !c.cfg.gravity_diagnostics) {
+      // Penetration resolution only: no drop, no pins; the object stays where the push left it.
+    } else if (ok && so.dof == PoseDof::Free) {
       ok = fall_until_contact(c, w, i, &d.dt_grv, &d.sim_time, &why);
       if (!ok && why.rfind("no contact", 0) == 0) add_flag(d, "no_support", "");
     } else if (ok) {
@@ -199,7 +201,7 @@ std::vector<int> diagnose_in_order(Ctx& c, ProbeResult& res, std::vector<int>* n
     d.order = done;
     simulate_diagnostics(c, placed, i, d);
     if (c.objs[i].simulate) {
-      if (decide_and_stretch(c, i, d)) needs_resample->push_back(i);
+      if (c.cfg.gravity_diagnostics && decide_and_stretch(c, i, d)) needs_resample->push_back(i);
       placed.push_back(i);
     }
     ++done;

@@ -169,6 +169,10 @@ struct ProbeConfig {
   double divergence_bound = 0.25;  // m: larger final-settle motion is reverted
   double candidate_settle_time = 1.0;  // s: settle of each best-of-N candidate (stops early at rest)
   double pin_region = 0.1;         // top-back pin region, fraction of the object's extent
+  // The gravity diagnostics (Sec. 3.4) and the decision they feed (stretch or resample). false:
+  // sequential penetration resolution only, every object kept at its pushed pose with its input shape
+  // (branch "none"), then the final pass as usual: the "+ Pen." row of the paper's ablation.
+  bool gravity_diagnostics = true;
   // Evaluation (supplementary "Metrics"): a gravity settle of the final scene for this long (paper:
   // 5 s; 0 = none, the metrics then come from the final settle). It stops early once, over one
   // settle_window, no body moved more than metrics_rest_distance.

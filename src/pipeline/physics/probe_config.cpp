@@ -76,6 +76,8 @@ const std::vector<Key>& keys() {
     v.push_back(PK(double, "penetration", "max_total", c.max_pen_total, "m; larger cumulative push -> physics-disabled; paper: 0.3 m"));
     v.push_back(PK(double, "penetration", "tolerance", c.pen_tolerance, "m; a contact penetrates when deeper than this"));
     // diagnostics: gravity diagnostics (Sec. 3.4).
+    v.push_back(PK(bool, "diagnostics", "gravity", c.gravity_diagnostics,
+                   "false: penetration resolution only (no gravity drop, stretch or resampling; the ablation's '+ Pen.' row)"));
     v.push_back(PK(double, "diagnostics", "max_fall_time", c.max_fall_time, "s without contact -> no_support"));
     v.push_back(PK(double, "diagnostics", "settle_max_time", c.settle_max_time, "s; anchored objects on their pins"));
     v.push_back(PK(double, "diagnostics", "settle_speed", c.settle_speed, "m/s and rad/s below which a body is settled"));

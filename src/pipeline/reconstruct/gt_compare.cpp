@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 
 #include "common/error.h"
 #include "pipeline/physics/mesh.h"
@@ -117,6 +118,25 @@ PlacedShape placed_in_gt_world(const physics::Mesh& canonical, const physics::Sc
   p.R = A * o.R;
   p.t = A * (o.t - scene_camera.t_world_cam) + gt_camera.t_world_cam;
   return p;
+}
+
+std::map<std::string, physics::Box3> gt_boxes_in_camera(const WorldGt& gt) {
+  std::map<std::string, physics::Box3> boxes;
+  const Mat3 Rt = gt.camera.R_world_cam.transpose();
+  for (const auto& g : gt.objects) {
+    const physics::Mesh w = g.shape.world();
+    if (w.V.rows() == 0) continue;
+    physics::Box3 b;
+    b.min = Vec3::Constant(std::numeric_limits<double>::infinity());
+    b.max = -b.min;
+    for (Eigen::Index k = 0; k < w.V.rows(); ++k) {
+      const Vec3 c = Rt * (Vec3(w.V.row(k).transpose()) - gt.camera.t_world_cam);
+      b.min = b.min.cwiseMin(c);
+      b.max = b.max.cwiseMax(c);
+    }
+    boxes[g.id] = b;
+  }
+  return boxes;
 }
 
 double world_iou(const PlacedShape& pred, const PlacedShape& gt, const physics::ShapeMetricsConfig& config) {

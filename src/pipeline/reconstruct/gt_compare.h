@@ -50,6 +50,12 @@ WorldGt load_world_gt(const std::string& gt_json);
 physics::PlacedShape placed_in_gt_world(const physics::Mesh& canonical, const physics::SceneObject& object,
                                         const physics::Camera& scene_camera, const physics::Camera& gt_camera);
 
+// Each GT object's world AABB taken in the camera frame (x_cam = R_world_cam^T (x_world - t_world_cam)):
+// the axis-aligned box of its placed mesh's vertices there, by id. reconstruct's scene world is that
+// OpenCV camera, so these are the ground-truth boxes of the probe's 3D AABB IoU / ABO (`reconstruct
+// --gt`; physics::box_metrics). Axis-aligned with the camera, not with gravity.
+std::map<std::string, physics::Box3> gt_boxes_in_camera(const WorldGt& gt);
+
 // Voxel IoU of a prediction and the ground truth, both in the GT world (shape_metrics' spacing rule).
 double world_iou(const physics::PlacedShape& pred, const physics::PlacedShape& gt,
                  const physics::ShapeMetricsConfig& config = {});

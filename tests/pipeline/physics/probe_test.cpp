@@ -95,6 +95,42 @@ TEST(Probe, BoxSunkIntoTableIsPushedUp) {
   EXPECT_NEAR(o.t.z() - 0.5 * o.scale.z(), 0.425, 4e-3);  // the sink twice (both settles)
 }
 
+// diagnostics.gravity = false (the ablation's "+ Pen." row): the sunk cube is pushed up as above but
+// never dropped, decided or stretched (branch none, its 20 cm kept); the hovering cube of the first test
+// keeps its 30 cm (no stretch to the floor) and reaches the floor only in the final settle.
+TEST(Probe, WithoutGravityDiagnosticsOnlyPenetrationIsResolved) {
+  const auto dir = physics_temp_dir("pen_only");
+  Scene s = room();
+  BaseBody table;
+  table.id = "table";
+  table.mesh_path = write_box(dir, "slab", Vec3(0.5, 0.5, 0.025));
+  table.t = Vec3(0, 0, 0.4);
+  s.bases.push_back(table);
+  const auto mesh = write_box(dir, "cube", Vec3::Constant(0.5));
+  s.objects.push_back(cube("sunk", mesh, 0.2, Vec3(0, 0, 0.425 - 0.02 + 0.1)));
+  s.objects.push_back(cube("hover", mesh, 0.3, Vec3(1.0, 0, 0.15 + 0.03)));
+  ProbeConfig cfg = quick();
+  cfg.gravity_diagnostics = false;
+  const auto r = run_probe(s, cfg, dir + "/out");
+  const auto& sunk = r.diagnostics[0];
+  const auto& hover = r.diagnostics[1];
+  EXPECT_FALSE(sunk.physics_disabled) << sunk.message;
+  // The push: depth + one 7 mm step, as in BoxSunkIntoTableIsPushedUp; no fall measured.
+  EXPECT_GT(sunk.dt_pen.z(), 0.02);
+  EXPECT_LT(sunk.dt_pen.z(), 0.035);
+  EXPECT_EQ(sunk.dt_grv.norm(), 0.0);
+  EXPECT_EQ(hover.dt_grv.norm(), 0.0);
+  EXPECT_EQ(sunk.branch, ProbeBranch::None);
+  EXPECT_EQ(hover.branch, ProbeBranch::None);
+  // Shapes kept; both at rest on their supports after the final settle (the contact sink, twice).
+  const auto& o0 = r.scene.objects[0];
+  const auto& o1 = r.scene.objects[1];
+  EXPECT_NEAR(o0.scale.z(), 0.2, simu::testing::kFp64Chain);
+  EXPECT_NEAR(o1.scale.z(), 0.3, simu::testing::kFp64Chain);
+  EXPECT_NEAR(o0.t.z() - 0.5 * o0.scale.z(), 0.425, 4e-3);
+  EXPECT_NEAR(o1.t.z() - 0.5 * o1.scale.z(), 0.0, 4e-3);
+}
+
 // A 50 x 40 cm frame 2 cm thick, 2 mm off the wall, hung by two pins: it stays on the wall
 // through the diagnostic and the final settle (small rotation about the pin line only).
 TEST(Probe, FrameOnTwoPinsStaysOnTheWall) {

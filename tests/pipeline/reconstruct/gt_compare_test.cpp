@@ -9,6 +9,7 @@
 
 #include "common/fs.h"
 #include "pipeline/physics/mesh.h"
+#include "pipeline/physics/metrics.h"
 #include "pipeline/reconstruct/gt_compare.h"
 #include "test_files.h"
 
@@ -101,6 +102,29 @@ TEST(GtCompare, ShiftedCopyScoresTheOffsetBoxesIou) {
   EXPECT_EQ(j["objects"][0]["branch"], "resample");
   EXPECT_NEAR(j["mean_after"].get<double>(), 39.0 / 63.0, 1e-9);
   EXPECT_NE(format_gt_table(rows).find("resample (replaced)"), std::string::npos);
+  simu::fs::remove_tree(dir);
+}
+
+// The GT box in the camera frame is the AABB of the turned cube: centre R^T (c - t), half-extent
+// |R^T| (side / 2) per axis (the AABB of a rotated box); the scene holding the GT scores box IoU 1.
+TEST(GtCompare, GroundTruthBoxesInTheCameraFrame) {
+  const std::string dir = simu::testing::temp_dir("gt_compare_boxes");
+  const Vec3 c(0.1, -0.2, 0.05);
+  const WorldGt gt = load_world_gt(write_gt(dir, c));
+  const auto boxes = gt_boxes_in_camera(gt);
+  ASSERT_EQ(boxes.count("obj00_box"), 1u);
+  const auto& b = boxes.at("obj00_box");
+  const Mat3 Rt = cam_R().transpose();
+  const Vec3 centre = Rt * (c - cam_t());
+  const Vec3 half = Rt.cwiseAbs() * Vec3::Constant(kSide / 2);
+  EXPECT_LT((b.min - (centre - half)).norm(), 1e-9);
+  EXPECT_LT((b.max - (centre + half)).norm(), 1e-9);
+  // The predicted object of a scene holding the GT (camera frame) has the same world AABB.
+  const auto s = camera_scene(dir, c, Mat3::Identity());
+  simu::physics::PlacedShape p;
+  p.canonical = simu::physics::read_mesh(dir + "/cube.obj");
+  p.scale = s.objects[0].scale, p.R = s.objects[0].R, p.t = s.objects[0].t;
+  EXPECT_NEAR(simu::physics::box_iou(simu::physics::world_aabb(p.world()), b), 1.0, 1e-9);
   simu::fs::remove_tree(dir);
 }
 
