@@ -13,6 +13,12 @@
 #   6. pack what comes back into $OUT (metrics, logs, the run's exports, evaluations; <= 15 MB parts).
 #   device run (carry .carry/prefix), the same command each call:
 #     DEADLINE_S=560 bash scripts/gpu_miniature.sh
+# Environment: CONFIG_DIR (configs/miniature), RESOLUTION (32), SCENES, BATCH, TRAIN_S, STEP_FACTOR,
+# VAE_STEPS, EVAL_COUNT (0: no evaluation on the device), STATE_DIR (runs/gpu_mini), and VAE_FROM: a
+# train_ss_vae output (its weights/ folder, carried) whose frozen encoder and decoder are used instead of
+# training a VAE (the CPU miniature's own, runs/ss_vae_cpu, for its GPU retraining):
+#   CONFIG_DIR=configs/miniature_cpu RESOLUTION=16 SCENES=25000 BATCH=128 VAE_FROM=runs/ss_vae_cpu \
+#     STATE_DIR=runs/gpu_mini16 EVAL_COUNT=0 DEADLINE_S=560 bash scripts/gpu_miniature.sh
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -28,7 +34,7 @@ TRAIN_S="${TRAIN_S:-950}"       # stage-1 training seconds over all calls (sizes
 BATCH="${BATCH:-256}"
 EVAL_COUNT="${EVAL_COUNT:-500}"
 RES="${RESOLUTION:-32}"
-STATE="$ROOT/runs/gpu_mini"
+STATE="$ROOT/${STATE_DIR:-runs/gpu_mini}"
 BUILD="$STATE/build"
 LOG="$OUTD/call.log"
 mkdir -p "$STATE"
@@ -48,6 +54,11 @@ nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$LOG"
 # 2. The VAE (GPU, 8 data workers) beside the stage-1 cache (the remaining cores).
 VAE="$STATE/ss_vae"
 vae_pid=""
+if [ -n "${VAE_FROM:-}" ] && [ ! -f "$VAE/weights/ss_encoder.safetensors" ]; then
+  [ -f "$VAE_FROM/weights/ss_encoder.safetensors" ] || { say "VAE_FROM=$VAE_FROM has no weights/ss_encoder.safetensors (carry it)"; exit 1; }
+  mkdir -p "$VAE" && cp -r "$VAE_FROM/weights" "$VAE/" && { [ -f "$VAE_FROM/eval.json" ] && cp "$VAE_FROM/eval.json" "$VAE/" || true; }
+  say "vae: from $VAE_FROM (not trained here)"
+fi
 if [ ! -f "$VAE/weights/ss_encoder.safetensors" ]; then
   "$BUILD/train_ss_vae" --config "$CFG/ss_vae.yaml" --set "train.steps=$VAE_STEPS" --set run.out_dir="$VAE" \
     --set run.progress=false --set run.log_every=100 --set eval.every="$VAE_STEPS" --overwrite >"$STATE/vae.log" 2>&1 &
@@ -94,9 +105,11 @@ if [ ! -d "$RUN/model" ]; then
 fi
 
 # 5. Ship and evaluate once the steps are done.
-if [ -d "$RUN/model" ] && [ ! -f "$STATE/eval_test/summary.json" ]; then
+if [ -d "$RUN/model" ] && [ ! -d "$STATE/miniature" ]; then
   python3 scripts/ship_miniature.py --vae "$VAE" --stage1 "$RUN" --out "$STATE/miniature" \
     --preprocess "$CFG/preprocess.yaml" >"$STATE/ship.log" 2>&1 || tail -5 "$STATE/ship.log"
+fi
+if [ -d "$RUN/model" ] && [ "$EVAL_COUNT" -gt 0 ] && [ ! -f "$STATE/eval_test/summary.json" ]; then
   for split in test heldout; do
     n=$EVAL_COUNT; [ "$split" = heldout ] && n=$(( EVAL_COUNT / 5 ))
     SIMU_DEFAULT_MODEL="$STATE/miniature" "$BUILD/eval_lift" --world "$split" --count "$n" --seed 0 --depth both \
