@@ -242,6 +242,11 @@ nlohmann::json report_json(const ProbeResult& r) {
     e["evaluation"] = settle_json(d.evaluation);
     if (r.input_evaluation.ran && i < r.input_evaluation.objects.size())
       e["evaluation_input"] = settle_json(r.input_evaluation.objects[i]);  // the input scene, settled the same way
+    // Where the evaluation settles left the object (the poses the headline metrics score).
+    if (r.evaluation.ran && i < r.evaluation.t.size())
+      e["evaluation_pose"] = {{"R", mat_j(r.evaluation.R[i])}, {"t", vec_j(r.evaluation.t[i])}};
+    if (r.input_evaluation.ran && i < r.input_evaluation.t.size())
+      e["evaluation_input_pose"] = {{"R", mat_j(r.input_evaluation.R[i])}, {"t", vec_j(r.input_evaluation.t[i])}};
     // What changed: OBB extents before / after, displacement of the OBB centre.
     e["change"] = {{"obb_extents_before", vec_j(dg.obb_pre.extents)},
                    {"obb_extents_after", vec_j(d.obb_final.extents)},

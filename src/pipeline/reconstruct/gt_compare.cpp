@@ -148,6 +148,27 @@ double world_iou(const PlacedShape& pred, const PlacedShape& gt, const physics::
       .iou;
 }
 
+physics::Scene settled_scene(const physics::Scene& scene, const json& probe_report, bool input) {
+  physics::Scene s = scene;
+  if (!probe_report.contains("objects") || !probe_report["objects"].is_array()) return s;
+  const char* key = input ? "evaluation_input_pose" : "evaluation_pose";
+  std::map<std::string, const json*> poses;
+  for (const auto& o : probe_report["objects"])
+    if (o.contains("id") && o.contains(key)) poses[o["id"].get<std::string>()] = &o[key];
+  for (auto& o : s.objects) {
+    const auto it = poses.find(o.id);
+    if (it == poses.end()) continue;
+    const std::string what = fmt::format("probe report object '{}' {}", o.id, key);
+    try {
+      o.R = mat3(it->second->at("R"), what + ".R");
+      o.t = vec3(it->second->at("t"), what + ".t");
+    } catch (const json::exception& e) {
+      fail("{}: malformed ({})", what, e.what());
+    }
+  }
+  return s;
+}
+
 std::map<std::string, ProbeOutcome> probe_outcomes(const json& report) {
   std::map<std::string, ProbeOutcome> out;
   if (!report.is_object() || !report.contains("objects") || !report["objects"].is_array()) return out;

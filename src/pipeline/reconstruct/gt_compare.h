@@ -69,6 +69,13 @@ struct ProbeOutcome {
 // By object id, from the probe's report.json content (objects without an id are left out).
 std::map<std::string, ProbeOutcome> probe_outcomes(const nlohmann::json& probe_report);
 
+// The scene with each object's pose replaced by where the probe's 5 s evaluation settle left it
+// (report.json per object: "evaluation_input_pose" for the input scene when input, else
+// "evaluation_pose" for the final scene), matched by id; objects without one keep their pose. Scored
+// by compare_with_gt, this is the voxel IoU of the scenes the headline metrics score (`reconstruct
+// --gt`: gt_iou_settled). Throws simu::Error naming the object when a pose is malformed.
+physics::Scene settled_scene(const physics::Scene& scene, const nlohmann::json& probe_report, bool input);
+
 // One GT object's row.
 struct GtIouRow {
   std::string id, family;

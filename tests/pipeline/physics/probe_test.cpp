@@ -129,6 +129,12 @@ TEST(Probe, WithoutGravityDiagnosticsOnlyPenetrationIsResolved) {
   EXPECT_NEAR(o1.scale.z(), 0.3, simu::testing::kFp64Chain);
   EXPECT_NEAR(o0.t.z() - 0.5 * o0.scale.z(), 0.425, 4e-3);
   EXPECT_NEAR(o1.t.z() - 0.5 * o1.scale.z(), 0.0, 4e-3);
+  // report.json: where the 5 s evaluation settles left the hovering cube, from the input (3 cm up) and
+  // from the final scene: resting on the floor, its centre at half its side (the sink, twice).
+  const auto j = report_json(r);
+  EXPECT_NEAR(j["objects"][1]["evaluation_input_pose"]["t"][2].get<double>(), 0.15, 4e-3);
+  EXPECT_NEAR(j["objects"][1]["evaluation_pose"]["t"][2].get<double>(), 0.15, 4e-3);
+  EXPECT_NEAR(j["objects"][1]["evaluation_pose"]["R"][2][2].get<double>(), 1.0, 1e-3);  // still upright
 }
 
 // A 50 x 40 cm frame 2 cm thick, 2 mm off the wall, hung by two pins: it stays on the wall

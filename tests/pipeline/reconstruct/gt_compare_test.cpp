@@ -128,6 +128,33 @@ TEST(GtCompare, GroundTruthBoxesInTheCameraFrame) {
   simu::fs::remove_tree(dir);
 }
 
+// settled_scene takes each object's evaluation-settle pose from the probe's report by id (input or
+// final), keeps objects without one, and names the object of a malformed pose; the settled GT scores 1.
+TEST(GtCompare, SettledSceneTakesTheEvaluationPoses) {
+  const std::string dir = simu::testing::temp_dir("gt_compare_settled");
+  const Vec3 c = Vec3::Constant(kH / 2);
+  const WorldGt gt = load_world_gt(write_gt(dir, c));
+  const auto truth = camera_scene(dir, c, Mat3::Identity());
+  const auto moved = camera_scene(dir, c + Vec3(0.3, 0, 0), Mat3::Identity());  // misses the GT entirely
+  auto pose_j = [](const simu::physics::SceneObject& o) {
+    const Mat3& R = o.R;
+    return json{{"R", {{R(0, 0), R(0, 1), R(0, 2)}, {R(1, 0), R(1, 1), R(1, 2)}, {R(2, 0), R(2, 1), R(2, 2)}}},
+                {"t", {o.t.x(), o.t.y(), o.t.z()}}};
+  };
+  // The final scene settled back onto the truth; the input scene has no settled pose (kept).
+  const json report = {{"objects", {{{"id", "obj00_box"}, {"evaluation_pose", pose_j(truth.objects[0])}}}}};
+  const auto after = settled_scene(moved, report, /*input=*/false);
+  const auto before = settled_scene(moved, report, /*input=*/true);
+  EXPECT_LT((after.objects[0].t - truth.objects[0].t).norm(), 1e-12);
+  EXPECT_LT((before.objects[0].t - moved.objects[0].t).norm(), 1e-12);
+  const auto rows = compare_with_gt(before, after, {}, gt);
+  EXPECT_NEAR(*rows[0].after, 1.0, 1e-12);
+  EXPECT_LT(*rows[0].before, 0.05);
+  const json bad = {{"objects", {{{"id", "obj00_box"}, {"evaluation_pose", {{"R", 1}, {"t", {0, 0}}}}}}}};
+  EXPECT_NE(simu::testing::error_of([&] { settled_scene(moved, bad, false); }).find("obj00_box"), std::string::npos);
+  simu::fs::remove_tree(dir);
+}
+
 // An object missing from the final scene: unset with a note, counted 0 in the mean; the probe's report
 // is read by id.
 TEST(GtCompare, MissingObjectAndProbeReport) {
