@@ -61,21 +61,8 @@ echo "== 4/6 a test-split scene of the shape world (no training saw it), one obj
 "$BUILD/world" scenes --split test --count 1 --seed "${DEMO_SEED:-3}" --targets 1 --visible 0.2-0.6 --out "$OUT/world" >/dev/null
 scene="$(ls -d "$OUT"/world/test_* | head -1)"
 # The sidecar: floor, wall and table from the label image (the table is lifted too, as a fixed base);
-# every object keeps its ground-truth id so that --gt can match it.
-"$PY" - "$scene" <<'PYEOF'
-import json, sys
-d = sys.argv[1]
-gt = json.load(open(f"{d}/gt.json"))
-lab = gt["labels"]
-objs = [{"label_value": lab["floor"], "id": "floor", "role": "floor"},
-        {"label_value": lab["wall"], "id": "wall", "role": "wall"},
-        {"label_value": lab["table"], "id": "table", "label": "table", "base": True}]
-objs += [{"label_value": o["label"], "id": o["id"], "label": o["family"]} for o in gt["objects"]]
-json.dump({"objects": objs}, open(f"{d}/objects.json", "w"), indent=1)
-for o in gt["objects"]:
-    print(f"   {o['id']:<22} {o['family']:<11} {o['size_m'] * 100:5.1f} cm  visible {100 * o['visible_fraction']:3.0f}%"
-          + ("  (occluded target)" if o["target"] else ""))
-PYEOF
+# every object keeps its ground-truth id so that --gt can match it (scripts/world_sidecar.py).
+"$PY" scripts/world_sidecar.py "$scene"
 
 echo "== 5/6 reconstruct with the shipped miniature: lift, align, floor / wall / table, probe (resampling best of 4 with its FM-DPO adapter), ground truth"
 echo "   model: $MODEL (a miniature trained on a synthetic world, NOT SAM 3D)"

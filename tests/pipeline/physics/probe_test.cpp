@@ -33,6 +33,16 @@ bool has_flag(const Diagnostics& d, const std::string& f) {
   return std::find(d.flags.begin(), d.flags.end(), f) != d.flags.end();
 }
 
+// Adds the 50 x 50 cm table slab (top face at z = 0.425) as a base; returns the unit cube's mesh path.
+std::string add_table(const std::string& dir, Scene& s) {
+  BaseBody table;
+  table.id = "table";
+  table.mesh_path = write_box(dir, "slab", Vec3(0.5, 0.5, 0.025));
+  table.t = Vec3(0, 0, 0.4);
+  s.bases.push_back(table);
+  return write_box(dir, "cube", Vec3::Constant(0.5));
+}
+
 }  // namespace
 
 // A 30 cm cube 3 cm above the floor falls 3 cm (v^2 = 2 g h independent: the first contact is where
@@ -70,12 +80,7 @@ TEST(Probe, HoveringBoxFallsThreeCentimetresAndIsStretched) {
 TEST(Probe, BoxSunkIntoTableIsPushedUp) {
   const auto dir = physics_temp_dir("sunk");
   Scene s = room();
-  BaseBody table;
-  table.id = "table";
-  table.mesh_path = write_box(dir, "slab", Vec3(0.5, 0.5, 0.025));
-  table.t = Vec3(0, 0, 0.4);
-  s.bases.push_back(table);
-  const auto mesh = write_box(dir, "cube", Vec3::Constant(0.5));
+  const auto mesh = add_table(dir, s);
   s.objects.push_back(cube("box", mesh, 0.2, Vec3(0, 0, 0.425 - 0.02 + 0.1)));
   const auto r = run_probe(s, quick(), dir + "/out");
   const auto& d = r.diagnostics[0];
@@ -101,12 +106,7 @@ TEST(Probe, BoxSunkIntoTableIsPushedUp) {
 TEST(Probe, WithoutGravityDiagnosticsOnlyPenetrationIsResolved) {
   const auto dir = physics_temp_dir("pen_only");
   Scene s = room();
-  BaseBody table;
-  table.id = "table";
-  table.mesh_path = write_box(dir, "slab", Vec3(0.5, 0.5, 0.025));
-  table.t = Vec3(0, 0, 0.4);
-  s.bases.push_back(table);
-  const auto mesh = write_box(dir, "cube", Vec3::Constant(0.5));
+  const auto mesh = add_table(dir, s);
   s.objects.push_back(cube("sunk", mesh, 0.2, Vec3(0, 0, 0.425 - 0.02 + 0.1)));
   s.objects.push_back(cube("hover", mesh, 0.3, Vec3(1.0, 0, 0.15 + 0.03)));
   ProbeConfig cfg = quick();
