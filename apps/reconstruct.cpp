@@ -115,7 +115,8 @@ int main(int argc, char** argv) {
       const sp::Scene after = probed ? sp::load_scene(probe_dir + "/scene.json") : sp::Scene{};
       nlohmann::json probe_report;
       if (probed) probe_report = nlohmann::json::parse(std::ifstream(probe_dir + "/report.json"));
-      const auto rows = simu::reconstruct::compare_with_gt(before, after, simu::reconstruct::probe_outcomes(probe_report), *gt);
+      const auto outcomes = simu::reconstruct::probe_outcomes(probe_report);
+      const auto rows = simu::reconstruct::compare_with_gt(before, after, outcomes, *gt);
       const std::string report_path = out_dir + "/reconstruct_report.json";
       nlohmann::json report = nlohmann::json::parse(std::ifstream(report_path));
       report["gt_iou"] = simu::reconstruct::gt_rows_json(rows, gt_path);
@@ -123,8 +124,7 @@ int main(int argc, char** argv) {
       if (probed) {
         const auto settled = simu::reconstruct::compare_with_gt(
             simu::reconstruct::settled_scene(before, probe_report, /*input=*/true),
-            simu::reconstruct::settled_scene(after, probe_report, /*input=*/false),
-            simu::reconstruct::probe_outcomes(probe_report), *gt);
+            simu::reconstruct::settled_scene(after, probe_report, /*input=*/false), outcomes, *gt);
         report["gt_iou_settled"] = simu::reconstruct::gt_rows_json(settled, gt_path);
         report["gt_iou_settled"]["frame"] = "as gt_iou, each scene after the probe's 5 s evaluation settle "
                                             "(report.json evaluation_input_pose / evaluation_pose)";
