@@ -2,13 +2,15 @@
 # The paper's ablation ("Quantitative Ablation") in miniature: the whole pipeline on held-out scenes of
 # the shape world, one row per stage added (docs/results.md, "The paper's ablation, in miniature").
 #
-#   bash scripts/ablation.sh [--scenes N] [--seed S] [--jobs J] [--out DIR] [--samples K]
+#   bash scripts/ablation.sh [--scenes N] [--seed S] [--jobs J] [--out DIR] [--samples K] [--table box|lift]
 #
 #   --scenes N   scenes (default 50), test split of the world: no training saw their seeds or objects
 #   --seed S     first scene seed tried (default 5000; seeds of other splits are skipped)
 #   --jobs J     reconstruct runs in parallel, one thread each (default: the number of cores)
 #   --out DIR    output folder (default runs/ablation); a finished run (DIR/<scene>/<run>/done) is kept
 #   --samples K  resampling candidates, best of K (default 4, as the demo)
+#   --table T    the scenes' table: box (default: fitted to its mask's depth, "fit": "box") or lift (by
+#                the miniature, which never saw a scene table; the first tables of docs/results.md)
 #
 # Scenes: `world scenes --split test --config configs/ablation/scenes.yaml` (4-8 objects drawn, at
 # least two occluded to 20-60% visible by another object; clean point maps). Each scene is
@@ -26,7 +28,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${BUILD_DIR:-$ROOT/build}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
-SCENES=50 SEED=5000 JOBS="$(nproc)" OUT="$ROOT/runs/ablation" SAMPLES=4
+SCENES=50 SEED=5000 JOBS="$(nproc)" OUT="$ROOT/runs/ablation" SAMPLES=4 TABLE=box
 while [ $# -gt 0 ]; do
   case "$1" in
     --scenes) SCENES="$2"; shift 2 ;;
@@ -34,7 +36,8 @@ while [ $# -gt 0 ]; do
     --jobs) JOBS="$2"; shift 2 ;;
     --out) OUT="$2"; shift 2 ;;
     --samples) SAMPLES="$2"; shift 2 ;;
-    -h|--help) sed -n '2,24p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --table) TABLE="$2"; shift 2 ;;
+    -h|--help) sed -n '2,26p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "ablation.sh: unknown argument '$1' (--help)" >&2; exit 2 ;;
   esac
 done
@@ -50,7 +53,7 @@ if [ ! -f "$OUT/scenes/done" ]; then
   rm -rf "$OUT/scenes"
   "$BUILD/world" scenes --split test --count "$SCENES" --seed "$SEED" --config configs/ablation/scenes.yaml \
     --out "$OUT/scenes" --threads "$JOBS"
-  for s in "$OUT"/scenes/test_*; do "$PY" scripts/world_sidecar.py "$s" --quiet; done
+  for s in "$OUT"/scenes/test_*; do "$PY" scripts/world_sidecar.py "$s" --table "$TABLE" --quiet; done
   touch "$OUT/scenes/done"
 fi
 

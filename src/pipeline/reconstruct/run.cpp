@@ -164,7 +164,9 @@ struct Run {
         continue;
       }
       for (size_t i = 0; i < w.mask.data.size(); ++i) object_pixels.data[i] |= w.mask.data[i];
-      if (!s.mesh.empty()) {
+      if (s.fit == "box") {
+        // Fitted after the first plane pass (fit_boxes), not lifted.
+      } else if (!s.mesh.empty()) {
         try {
           load_brought_mesh(w);
         } catch (const std::exception& e) {
@@ -307,11 +309,40 @@ struct Run {
     res.timings["planes"] = since(t0);
   }
 
-  // Step 4: tabletop refinement of table / desk objects.
+  // Step 4a: bases with "fit": "box", fitted to their mask's depth (support_box.h).
+  void fit_boxes() {
+    const auto t0 = Clock::now();
+    for (auto& w : objs) {
+      if (w.spec.fit != "box") continue;
+      TabletopInput ti;
+      ti.id = w.spec.id;
+      ti.points = &pm;
+      ti.mask = w.mask;
+      ti.K = K;
+      ti.up = res.planes.up;
+      if (res.planes.floor) ti.floor = res.planes.floor->plane;
+      const SupportBoxResult b = fit_support_box(ti, opt.tabletop, opt.support_box);
+      if (!b.ok) {
+        w.rep.skipped.push_back(fmt::format("fit box: base '{}': {} (left out of the scene)", w.spec.id, b.message));
+        continue;
+      }
+      w.mesh.V = b.canonical;
+      w.mesh.F = b.faces;
+      w.scale = b.scale;
+      w.R = b.R;
+      w.t = b.t;
+      w.ok = true;
+      w.rep.steps.push_back(fmt::format("fitted box ({:.2f} x {:.2f} x {:.2f} m, {} points)", b.extents.x(), b.extents.y(),
+                                        b.extents.z(), b.points));
+    }
+    res.timings["fit_boxes"] = since(t0);
+  }
+
+  // Step 4b: tabletop refinement of lifted table / desk objects.
   void tabletop() {
     const auto t0 = Clock::now();
     for (auto& w : objs) {
-      if (!w.ok || !opt.do_tabletop || !is_table_label(w.spec.label)) continue;
+      if (!w.ok || !opt.do_tabletop || !is_table_label(w.spec.label) || w.spec.fit == "box") continue;
       TabletopInput ti;
       ti.id = w.spec.id;
       ti.canonical = w.mesh.V;
@@ -565,6 +596,7 @@ ReconstructResult reconstruct_into(const ReconstructInputs& in, const Reconstruc
   run.refined_poses();
   run.align();
   run.first_planes();
+  run.fit_boxes();
   run.tabletop();
   run.reextract_planes();
   run.hanging_walls();

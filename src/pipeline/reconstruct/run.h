@@ -25,6 +25,7 @@
 #include "pipeline/physics/probe.h"
 #include "pipeline/reconstruct/align.h"
 #include "pipeline/reconstruct/planes.h"
+#include "pipeline/reconstruct/support_box.h"
 #include "pipeline/reconstruct/tabletop.h"
 
 #include <nlohmann/json.hpp>
@@ -45,6 +46,7 @@ struct ReconstructOptions {
   AlignConfig align;
   PlanesConfig planes;
   TabletopConfig tabletop;
+  SupportBoxConfig support_box;  // bases with "fit": "box"
   bool do_align = true, do_tabletop = true, do_floor_snap = true;
   resample::LiftOptions lift;
   physics::ProbeConfig probe;
@@ -69,6 +71,7 @@ struct ObjectSpec {
   std::string role = "object";  // object | floor | wall
   physics::PoseDof dof = physics::PoseDof::Free;
   bool base = false;
+  std::string fit = "lift";     // lift (the model, or a brought mesh) | box (bases: support_box.h)
   std::string mesh, pose, refined_pose;  // absolute paths or empty
   std::string up_axis;          // canonical up axis of a brought mesh ("+x" .. "-z"; "" unknown)
   std::string wall;             // hanging objects: id of the wall entry it hangs on ("" = found)

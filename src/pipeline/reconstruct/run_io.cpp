@@ -100,7 +100,8 @@ std::vector<ObjectSpec> read_sidecar(const std::string& path, std::vector<std::s
   const std::string base = sfs::path(path).parent_path().string();
   std::vector<ObjectSpec> out;
   static const std::vector<std::string> known = {"id",   "label_value", "mask", "label",        "role",    "dof", "pins",
-                                                 "base", "mesh",        "pose", "refined_pose", "up_axis", "wall"};
+                                                 "base", "mesh",        "pose", "refined_pose", "up_axis", "wall",
+                                                 "fit"};
   for (size_t i = 0; i < arr.size(); ++i) {
     const json& e = arr[i];
     const std::string what = fmt::format("{}: objects[{}]", path, i);
@@ -135,10 +136,15 @@ std::vector<ObjectSpec> read_sidecar(const std::string& path, std::vector<std::s
                                         physics::pin_count(s.dof)));
     }
     s.base = e.value("base", false);
+    s.fit = e.value("fit", std::string("lift"));
+    SIMU_CHECK(s.fit == "lift" || s.fit == "box", "{}: fit '{}' (lift, box)", what, s.fit);
+    SIMU_CHECK(s.fit == "lift" || (s.base && s.role == "object"), "{}: fit 'box' is for fixed bases: it needs \"base\": true",
+               what);
     s.mesh = resolve(e.value("mesh", std::string()), base);
     s.pose = resolve(e.value("pose", std::string()), base);
     s.refined_pose = resolve(e.value("refined_pose", std::string()), base);
     SIMU_CHECK(s.mesh.empty() == s.pose.empty(), "{}: mesh and pose come together (bring your own lift)", what);
+    SIMU_CHECK(s.fit == "lift" || s.mesh.empty(), "{}: fit 'box' and a brought mesh exclude each other", what);
     s.up_axis = e.value("up_axis", std::string());
     if (!s.up_axis.empty()) parse_axis(s.up_axis, what + ": up_axis");
     s.wall = e.value("wall", std::string());
