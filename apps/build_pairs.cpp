@@ -53,7 +53,7 @@ void write_report_json(const std::string& path, const std::string& manifest, con
                        const simu::resample::PairBuildReport& report) {
   nlohmann::json j = {{"manifest", manifest}, {"out", cfg.out}, {"records", report.records}, {"written", report.written},
                       {"skipped_existing", report.skipped_existing}, {"cache_size", report.cache_size},
-                      {"interrupted", report.interrupted}, {"seconds", report.seconds}, {"filter_gt", cfg.filter_gt},
+                      {"interrupted", report.interrupted}, {"seconds", report.seconds}, {"filter_gt", cfg.filter_gt}, {"preferred", cfg.preferred},
                       {"seed", cfg.seed}};
   j["issues"] = nlohmann::json::array();
   for (const auto& i : report.issues) j["issues"].push_back({{"line", i.line}, {"id", i.id}, {"message", i.message}});
@@ -95,6 +95,16 @@ int main(int argc, char** argv) {
   app.add_flag("--filter-gt", cfg.filter_gt,
                "keep a pair only when x+ is closer than x- to the record's gt_occupancy (decoded occupancy IoU; "
                "the paper's filter; world pairs writes gt_occupancy)");
+  std::string preferred = "sample";
+  app.add_option("--preferred", preferred,
+                 "x+ of every pair: sample (the paper: Stage 1 on the preferred input) or gt-latent (the encoder's "
+                 "posterior mean of the record's gt_occupancy: the ground truth's latent, labelled so in the cache's "
+                 "created_by; only x- is sampled)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"sample", "gt-latent"}));
+  app.add_option("--encoder-config", cfg.encoder_config,
+                 "sparse-structure encoder config (--preferred gt-latent; default: the shipped miniature's)");
+  app.add_option("--encoder-weights", cfg.encoder_weights, "encoder safetensors (--preferred gt-latent)");
   std::string report_path;
   app.add_option("--report", report_path, "also write the run's report as JSON: counts, skipped records, the filter's "
                                           "per-pair IoUs");
@@ -137,6 +147,13 @@ int main(int argc, char** argv) {
     simu::resample::apply_shipped_model(rc);
     SIMU_CHECK(!rc.embedder_config.empty(), "build_pairs: --embedder-config is required (the pairs' conditions)");
     cfg.preprocess = simu::resample::preprocess_choice(preprocess_preset, rc);
+    cfg.preferred = preferred == "gt-latent" ? "gt_latent" : "sample";
+    if (cfg.preferred == "gt_latent" && cfg.encoder_config.empty() && cfg.encoder_weights.empty() &&
+        rc.generator_weights.rfind(simu::resample::shipped_model_dir(), 0) == 0) {
+      // The shipped miniature's own encoder (the one its Stage 1 was trained on).
+      const auto m = simu::resample::ModelFolder::load(simu::resample::shipped_model_dir());
+      cfg.encoder_config = m.encoder_config, cfg.encoder_weights = m.encoder_weights;
+    }
     // Ctrl-C / SIGTERM: finish the current batch, commit, exit.
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);

@@ -60,8 +60,8 @@ ckpt="$(ls -d "$OUT"/train/checkpoints/step_* | sort -V | tail -1)"
 echo "== 4/6 a test-split scene of the shape world (no training saw it), one object 20-60% visible"
 "$BUILD/world" scenes --split test --count 1 --seed "${DEMO_SEED:-3}" --targets 1 --visible 0.2-0.6 --out "$OUT/world" >/dev/null
 scene="$(ls -d "$OUT"/world/test_* | head -1)"
-# The sidecar: floor, wall and table from the label image (the table is lifted too, as a fixed base);
-# every object keeps its ground-truth id so that --gt can match it (scripts/world_sidecar.py).
+# The sidecar: floor, wall and table from the label image (the table a fixed base, fitted as a box to
+# its depth); every object keeps its ground-truth id so that --gt can match it (scripts/world_sidecar.py).
 "$PY" scripts/world_sidecar.py "$scene"
 
 echo "== 5/6 reconstruct with the shipped miniature: lift, align, floor / wall / table, probe (resampling best of 4 with its FM-DPO adapter), ground truth"

@@ -24,7 +24,8 @@ def reconstruct(image: ArrayLike, masks: Masks, *, out: PathLike, pointmap: Opti
     """The ``reconstruct`` program's steps on arrays, with models loaded once (pass the same Stage1 each call).
 
     objects: the sidecar (a JSON file, or its entries as dicts: id / label_value, label, role, dof, pins,
-    base, mesh + pose, refined_pose; docs/reconstruct.md). Writes into ``out`` what the program writes
+    base, fit ("lift" or "box": a base fitted as a box to its depth), mesh + pose, refined_pose;
+    docs/reconstruct.md). Writes into ``out`` what the program writes
     (input/scene.json, reconstruct_report.json, probe/...). Returns {"scene": Scene (pre-simulation),
     "objects": per-object reports, "messages", "timings", "up", "probe_report", "out_dir"}.
     """

@@ -41,6 +41,12 @@ ModelFolder ModelFolder::load(const std::string& dir) {
   m.decoder_config = file("decoder_config");
   m.decoder_weights = file("decoder_weights");
   m.preprocess = file("preprocess");
+  SIMU_CHECK(f.contains("encoder_config") == f.contains("encoder_weights"),
+             "{}: files.encoder_config and files.encoder_weights come together", path);
+  if (f.contains("encoder_config")) {
+    m.encoder_config = file("encoder_config");
+    m.encoder_weights = file("encoder_weights");
+  }
   if (f.contains("resample_adapter")) {
     m.resample_adapter = file("resample_adapter");
     SIMU_CHECK(std::filesystem::exists(m.resample_adapter + "/adapter_config.json"),

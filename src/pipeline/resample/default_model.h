@@ -20,6 +20,9 @@ struct ModelFolder {
   std::string generator_config, generator_weights, embedder_config, embedder_weights, decoder_config,
       decoder_weights, preprocess;
   std::string resample_adapter;  // optional (files.resample_adapter): the FM-DPO adapter folder for resampling
+  // Optional (files.encoder_config / encoder_weights, together): the sparse-structure encoder whose
+  // latents the model was trained on (build_pairs --preferred gt-latent).
+  std::string encoder_config, encoder_weights;
   // Reads dir/manifest.json; every file must exist (simu::Error naming the manifest and the key).
   static ModelFolder load(const std::string& dir);
 };

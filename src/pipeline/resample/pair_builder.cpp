@@ -18,6 +18,7 @@
 #include "common/fs.h"
 #include "common/log.h"
 #include "data/depth_io.h"
+#include "models/ss_encoder.h"
 #include "data/safetensors.h"
 
 namespace simu::resample {
@@ -246,9 +247,10 @@ BatchTokens embed_batch(Resampler& resampler, const std::vector<PreparedPair>& b
 
 // Stage 1 on both sides of every pair of a batch: rows (pos_k, neg_k) share pair k's noise (seeded by
 // (seed, id)); one sampling call per condition length. Shape latents [T, C] float32 CPU per pair.
+// With sample_pos false only the x- rows are sampled (shape_pos stays undefined).
 void sample_both_sides(Resampler& resampler, const PairBuilderConfig& cfg, const std::vector<PreparedPair>& batch,
                        const BatchTokens& bt, std::vector<torch::Tensor>* shape_pos,
-                       std::vector<torch::Tensor>* shape_neg) {
+                       std::vector<torch::Tensor>* shape_neg, bool sample_pos = true) {
   auto& gen = resampler.generator();
   const auto options = resampler.sample_options();
   const auto device = resampler.device();
@@ -256,7 +258,7 @@ void sample_both_sides(Resampler& resampler, const PairBuilderConfig& cfg, const
   shape_neg->assign(batch.size(), torch::Tensor());
   std::map<int64_t, std::vector<std::pair<size_t, bool>>> groups;  // L -> (pair, is_pos)
   for (size_t k = 0; k < batch.size(); ++k) {
-    groups[bt.tokens[bt.pos[k]].size(0)].push_back({k, true});
+    if (sample_pos) groups[bt.tokens[bt.pos[k]].size(0)].push_back({k, true});
     groups[bt.tokens[bt.neg[k]].size(0)].push_back({k, false});
   }
   std::vector<models::Latents> noise(batch.size());
@@ -288,6 +290,41 @@ void add_pair_issue(PairBuildReport& report, const std::string& manifest_path, i
   report.issues.push_back({line, id, message});
 }
 
+// PairBuilderConfig::preferred == "gt_latent": x+ of every pair is the encoder's posterior mean of its
+// record's gt_occupancy, as tokens [k^3, C] (token t = (x k + y) k + z of the grid [C, k, k, k], the
+// order models::shape_tokens_to_grid reads). A record without a usable ground truth is an issue
+// (shape_pos stays undefined: append_batch skips it).
+void gt_latents(models::SparseStructureEncoderImpl& encoder, const std::vector<PreparedPair>& batch,
+                const std::vector<int64_t>& latent_shape, std::vector<torch::Tensor>& shape_pos,
+                const std::string& manifest_path, PairBuildReport& report) {
+  const int64_t R = encoder.config().downsample_factor() * int64_t(std::llround(std::cbrt(double(latent_shape[0]))));
+  std::vector<size_t> rows;
+  std::vector<torch::Tensor> occ;
+  for (size_t k = 0; k < batch.size(); ++k) {
+    const auto& r = batch[k].record;
+    shape_pos[k] = torch::Tensor();
+    try {
+      SIMU_CHECK(!r.gt_occupancy.empty(), "x+ from the ground truth needs 'gt_occupancy' (build_pairs --preferred gt-latent)");
+      auto gt = data::read_npy(r.gt_occupancy);
+      SIMU_CHECK(gt.dim() == 3 && gt.size(0) == R && gt.size(1) == R && gt.size(2) == R,
+                 "gt_occupancy {} is [{}], the encoder reads [{}, {}, {}]", r.gt_occupancy, fmt::join(gt.sizes(), ", "), R, R, R);
+      occ.push_back(gt.ne(0).to(torch::kFloat32).unsqueeze(0));  // [1, R, R, R]
+      rows.push_back(k);
+    } catch (const std::exception& e) {
+      add_pair_issue(report, manifest_path, r.line, r.id, e.what());
+    }
+  }
+  if (rows.empty()) return;
+  torch::NoGradGuard no_grad;
+  const auto device = encoder.input_layer->weight.device();
+  const auto mean = encoder.posterior(torch::stack(occ, 0).to(device)).first;  // [n, C, k, k, k]
+  const auto tokens = mean.reshape({mean.size(0), mean.size(1), -1}).permute({0, 2, 1}).to(torch::kCPU).contiguous();
+  SIMU_CHECK(tokens.size(1) == latent_shape[0] && tokens.size(2) == latent_shape[1],
+             "build_pairs: the encoder's latent is [{}, {}] tokens, the generator's shape latent [{}, {}]", tokens.size(1),
+             tokens.size(2), latent_shape[0], latent_shape[1]);
+  for (size_t j = 0; j < rows.size(); ++j) shape_pos[rows[j]] = tokens[int64_t(j)].clone();
+}
+
 // The paper's filter (PairBuilderConfig::filter_gt): both sides of every pair decoded in one call, each
 // occupancy (logits > 0) compared with the record's ground truth by IoU; a pair is kept when x+ is
 // the closer one. Dropped pairs (and records without a usable ground truth, reported as issues) get
@@ -298,6 +335,7 @@ void filter_batch(Resampler& resampler, const std::vector<PreparedPair>& batch, 
   std::vector<torch::Tensor> gts;
   for (size_t k = 0; k < batch.size(); ++k) {
     const auto& r = batch[k].record;
+    if (!shape_pos[k].defined()) continue;  // no x+ (already reported)
     try {
       SIMU_CHECK(!r.gt_occupancy.empty(), "the filter needs 'gt_occupancy' (build_pairs --filter-gt)");
       auto gt = data::read_npy(r.gt_occupancy);
@@ -405,10 +443,29 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
   const std::vector<int64_t> latent_shape{probe_noise.at("shape").size(1), probe_noise.at("shape").size(2)};
   const std::vector<int64_t> cond_shape{resampler.embedder()->num_tokens(), resampler.embedder()->embed_dims()};
 
+  // x+ from the ground truth: the frozen encoder, checked against the generator's shape latent.
+  SIMU_CHECK(cfg.preferred == "sample" || cfg.preferred == "gt_latent", "build_pairs: preferred '{}' (sample, gt_latent)",
+             cfg.preferred);
+  const bool from_gt = cfg.preferred == "gt_latent";
+  models::SparseStructureEncoder encoder{nullptr};
+  if (from_gt) {
+    SIMU_CHECK(!cfg.encoder_config.empty() && !cfg.encoder_weights.empty(),
+               "build_pairs: x+ from the ground truth needs the encoder (--encoder-config and --encoder-weights, a "
+               "train_ss_vae output's weights/ss_encoder.*)");
+    encoder = models::load_ss_encoder(cfg.encoder_config, cfg.encoder_weights, resampler.device());
+    encoder->eval();
+    const int64_t k = int64_t(std::llround(std::cbrt(double(latent_shape[0]))));
+    SIMU_CHECK(k * k * k == latent_shape[0] && encoder->config().latent_channels == latent_shape[1],
+               "build_pairs: encoder {} makes [{}, k^3] latents; the generator's shape latent is [{} tokens, {}]",
+               cfg.encoder_config, encoder->config().latent_channels, latent_shape[0], latent_shape[1]);
+  }
+
   const std::vector<PairManifestRecord> todo = pending_records(manifest.pairs, cfg, latent_shape, cond_shape, report);
   simu::log::info("build_pairs: {} records in {}, {} already in {}, {} to build, {} bad so far", report.records,
                   manifest_path, report.skipped_existing, cfg.out, todo.size(), report.issues.size());
-  CacheSink sink(cfg, latent_shape, cond_shape, report);
+  PairBuilderConfig sink_cfg = cfg;
+  if (from_gt) sink_cfg.created_by += " [x+ = ground-truth encoder latent: build_pairs --preferred gt-latent]";
+  CacheSink sink(sink_cfg, latent_shape, cond_shape, report);
   int64_t done = static_cast<int64_t>(report.issues.size()) + report.skipped_existing;
   const int64_t total = report.records;
   if (progress) progress(done, total);
@@ -435,7 +492,8 @@ PairBuildReport build_pairs(const std::string& manifest_path, const PairBuilderC
     const bool inputs_mode = cfg.cond_mode == "inputs";
     const BatchTokens bt = embed_batch(resampler, batch, !inputs_mode);
     std::vector<torch::Tensor> shape_pos, shape_neg;
-    sample_both_sides(resampler, cfg, batch, bt, &shape_pos, &shape_neg);
+    sample_both_sides(resampler, cfg, batch, bt, &shape_pos, &shape_neg, !from_gt);
+    if (from_gt) gt_latents(*encoder, batch, latent_shape, shape_pos, manifest_path, report);
     if (cfg.filter_gt) filter_batch(resampler, batch, shape_pos, shape_neg, manifest_path, report);
     append_batch(batch, bt, shape_pos, shape_neg, manifest_path, sink, report, inputs_mode);
     done += static_cast<int64_t>(batch.size());

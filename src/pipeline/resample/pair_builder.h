@@ -111,6 +111,13 @@ struct PairBuilderConfig {
   // pair unless x+ is closer to the ground truth than x- (occupancy IoU, logits > 0). Needs the
   // decoder (its weights) in the resampler; a record without gt_occupancy is an issue.
   bool filter_gt = false;
+  // Where x+ comes from. "sample" (the paper): Stage 1 on the preferred input. "gt_latent": the
+  // sparse-structure encoder's posterior mean of the record's gt_occupancy (tokens [k^3, C], the
+  // targets train_stage1 trains on), the ideal completion rather than the base model's own best; only x-
+  // is sampled. The cache's created_by says so ("x+ = ground-truth encoder latent"). Needs
+  // encoder_config / encoder_weights (a train_ss_vae output) and gt_occupancy in every record.
+  std::string preferred = "sample";
+  std::string encoder_config, encoder_weights;
 };
 
 // What the filter measured for one pair.

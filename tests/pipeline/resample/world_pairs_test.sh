@@ -4,7 +4,8 @@
 # the shipped miniature (CPU) samples both sides of each, decodes them and keeps a pair only when x+
 # is closer to the ground-truth occupancy than x-. Checked (tests/pipeline/resample/world_pairs_check.py):
 # the manifest's keys and files, both kinds, every pair judged, the kept ones exactly those with
-# IoU(x+) > IoU(x-), and the cache holding exactly the kept ids. Then 3 FM-DPO steps of the miniature's
+# IoU(x+) > IoU(x-), and the cache holding exactly the kept ids. The same manifest with x+ from the
+# ground truth (--preferred gt-latent): every x+ decodes back to its ground truth. Then 3 FM-DPO steps of the miniature's
 # recipe (configs/miniature_cpu/lora.yaml) on that cache: finite losses and a PEFT adapter of rank 8.
 #   bash tests/pipeline/resample/world_pairs_test.sh BUILD_DIR REPO_ROOT
 set -euo pipefail
@@ -22,6 +23,26 @@ cd "$REPO"
 "$BUILD/build_pairs" --manifest "$TMP/pairs/manifest.jsonl" --out "$TMP/pairs.h5" --device cpu --filter-gt \
   --report "$TMP/report.json" --batch 6
 "$PY" "$REPO/tests/pipeline/resample/world_pairs_check.py" "$TMP/pairs" "$TMP/report.json" "$TMP/pairs.h5"
+# x+ from the ground truth (--preferred gt-latent, the shipped miniature's encoder), same manifest: every
+# pair's x+ must decode back to its gt_occupancy as the VAE reconstructs (the filter's iou_pos >= 0.85:
+# the VAE's worst seen-family test reconstruction is 0.887, runs/ss_vae_cpu/eval.json; a latent in the
+# wrong token order or channel layout decodes to noise), and the cache must say where x+ came from.
+"$BUILD/build_pairs" --manifest "$TMP/pairs/manifest.jsonl" --out "$TMP/pairs_gt.h5" --device cpu --filter-gt \
+  --report "$TMP/report_gt.json" --batch 6 --preferred gt-latent
+"$PY" - "$TMP/report_gt.json" "$TMP/pairs_gt.h5" <<'PYEOF'
+import json, sys
+import h5py
+rep = json.load(open(sys.argv[1]))
+assert rep["preferred"] == "gt_latent", rep["preferred"]
+rows = rep["filtered"]
+assert len(rows) == 6 and not rep["issues"], (len(rows), rep["issues"])
+assert all(r["iou_pos"] >= 0.85 for r in rows), [round(r["iou_pos"], 3) for r in rows]
+with h5py.File(sys.argv[2], "r") as f:
+    by = f.attrs["created_by"]
+    by = by.decode() if isinstance(by, bytes) else str(by)
+    assert "x+ = ground-truth encoder latent" in by, by
+print("gt-latent pairs ok: x+ decodes to IoU", [round(r["iou_pos"], 3) for r in rows], "x-", [round(r["iou_neg"], 3) for r in rows])
+PYEOF
 [ -f "$TMP/pairs.h5" ] || { echo "the filter kept no pair: no FM-DPO steps to run"; exit 0; }
 "$BUILD/train_fmdpo" --config configs/miniature_cpu/lora.yaml --set "data.cache=$TMP/pairs.h5" --set train.steps=3 \
   --set optim.warmup_steps=1 --set data.global_batch=1 --set data.micro_batch=1 --set run.out_dir="$TMP/fmdpo" \
