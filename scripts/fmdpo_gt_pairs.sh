@@ -16,12 +16,13 @@ ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${BUILD_DIR:-$ROOT/build}"
 cd "$ROOT"
 stage="${1:-}"
-common=(--seed 0 --depth clean --amodal-crop --align simuscene --device cpu --no-pictures --overwrite)
+export BUILD
 occl=(--visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7)
 ev() {  # out_dir adapter world count [extra...]
   local out="$1" adapter="$2" world="$3" count="$4"
   shift 4
-  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world "$world" --count "$count" "${common[@]}" --compare-adapter "$adapter" \
+  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world "$world" --count "$count" --seed 0 --depth clean --amodal-crop \
+    --align simuscene --device cpu --no-pictures --overwrite --compare-adapter "$adapter" \
     --out "$out" "$@" >"$out.log" 2>&1
 }
 export -f ev
