@@ -7,16 +7,18 @@
 #   bash scripts/fmdpo_beta_val.sh train   # runs/fmdpo_v2_beta{5,50}_s{0,1} (~8 min)
 #   bash scripts/fmdpo_beta_val.sh val     # runs/eval_gt/val_v2b{5,50}_s{0,1}_{40_70,all} (~12 min)
 #   bash scripts/fmdpo_beta_val.sh table   # the rule's table from every val summary
+#   bash scripts/fmdpo_beta_val.sh test B  # the chosen beta's seeds 0 and 1 on test: 500 objects at 40-70%
+#                                          # and 500 of all (runs/eval_gt/test_v2b<B>_s*; ~20 min)
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${BUILD_DIR:-$ROOT/build}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 cd "$ROOT"
 export BUILD
-ev() {  # out_dir adapter [extra...]
-  local out="$1" adapter="$2"
-  shift 2
-  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world val --count 200 --seed 0 --depth clean --amodal-crop --align simuscene \
+ev() {  # out_dir adapter world count [extra...]
+  local out="$1" adapter="$2" world="$3" count="$4"
+  shift 4
+  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world "$world" --count "$count" --seed 0 --depth clean --amodal-crop --align simuscene \
     --device cpu --no-pictures --overwrite --compare-adapter "$adapter" --out "$out" "$@" >"$out.log" 2>&1
 }
 export -f ev
@@ -31,11 +33,11 @@ case "${1:-}" in
       --set run.progress=false --overwrite >runs/fmdpo_v2_beta$1_s$2.log 2>&1' "$BUILD" ;;
   val)
     mkdir -p runs/eval_gt
-    for b in 5 50; do
+    for b in 50 5; do
       for s in 0 1; do
         a="runs/fmdpo_v2_beta${b}_s$s/adapter"
-        echo "runs/eval_gt/val_v2b${b}_s${s}_40_70 $a --visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7"
-        echo "runs/eval_gt/val_v2b${b}_s${s}_all $a"
+        echo "runs/eval_gt/val_v2b${b}_s${s}_40_70 $a val 200 --visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7"
+        echo "runs/eval_gt/val_v2b${b}_s${s}_all $a val 200"
       done
     done | xargs -P 2 -L 1 bash -c 'ev "$@"' _ ;;
   table)
@@ -61,5 +63,13 @@ for name, pre in [("x+ sampled, beta 5", "val_v2b5"), ("x+ sampled, beta 20 (shi
           f"{'eligible' if mu >= -0.01 else 'loses > 0.01 unoccluded'} |")
 PYEOF
     ;;
-  *) sed -n '2,10p' "$0" | sed 's/^# \{0,1\}//' ;;
+  test)
+    b="${2:?beta}"
+    mkdir -p runs/eval_gt
+    for s in 0 1; do
+      a="runs/fmdpo_v2_beta${b}_s$s/adapter"
+      echo "runs/eval_gt/test_v2b${b}_s${s}_40_70 $a test 500 --visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7"
+      echo "runs/eval_gt/test_v2b${b}_s${s}_all $a test 500"
+    done | xargs -P 2 -L 1 bash -c 'ev "$@"' _ ;;
+  *) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//' ;;
 esac
