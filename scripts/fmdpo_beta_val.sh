@@ -2,7 +2,7 @@
 # Beta re-selected on the validation split for the shipped (retrained) base, by the two-goal rule of
 # docs/results.md: the largest 40-70% IoU gain (mean of seeds 0 and 1) whose unoccluded loss (mean of
 # seeds) stays within 0.01. Pairs data/pairs_cpu.h5 (the shipped adapter's), configs/miniature_cpu/lora.yaml
-# with objective.beta = B; beta 20's runs (runs/fmdpo_v2_beta20_s{0,1}, the shipped adapter and its
+# with objective.beta = B; beta 20's runs (runs/fmdpo_v2_beta20_s{0,1}, the adapter shipped until the re-selection, and its
 # replicate) and val evaluations (scripts/fmdpo_gt_pairs.sh val) are reused. On 2 CPU cores:
 #   bash scripts/fmdpo_beta_val.sh train   # runs/fmdpo_v2_beta{5,50}_s{0,1} (~8 min)
 #   bash scripts/fmdpo_beta_val.sh val     # runs/eval_gt/val_v2b{5,50}_s{0,1}_{40_70,all} (~12 min)
@@ -51,7 +51,7 @@ def d(path, bucket):
     return x["iou_mean"]["delta"], x["iou_mean"]["ci95"], x["shape_iou_mean"]["delta"] if "shape_iou_mean" in x else float("nan")
 print("| run | 40-70% seed 0 | seed 1 | mean | unoccluded seed 0 | seed 1 | mean | rule |")
 print("|---|---:|---:|---:|---:|---:|---:|---|")
-for name, pre in [("x+ sampled, beta 5", "val_v2b5"), ("x+ sampled, beta 20 (shipped)", "val_v2"), ("x+ sampled, beta 50", "val_v2b50"),
+for name, pre in [("x+ sampled, beta 5", "val_v2b5"), ("x+ sampled, beta 20 (shipped before)", "val_v2"), ("x+ sampled, beta 50", "val_v2b50"),
                   ("x+ ground-truth latent, beta 20", "val_gt")]:
     occ = [d(f"runs/eval_gt/{pre}_s{s}_40_70", "40-70%") for s in (0, 1)]
     unc = [d(f"runs/eval_gt/{pre}_s{s}_all", "unoccluded") for s in (0, 1)]

@@ -2,7 +2,7 @@
 # FM-DPO of the shipped miniature on pairs whose x+ is the ground truth's encoder latent (build_pairs
 # --preferred gt-latent), against the shipped adapter's pairs (x+ sampled from the edited image, the
 # paper's), everything else equal: the same manifest (data/pairs_cpu/, train split), filter, recipe
-# (configs/miniature_cpu/lora.yaml at beta 20, the shipped adapter's) and seeds 0 and 1. docs/results.md,
+# (configs/miniature_cpu/lora.yaml at beta 20, the adapter shipped when this ran) and seeds 0 and 1. docs/results.md,
 # "x+ from the ground truth". On 2 CPU cores:
 #   bash scripts/fmdpo_gt_pairs.sh pairs    # data/pairs_cpu_gt.h5 (~3 min)
 #   bash scripts/fmdpo_gt_pairs.sh train    # runs/fmdpo_gt_beta20_s{0,1} (~3 min, both seeds at once)
