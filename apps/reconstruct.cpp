@@ -47,6 +47,10 @@ int main(int argc, char** argv) {
   app.add_option("--out", out_dir, "output directory (refused when it exists, unless --overwrite)")->required();
   app.add_flag("--overwrite", overwrite, "replace an existing output directory");
   app.add_flag("--no-align", no_align, "skip the translation-scale alignment");
+  bool align_resampled = false;
+  app.add_flag("--align-resampled", align_resampled,
+               "not in the paper: fit each resampled candidate's scale to its object's depth (the alignment, from the "
+               "target OBB's centre) instead of keeping the model's own scale");
   app.add_flag("--no-tabletop", no_tabletop, "skip the tabletop refinement");
   app.add_flag("--no-probe", no_probe, "stop after writing the pre-simulation scene (input/scene.json)");
   app.add_flag("--no-model", no_model, "load no model: every object must bring its own mesh; the probe writes the resampling hand-off");
@@ -72,6 +76,7 @@ int main(int argc, char** argv) {
       else if (const char* home = std::getenv("HOME")) opt.probe.collision.cache_dir = std::string(home) + "/.cache/simuscene/hulls";
     }
     opt.do_align = !no_align;
+    opt.align_resampled = align_resampled;
     opt.do_tabletop = !no_tabletop;
     opt.run_probe = !no_probe;
     opt.overwrite = overwrite;

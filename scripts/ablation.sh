@@ -11,6 +11,8 @@
 #   --samples K  resampling candidates, best of K (default 4, as the demo)
 #   --table T    the scenes' table: box (default: fitted to its mask's depth, "fit": "box") or lift (by
 #                the miniature, which never saw a scene table; the first tables of docs/results.md)
+#   --align-resampled  rows 5 and 6 with reconstruct --align-resampled (not in the paper: resampled
+#                candidates get the alignment's scale instead of the model's own)
 #
 # Scenes: `world scenes --split test --config configs/ablation/scenes.yaml` (4-8 objects drawn, at
 # least two occluded to 20-60% visible by another object; clean point maps). Each scene is
@@ -28,7 +30,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 BUILD="${BUILD_DIR:-$ROOT/build}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
-SCENES=50 SEED=5000 JOBS="$(nproc)" OUT="$ROOT/runs/ablation" SAMPLES=4 TABLE=box
+SCENES=50 SEED=5000 JOBS="$(nproc)" OUT="$ROOT/runs/ablation" SAMPLES=4 TABLE=box ALIGN_RESAMPLED=
 while [ $# -gt 0 ]; do
   case "$1" in
     --scenes) SCENES="$2"; shift 2 ;;
@@ -37,7 +39,8 @@ while [ $# -gt 0 ]; do
     --out) OUT="$2"; shift 2 ;;
     --samples) SAMPLES="$2"; shift 2 ;;
     --table) TABLE="$2"; shift 2 ;;
-    -h|--help) sed -n '2,26p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    --align-resampled) ALIGN_RESAMPLED=--align-resampled; shift ;;
+    -h|--help) sed -n '2,28p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "ablation.sh: unknown argument '$1' (--help)" >&2; exit 2 ;;
   esac
 done
@@ -67,8 +70,8 @@ run_one() {  # scene_dir run_name
     no_align) extra=(--no-align) ;;
     pen) extra=(--set diagnostics.gravity=false) ;;
     stretch) extra=(--set decision.rho_threshold=1e9) ;;
-    base) extra=(--base-resampling) ;;
-    tuned) extra=() ;;
+    base) extra=(--base-resampling $ALIGN_RESAMPLED) ;;
+    tuned) extra=($ALIGN_RESAMPLED) ;;
   esac
   mkdir -p "$(dirname "$out")"
   local rc=0
@@ -81,7 +84,7 @@ run_one() {  # scene_dir run_name
   touch "$out/done"
 }
 export -f run_one
-export OUT BUILD SAMPLES
+export OUT BUILD SAMPLES ALIGN_RESAMPLED
 jobs_list="$OUT/jobs.txt"
 : >"$jobs_list"
 for s in "$OUT"/scenes/test_*; do

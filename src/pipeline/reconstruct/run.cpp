@@ -514,6 +514,38 @@ struct Run {
     res.scene = physics::load_scene(scene_path);
   }
 
+  // ReconstructOptions::align_resampled: the resampler's candidates get the alignment's scale.
+  physics::ResampleFn align_resampled(physics::ResampleFn inner) {
+    return [this, inner](const std::vector<physics::ProbeResampleRequest>& requests) {
+      auto out = inner(requests);
+      for (size_t k = 0; k < requests.size() && k < out.size(); ++k) {
+        const Work* w = nullptr;
+        for (const auto& o : objs)
+          if (o.spec.id == requests[k].object_id) w = &o;
+        if (!w || !out[k].ok || w->observed.rows() == 0) continue;
+        auto fit = [&](const physics::Mesh& mesh, const Mat3& R, Vec3& scale) {
+          AlignInput ai;
+          ai.id = w->spec.id;
+          ai.canonical = mesh.V;
+          ai.faces = mesh.F;
+          ai.shape = scale / scale.maxCoeff();
+          ai.s_init = scale.maxCoeff();
+          ai.R_init = R;
+          ai.t_init = requests[k].target_obb.center;
+          ai.observed = w->observed;
+          ai.mask = w->mask;
+          ai.K = K;
+          ai.depth = &pm;
+          const AlignResult ar = align_translation_scale(ai, opt.align);
+          if (ar.ok) scale = ar.s * ai.shape;
+        };
+        for (auto& c : out[k].candidates) fit(c.mesh, c.R, c.scale);
+        fit(out[k].mesh, out[k].R, out[k].scale);
+      }
+      return out;
+    };
+  }
+
   // Step 6b: the probe (in-process resampling when a model is loaded).
   void probe() {
     if (!opt.run_probe) return;
@@ -524,6 +556,7 @@ struct Run {
       ro.seed = opt.lift.seed;
       ro.preprocess = opt.lift.preprocess;
       fn = resample::make_probe_resample_fn(*resampler, res.scene, ro);
+      if (opt.align_resampled) fn = align_resampled(fn);
     }
     res.probe = physics::run_probe(res.scene, opt.probe, (sfs::path(out_dir) / "probe").string(), fn);
     res.timings["probe"] = since(t0);

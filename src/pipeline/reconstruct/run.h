@@ -48,6 +48,10 @@ struct ReconstructOptions {
   TabletopConfig tabletop;
   SupportBoxConfig support_box;  // bases with "fit": "box"
   bool do_align = true, do_tabletop = true, do_floor_snap = true;
+  // Not in the paper (which keeps SAM 3D's scale for a resampled shape): each resampled candidate's
+  // scale fitted to its object's depth by step 2's alignment, started at the target OBB's centre; the
+  // probe still places it at that centre. For models whose own scale is poor (the miniature).
+  bool align_resampled = false;
   resample::LiftOptions lift;
   physics::ProbeConfig probe;
   bool run_probe = true;

@@ -17,6 +17,7 @@
 
 #include "common/fs.h"
 #include "data/safetensors.h"
+#include "pipeline/physics/mesh.h"
 #include "pipeline/reconstruct/planes.h"
 #include "pipeline/reconstruct/synthetic_camera.h"
 #include "test_util.h"
@@ -125,5 +126,56 @@ TEST(ReconstructCli, EndToEndSmallSyntheticPhoto) {
     EXPECT_GE(m->nbody, int(n_expected) + 1);
     mj_deleteModel(m);
   }
+}
+#endif
+
+#if defined(SIMU_HAVE_OPENCV) && defined(SIMU_HAVE_MUJOCO)
+// --align-resampled (not in the paper): every free object brings its ground-truth mesh (with the synthetic
+// photo's pose errors) and is then resampled (rho threshold 1e-9) by the small random-weight port, two
+// candidates each, twice: with and without the option. The fixture decoder's shapes are cubes whose
+// scale comes from random pose weights; at that scale they penetrate their neighbours, so the probe's
+// best-of-N check finds no stable candidate and keeps the input shape ("resample_failed"). Aligned to the
+// object's depth, a cube is the object's size, and the probe takes it. Checked: more objects are replaced
+// with the option than without, at least one.
+TEST(ReconstructCli, AlignResampledCandidatesFitTheDepth) {
+  const auto dir = simu::testing::temp_dir("reconstruct_align_resampled");
+  CameraSceneConfig cfg;
+  cfg.generator.width = 200;
+  cfg.generator.height = 150;
+  cfg.generator.fx = 175;
+  cfg.generator.min_objects = cfg.generator.max_objects = 3;
+  cfg.generator.max_hanging = 0;
+  const CameraScene s = generate_camera_scene(cfg, 11, "ar");
+  const std::string in = dir + "/photo";
+  write_camera_scene(s, in);  // every object brings its ground-truth mesh
+  const auto fix = [](const std::string& n) { return simu::testing::fixture(n); };
+  const std::string base_cmd = simu::testing::build_dir() + "/reconstruct --device cpu --seed 3 --random-weights" +
+                               " --generator-config " + fix("ss_generator_small.json") + " --generator-weights " +
+                               fix("ss_generator_small.safetensors") + " --decoder-config " + fix("ss_decoder_small.json") +
+                               " --decoder-weights " + full_decoder(dir) + " --embedder-config " +
+                               simu::testing::source_dir() + "/configs/demo_embedder_small.json --steps 2 --samples 2" +
+                               " --image " + in + "/image.png --masks " + in + "/labels.png --objects " + in +
+                               "/objects.json --depth " + in + "/depth.png --intrinsics " + in + "/K.json --no-coacd" +
+                               " --set decision.rho_threshold=1e-9 --set final.settle_time=0.2 --set evaluation.settle_time=0.2";
+  // The objects the probe resampled and replaced (branch resample, no resample_failed flag).
+  auto replaced = [](const std::string& out) {
+    const json rep = json::parse(simu::fs::read_file(out + "/probe/report.json"));
+    int n = 0;
+    for (const auto& d : rep.at("objects")) {
+      if (d.at("branch") != "resample") continue;
+      bool failed = false;
+      for (const auto& f : d.at("flags")) failed |= f.get<std::string>() == "resample_failed";
+      n += !failed;
+    }
+    return n;
+  };
+  const auto [rc0, log0] = run(base_cmd + " --out " + dir + "/plain", dir + "/plain.log");
+  ASSERT_LE(rc0, 1) << log0;
+  const auto [rc1, log1] = run(base_cmd + " --align-resampled --out " + dir + "/aligned", dir + "/aligned.log");
+  ASSERT_LE(rc1, 1) << log1;
+  const int n0 = replaced(dir + "/plain"), n1 = replaced(dir + "/aligned");
+  EXPECT_GE(n1, 1);
+  EXPECT_GT(n1, n0);
+  std::printf("objects replaced by a resampled candidate: plain %d, aligned %d\n", n0, n1);
 }
 #endif
