@@ -58,9 +58,8 @@ std::vector<Vec2> hull2d(std::vector<Vec2> p) {
   return h;
 }
 
-// Frame whose third axis is n and whose first axis is the edge direction of the minimum-area
-// rectangle enclosing the points projected on the plane orthogonal to n (rotating calipers over
-// the hull edges). Returns false for a degenerate projection.
+}  // namespace
+
 bool caliper_frame(const Points& P, const Vec3& n, Mat3* out) {
   Vec3 e1 = n.unitOrthogonal();
   Vec3 e2 = n.cross(e1);
@@ -94,6 +93,8 @@ bool caliper_frame(const Points& P, const Vec3& n, Mat3* out) {
   *out = right_handed(F);
   return true;
 }
+
+namespace {
 
 // Orthonormalises a hint frame (closest rotation via SVD); false when it is degenerate.
 bool orthonormal(const Mat3& H, Mat3* out) {

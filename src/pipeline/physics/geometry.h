@@ -61,6 +61,11 @@ struct ObbOptions {
 // simu::Error on an empty or non-finite point set.
 Obb compute_obb(const Points& points, const std::vector<Mat3>& hints = {}, const ObbOptions& options = {});
 
+// Frame whose third axis is n and whose first axis is the edge direction of the minimum-area
+// rectangle enclosing the points projected on the plane orthogonal to n (rotating calipers over the
+// edges of their 2-D convex hull). Returns false for a degenerate projection (fewer than 3 hull points).
+bool caliper_frame(const Points& P, const Vec3& n, Mat3* out);
+
 // OBB of an object in the pre-simulation scene, eq. (obb_pre): OBB(R (s .* M) + t). The object's
 // own rotation, the identity and a gravity-aligned frame are the hints (in this order).
 Obb object_obb(const Mesh& canonical, const Vec3& scale, const Mat3& R, const Vec3& t, const Vec3& gravity);

@@ -1,6 +1,7 @@
 #include "pipeline/reconstruct/support_box.h"
 
 #include "common/error.h"
+#include "pipeline/physics/geometry.h"
 
 #include <fmt/format.h>
 
@@ -12,27 +13,6 @@ namespace simu::reconstruct {
 namespace {
 using V2 = Eigen::Vector2d;
 
-double cross(const V2& o, const V2& a, const V2& b) { return (a - o).x() * (b - o).y() - (a - o).y() * (b - o).x(); }
-
-// Andrew's monotone chain: the convex hull, counter-clockwise, without collinear points.
-std::vector<V2> convex_hull(std::vector<V2> p) {
-  std::sort(p.begin(), p.end(), [](const V2& a, const V2& b) { return a.x() < b.x() || (a.x() == b.x() && a.y() < b.y()); });
-  p.erase(std::unique(p.begin(), p.end()), p.end());
-  if (p.size() < 3) return p;
-  std::vector<V2> h(2 * p.size());
-  size_t k = 0;
-  for (size_t i = 0; i < p.size(); ++i) {
-    while (k >= 2 && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
-    h[k++] = p[i];
-  }
-  for (size_t i = p.size() - 1, lo = k + 1; i-- > 0;) {
-    while (k >= lo && cross(h[k - 2], h[k - 1], p[i]) <= 0) --k;
-    h[k++] = p[i];
-  }
-  h.resize(k - 1);
-  return h;
-}
-
 // The q-quantile of v (sorted copy, nearest rank).
 double quantile(std::vector<double> v, double q) {
   std::sort(v.begin(), v.end());
@@ -42,22 +22,13 @@ double quantile(std::vector<double> v, double q) {
 }  // namespace
 
 double min_area_rectangle_angle(const std::vector<V2>& pts) {
-  const std::vector<V2> h = convex_hull(pts);
-  if (h.size() < 3) return h.size() == 2 ? std::atan2((h[1] - h[0]).y(), (h[1] - h[0]).x()) : 0.0;
-  double best_area = 1e300, best_angle = 0;
-  for (size_t i = 0; i < h.size(); ++i) {
-    const V2 e = h[(i + 1) % h.size()] - h[i];
-    if (e.norm() < 1e-12) continue;
-    const V2 a = e.normalized(), b(-a.y(), a.x());
-    double a0 = 1e300, a1 = -1e300, b0 = 1e300, b1 = -1e300;
-    for (const V2& p : h) {
-      a0 = std::min(a0, a.dot(p)), a1 = std::max(a1, a.dot(p));
-      b0 = std::min(b0, b.dot(p)), b1 = std::max(b1, b.dot(p));
-    }
-    const double area = (a1 - a0) * (b1 - b0);
-    if (area < best_area) best_area = area, best_angle = std::atan2(a.y(), a.x());
-  }
-  return best_angle;
+  // The physics library's rotating calipers (the OBB's), on the points in the z = 0 plane.
+  Points P(Eigen::Index(pts.size()), 3);
+  for (size_t i = 0; i < pts.size(); ++i) P.row(Eigen::Index(i)) << pts[i].x(), pts[i].y(), 0.0;
+  Mat3 F;
+  if (!physics::caliper_frame(P, Vec3::UnitZ(), &F))
+    return pts.size() >= 2 ? std::atan2((pts.back() - pts.front()).y(), (pts.back() - pts.front()).x()) : 0.0;
+  return std::atan2(F(1, 0), F(0, 0));
 }
 
 SupportBoxResult fit_support_box(const TabletopInput& in, const TabletopConfig& tabletop, const SupportBoxConfig& config) {

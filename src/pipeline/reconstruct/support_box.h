@@ -41,7 +41,7 @@ struct SupportBoxResult {
 };
 
 // The minimum-area enclosing rectangle of 2-D points: the angle (radians) of one side; the other is
-// perpendicular. Rotating calipers over the convex hull's edges.
+// perpendicular (physics::caliper_frame, the OBB's rotating calipers).
 double min_area_rectangle_angle(const std::vector<Eigen::Vector2d>& pts);
 
 // The fit above. in.canonical / faces / pose are not used (the box replaces the lift); in.up, mask,
