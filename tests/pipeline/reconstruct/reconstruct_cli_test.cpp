@@ -46,6 +46,17 @@ std::string full_decoder(const std::string& dir) {
   simu::data::save_safetensors(path, w);
   return path;
 }
+// The reconstruct command on a written synthetic photo in `in` with the small fixture models (random
+// weights, the full-cube decoder written into dir), CPU, 2 sampling steps, one convex hull per mesh.
+std::string fixture_command(const std::string& dir, const std::string& in) {
+  const auto fix = [](const std::string& n) { return simu::testing::fixture(n); };
+  return simu::testing::build_dir() + "/reconstruct --device cpu --seed 3 --random-weights" + " --generator-config " +
+         fix("ss_generator_small.json") + " --generator-weights " + fix("ss_generator_small.safetensors") +
+         " --decoder-config " + fix("ss_decoder_small.json") + " --decoder-weights " + full_decoder(dir) +
+         " --embedder-config " + simu::testing::source_dir() + "/configs/demo_embedder_small.json --steps 2" +
+         " --image " + in + "/image.png --masks " + in + "/labels.png --objects " + in + "/objects.json --depth " + in +
+         "/depth.png --intrinsics " + in + "/K.json --no-coacd --set final.settle_time=0.2 --set evaluation.settle_time=0.2";
+}
 }  // namespace
 
 #if defined(SIMU_HAVE_OPENCV) && defined(SIMU_HAVE_MUJOCO)
@@ -79,16 +90,8 @@ TEST(ReconstructCli, EndToEndSmallSyntheticPhoto) {
   ASSERT_FALSE(broken.empty());
   side["objects"].push_back({{"label_value", 99}, {"id", "ghost"}, {"label", "cup"}});
   std::ofstream(in + "/objects.json") << side.dump(2);
-  const auto fix = [](const std::string& n) { return simu::testing::fixture(n); };
   const std::string out = dir + "/out";
-  const std::string cmd = simu::testing::build_dir() + "/reconstruct --device cpu --seed 3 --random-weights" +
-                          " --generator-config " + fix("ss_generator_small.json") + " --generator-weights " +
-                          fix("ss_generator_small.safetensors") + " --decoder-config " + fix("ss_decoder_small.json") +
-                          " --decoder-weights " + full_decoder(dir) + " --embedder-config " +
-                          simu::testing::source_dir() + "/configs/demo_embedder_small.json --steps 2" +
-                          " --image " + in + "/image.png --masks " + in + "/labels.png --objects " + in +
-                          "/objects.json --depth " + in + "/depth.png --intrinsics " + in + "/K.json --out " + out +
-                          " --no-coacd --set final.settle_time=0.2 --set evaluation.settle_time=0.2";
+  const std::string cmd = fixture_command(dir, in) + " --out " + out;
   const auto [rc, log] = run(cmd, dir + "/reconstruct.log");
   // Exit 1: objects were skipped (the others reconstructed).
   ASSERT_EQ(rc, 1) << log;
@@ -148,15 +151,7 @@ TEST(ReconstructCli, AlignResampledCandidatesFitTheDepth) {
   const CameraScene s = generate_camera_scene(cfg, 11, "ar");
   const std::string in = dir + "/photo";
   write_camera_scene(s, in);  // every object brings its ground-truth mesh
-  const auto fix = [](const std::string& n) { return simu::testing::fixture(n); };
-  const std::string base_cmd = simu::testing::build_dir() + "/reconstruct --device cpu --seed 3 --random-weights" +
-                               " --generator-config " + fix("ss_generator_small.json") + " --generator-weights " +
-                               fix("ss_generator_small.safetensors") + " --decoder-config " + fix("ss_decoder_small.json") +
-                               " --decoder-weights " + full_decoder(dir) + " --embedder-config " +
-                               simu::testing::source_dir() + "/configs/demo_embedder_small.json --steps 2 --samples 2" +
-                               " --image " + in + "/image.png --masks " + in + "/labels.png --objects " + in +
-                               "/objects.json --depth " + in + "/depth.png --intrinsics " + in + "/K.json --no-coacd" +
-                               " --set decision.rho_threshold=1e-9 --set final.settle_time=0.2 --set evaluation.settle_time=0.2";
+  const std::string base_cmd = fixture_command(dir, in) + " --samples 2 --set decision.rho_threshold=1e-9";
   // The objects the probe resampled and replaced (branch resample, no resample_failed flag).
   auto replaced = [](const std::string& out) {
     const json rep = json::parse(simu::fs::read_file(out + "/probe/report.json"));
