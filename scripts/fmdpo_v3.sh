@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The FM-DPO adapter of the shipped base retrained on 2026-11-29 evening (docs/results.md, "The adapter of
-# the third base"; the rule in runs/gpu_pair_back/RULE.md, written before the pairs were built): pairs
+# the third base"; the rule in docs/rules/stage1_v3.md, written before any adapter was trained): pairs
 # rebuilt with this base from the same rendered candidates, beta 50 carried over from the previous
 # base's validation choice, seeds 0 and 1, the CPU recipe of configs/miniature_cpu/lora.yaml. On 2 CPU cores:
 #   bash scripts/fmdpo_v3.sh pairs          # data/pairs_v3.h5 (+ .report.json; ~5 min)
