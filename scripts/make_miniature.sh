@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
-# Rebuilds the shipped CPU miniature (weights/miniature_cpu) from nothing: the commands and seeds that
-# made it, in order (docs/miniature.md). Needs a build (./run demo or cmake) in $BUILD_DIR (default build/).
-#   bash scripts/make_miniature.sh                 # on this machine's CPU (~10 + 7 + 60 min on 2 cores)
-#   DEVICE=cuda bash scripts/make_miniature.sh     # the VAE and Stage 1 on a GPU (bf16, batch 256)
-# Environment: VAE_STEPS (1500), SCENES (25000 train scenes), STAGE1_STEPS (4000 on CPU), BATCH (64 on
-# CPU), THREADS (2), EVAL_COUNT (200 test objects), OUT_RUNS (runs/).
+# Builds the miniature (weights/miniature_cpu layout) from nothing in one process: the commands and seeds,
+# in order (docs/miniature.md). Needs a build (./run demo or cmake) in $BUILD_DIR (default build/).
+#   bash scripts/make_miniature.sh                 # the first version, on this machine's CPU (~10 + 7 + 60 min
+#                                                  # on 2 cores): 25,000 cache scenes, 4,000 steps of 64
+#   DEVICE=cuda bash scripts/make_miniature.sh     # on a GPU (bf16) with the shipped Stage 1's recipe: 40,000
+#                                                  # cache scenes, 5,600 steps of 256 (the shipped weights were
+#                                                  # made in resumed device calls: scripts/make_miniature_gpu.sh)
+# Environment: VAE_STEPS (1500), SCENES, STAGE1_STEPS, BATCH (as above per device), THREADS (2),
+# EVAL_COUNT (200 test objects), OUT_RUNS (runs/).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -12,15 +15,15 @@ BUILD="${BUILD_DIR:-$ROOT/build}"
 DEVICE="${DEVICE:-cpu}"
 RUNS="${OUT_RUNS:-$ROOT/runs}"
 THREADS="${THREADS:-2}"
-if [ "$DEVICE" = cpu ]; then PREC=fp32; BATCH="${BATCH:-64}"; STAGE1_STEPS="${STAGE1_STEPS:-4000}"
-else PREC=bf16; BATCH="${BATCH:-256}"; STAGE1_STEPS="${STAGE1_STEPS:-4000}"; fi
+if [ "$DEVICE" = cpu ]; then PREC=fp32; BATCH="${BATCH:-64}"; STAGE1_STEPS="${STAGE1_STEPS:-4000}"; SCENES="${SCENES:-25000}"
+else PREC=bf16; BATCH="${BATCH:-256}"; STAGE1_STEPS="${STAGE1_STEPS:-5600}"; SCENES="${SCENES:-40000}"; fi
 set -x
 # 1. The sparse-structure VAE on fresh world shapes of the train split (seed 0); eval.json has the test IoU.
 "$BUILD/train_ss_vae" --config configs/miniature_cpu/ss_vae.yaml --set "train.steps=${VAE_STEPS:-1500}" \
   --set train.device="$DEVICE" --set train.precision="$PREC" --set eval.every=500 --set run.out_dir="$RUNS/ss_vae_cpu"
 # 2. The stage-1 cache: world scenes of the train / val splits (scene seeds from 0), corrupted point maps.
 mkdir -p data
-"$BUILD/build_stage1_data" --out data/stage1_cpu.h5 --train "${SCENES:-25000}" --val 500 --test 0 \
+"$BUILD/build_stage1_data" --out data/stage1_cpu.h5 --train "$SCENES" --val 500 --test 0 \
   --preprocess configs/miniature_cpu/preprocess.yaml --resolution 16 --threads "$THREADS"
 # 3. Stage-1 pretraining with the frozen encoder's latents as targets (train.seed 0, data.seed 0).
 "$BUILD/train_stage1" --config configs/miniature_cpu/train_stage1.yaml --set "train.steps=$STAGE1_STEPS" \
