@@ -15,13 +15,7 @@ BUILD="${BUILD_DIR:-$ROOT/build}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 cd "$ROOT"
 export BUILD
-ev() {  # out_dir adapter world count [extra...]
-  local out="$1" adapter="$2" world="$3" count="$4"
-  shift 4
-  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world "$world" --count "$count" --seed 0 --depth clean --amodal-crop --align simuscene \
-    --device cpu --no-pictures --overwrite --compare-adapter "$adapter" --out "$out" "$@" >"$out.log" 2>&1
-}
-export -f ev
+source "$ROOT/scripts/eval_adapter_lib.sh"   # ev OUT ADAPTER WORLD COUNT [args]; OCC
 case "${1:-}" in
   train)
     for b in 5 50; do

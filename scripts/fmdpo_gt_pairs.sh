@@ -18,14 +18,7 @@ cd "$ROOT"
 stage="${1:-}"
 export BUILD
 occl=(--visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7)
-ev() {  # out_dir adapter world count [extra...]
-  local out="$1" adapter="$2" world="$3" count="$4"
-  shift 4
-  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world "$world" --count "$count" --seed 0 --depth clean --amodal-crop \
-    --align simuscene --device cpu --no-pictures --overwrite --compare-adapter "$adapter" \
-    --out "$out" "$@" >"$out.log" 2>&1
-}
-export -f ev
+source "$ROOT/scripts/eval_adapter_lib.sh"   # ev OUT ADAPTER WORLD COUNT [args]; OCC
 case "$stage" in
   pairs)
     OMP_NUM_THREADS=2 "$BUILD/build_pairs" --manifest data/pairs_cpu/manifest.jsonl --out data/pairs_cpu_gt.h5 --overwrite \

@@ -16,14 +16,7 @@ PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 cd "$ROOT"
 export BUILD
 B="${2:-50}"
-ev() {  # out_dir adapter world count [extra...]
-  local out="$1" adapter="$2" world="$3" count="$4"
-  shift 4
-  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world "$world" --count "$count" --seed 0 --depth clean --amodal-crop --align simuscene \
-    --device cpu --no-pictures --overwrite --compare-adapter "$adapter" --out "$out" "$@" >"$out.log" 2>&1
-}
-export -f ev
-OCC="--visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7"
+source "$ROOT/scripts/eval_adapter_lib.sh"   # ev OUT ADAPTER WORLD COUNT [args]; OCC
 mkdir -p runs/eval_v3
 case "${1:-}" in
   pairs)
