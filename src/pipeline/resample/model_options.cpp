@@ -37,6 +37,12 @@ void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& f
       ->capture_default_str()
       ->group(group);
   app.add_option("--steps", c.steps, "Stage-1 sampling steps (released inference: 25)")->capture_default_str()->group(group);
+  app.add_option("--cfg-strength", c.cfg_strength,
+                 "classifier-free guidance strength of the Stage-1 sampling (released inference: 7; a model config's "
+                 "own value is not used)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber)
+      ->group(group);
   if (flags.samples)
     app.add_option("--samples", c.num_samples, "shapes drawn per object")
         ->capture_default_str()

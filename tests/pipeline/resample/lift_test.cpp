@@ -297,7 +297,8 @@ TEST(LiftCli, EndToEndDepthAndLabels) {
 }
 
 // MoGe point map (+inf holes, no K: fitted) + a directory of per-object masks with three bad ones:
-// the good objects are written, the bad ones are named in the report, exit status 1.
+// the good objects are written, the bad ones are named in the report, exit status 1. The sampler
+// options given (--steps, --cfg-strength) are the ones the sampler runs with and the report records.
 TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   const auto dir = simu::testing::temp_dir("lift_bad");
   const auto photo = make_photo(dir);
@@ -306,15 +307,20 @@ TEST(LiftCli, PointMapPerObjectMasksAndBadObjects) {
   std::filesystem::create_directories(out);  // exists: --overwrite replaces it
   std::ofstream(out + "/stale.txt") << "old run";
   const auto [rc, log] = run(lift_cmd(dec) + " --image " + photo.rgb + " --masks " + photo.masks_dir + " --pointmap " +
-                                 photo.pointmap + " --out " + out + " --random-weights --overwrite --samples 2 --steps 4",
+                                 photo.pointmap + " --out " + out + " --random-weights --overwrite --samples 2 --steps 4 --cfg-strength 2.5",
                              dir + "/lift.log");
   EXPECT_EQ(rc, 1) << log;
+  // The sampler's own description (models::describe_sampler of the options it samples with).
+  EXPECT_NE(log.find("steps 4"), std::string::npos) << log;
+  EXPECT_NE(log.find("cfg 2.5 on"), std::string::npos) << log;
   EXPECT_FALSE(std::filesystem::exists(out + "/stale.txt"));
   const auto report = read_json(out + "/report.json");
   std::map<std::string, json> by_id;
   for (const auto& o : report.at("objects")) by_id[o.at("id").get<std::string>()] = o;
   ASSERT_EQ(by_id.size(), 5u) << report.dump(1);
   EXPECT_EQ(report.at("failed"), 3);
+  EXPECT_EQ(report.at("run").at("sampler").at("steps"), 4);
+  EXPECT_EQ(report.at("run").at("sampler").at("cfg_strength"), 2.5);
   for (const char* good : {"a_box", "b_border"}) {
     ASSERT_TRUE(by_id[good].at("ok").get<bool>()) << by_id[good].dump();
     EXPECT_EQ(by_id[good].at("samples").size(), 2u);
