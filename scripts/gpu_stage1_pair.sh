@@ -18,6 +18,10 @@
 #   device run on nvidia-h200-x2, the same command each call (carry .carry/prefix/usr/{include,
 #   lib/x86_64-linux-gnu,lib/libgloo.so,share,src}, runs/ss_vae_cpu/weights, data/pairs_cpu.h5):
 #     DEADLINE_S=560 bash scripts/gpu_stage1_pair.sh
+# Knobs for one model on both GPUs instead (the fourth Stage 1, docs/miniature.md): RANKS=2 runs the one
+# variant data-parallel over 2 ranks (global batch BATCH x RANKS); STEPS=N fixes train.steps (no bench);
+# INIT=FILE starts from those weights (model.init; carry the file); CACHE_SEED=S builds the cache from
+# scene seed S (fresh scenes); EXTRA="--set k=v ..." adds train_stage1 overrides; FMDPO=0 skips FM-DPO.
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -31,6 +35,11 @@ TRAIN_S="${TRAIN_S:-850}"
 BATCH="${BATCH:-256}"
 VARIANTS="${VARIANTS:-cpu:configs/miniature_cpu wide:configs/miniature_wide}"
 VAE="${VAE_FROM:-runs/ss_vae_cpu}/weights"
+RANKS="${RANKS:-1}"
+STEPS="${STEPS:-}"
+INIT="${INIT:-}"
+CACHE_SEED="${CACHE_SEED:-0}"
+read -r -a EXTRA_ARGS <<<"${EXTRA:-}"
 STATE="$ROOT/${STATE_DIR:-runs/gpu_pair}"
 BUILD="$STATE/build"
 LOG="$OUTD/call.log"
@@ -52,7 +61,7 @@ nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader | tee -a "$
 # 2. The cache on the CPUs; benches and FM-DPO on the GPUs meanwhile.
 cache_pid=""
 if [ ! -f "$STATE/stage1.h5" ]; then
-  "$BUILD/build_stage1_data" --out "$STATE/stage1.tmp.h5" --train "$SCENES" --val 300 --test 0 \
+  "$BUILD/build_stage1_data" --out "$STATE/stage1.tmp.h5" --train "$SCENES" --val 300 --test 0 --seed "$CACHE_SEED" \
     --preprocess configs/miniature_cpu/preprocess.yaml --resolution 16 --threads "$(( $(nproc) - 4 ))" \
     >"$STATE/cache.log" 2>&1 && mv "$STATE/stage1.tmp.h5" "$STATE/stage1.h5" &
   cache_pid=$!
@@ -61,6 +70,7 @@ i=0
 bench_pids=()
 for v in $VARIANTS; do
   name="${v%%:*}"; cfg="${v#*:}"
+  [ -n "$STEPS" ] && [ ! -f "$STATE/steps_$name" ] && echo "$STEPS" >"$STATE/steps_$name"
   if [ ! -f "$STATE/steps_$name" ]; then
     (CUDA_VISIBLE_DEVICES=$i "$BUILD/bench_train_stage1" --config "$cfg/train_stage1.yaml" --device cuda --precision bf16 \
        --batch "$BATCH" --steps 20 --warmup 5 --resolution 16 >"$STATE/bench_$name.txt" 2>&1
@@ -82,7 +92,7 @@ fmdpo() {  # name, ranks, extra args
     { say "$name failed: $(tail -n 3 "$STATE/$name.log")"; return 0; }
   say "$name ($n rank(s)): $(tail -n 1 "$STATE/$name/metrics.jsonl" | cut -c1-240)"
 }
-if [ -f data/pairs_cpu.h5 ]; then
+if [ -f data/pairs_cpu.h5 ] && [ "${FMDPO:-1}" != 0 ]; then
   CUDA_VISIBLE_DEVICES=0 fmdpo fmdpo_r1 1
   CUDA_VISIBLE_DEVICES=0,1 fmdpo fmdpo_r2 2 --nproc-per-node 2
 fi
@@ -101,11 +111,14 @@ for v in $VARIANTS; do
   run="$STATE/stage1_$name"
   if [ ! -d "$run/model" ] && [ "$left" -gt 30 ]; then
     resume=(); [ -d "$run/checkpoints" ] && resume=(--resume latest)
-    CUDA_VISIBLE_DEVICES=$i "$BUILD/train_stage1" --config "$cfg/train_stage1.yaml" "${resume[@]}" \
-      --set train.device=cuda --set train.precision=bf16 --set "data.global_batch=$BATCH" --set "data.micro_batch=$BATCH" \
+    gpus=$i; ranks=(); init=()
+    [ "$RANKS" -gt 1 ] && { gpus=$(seq -s, 0 $(( RANKS - 1 ))); ranks=(--nproc-per-node "$RANKS"); }
+    [ -n "$INIT" ] && init=(--set "model.init=$INIT")
+    CUDA_VISIBLE_DEVICES=$gpus "$BUILD/train_stage1" --config "$cfg/train_stage1.yaml" "${resume[@]}" "${ranks[@]}" "${init[@]}" \
+      --set train.device=cuda --set train.precision=bf16 --set "data.global_batch=$(( BATCH * RANKS ))" --set "data.micro_batch=$BATCH" \
       --set "train.steps=$(cat "$STATE/steps_$name")" --set data.cache="$STATE/stage1.h5" --set run.out_dir="$run" \
       --set "targets.encoder_config=$VAE/ss_encoder.json" --set "targets.encoder_weights=$VAE/ss_encoder.safetensors" \
-      --set run.checkpoint_every=1000 --set "run.stop_after_s=$left" --set run.log_every=100 --set run.progress=false \
+      --set run.checkpoint_every=1000 --set "run.stop_after_s=$left" --set run.log_every=100 --set run.progress=false "${EXTRA_ARGS[@]}" \
       >>"$STATE/stage1_$name.log" 2>&1 &
     pids+=($!)
   fi
