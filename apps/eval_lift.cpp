@@ -82,9 +82,11 @@ int main(int argc, char** argv) {
       ->group("Evaluation");
   app.add_option("--align", align, "pose refinement before scoring: none (the lift's pose) | simuscene (the "
                                     "translation-scale alignment to the point map that `reconstruct` runs, "
-                                    "docs/reconstruct.md)")
+                                    "docs/reconstruct.md) | icp (simuscene, then the rotation refined: turns about "
+                                    "the vertical axis, trimmed ICP to the masked points, the best render-and-compare "
+                                    "score kept; docs/eval_lift.md)")
       ->capture_default_str()
-      ->check(CLI::IsMember({"none", "simuscene"}))
+      ->check(CLI::IsMember({"none", "simuscene", "icp"}))
       ->group("Evaluation");
   // Testing only (hidden): each prediction replaced by its ground truth, no model run; every metric is
   // then at its ideal value (the CI check of the metric path).
@@ -98,6 +100,7 @@ int main(int argc, char** argv) {
     opt.pictures = !no_pictures;
     opt.refine_name = align;
     if (align == "simuscene") opt.refine = simu::reconstruct::alignment_refiner({});
+    if (align == "icp") opt.refine = simu::reconstruct::icp_refiner({}, {});
     simu::resample::validate_eval_options(opt);  // before the models load
     if (!config_path.empty() || !common.sets.empty()) {
       YAML::Node node = config_path.empty() ? YAML::Node(YAML::NodeType::Map) : simu::config::load_file(config_path);

@@ -29,33 +29,64 @@ Mask to_mask(const physics::BinaryMask& m) {
   return out;
 }
 
+// The prediction in the camera frame (OpenCV, the point map's) as the alignment's input; "" or why not.
+std::string align_input(const physics::PlacedShape& pred, const resample::RefineInput& in, const PointMap& pm,
+                        AlignInput& ai) {
+  const physics::Camera& cam = *in.camera;
+  if (in.pointmap->width != cam.width || in.pointmap->height != cam.height || in.modal->width != cam.width ||
+      in.modal->height != cam.height)
+    return fmt::format("{}: point map {}x{} or mask {}x{} is not the camera's {}x{}", in.id, in.pointmap->width,
+                       in.pointmap->height, in.modal->width, in.modal->height, cam.width, cam.height);
+  ai.id = in.id;
+  ai.canonical = pred.canonical.V;
+  ai.faces = pred.canonical.F;
+  ai.s_init = pred.scale.maxCoeff();
+  ai.shape = pred.scale / ai.s_init;
+  // Camera frame: p_cam = R_wc^T (p_world - t_wc).
+  ai.R_init = cam.R_world_cam.transpose() * pred.R;
+  ai.t_init = cam.R_world_cam.transpose() * (pred.t - cam.t_world_cam);
+  ai.mask = to_mask(*in.modal);
+  ai.observed = masked_points(pm, ai.mask, in.id);
+  ai.K = Pinhole{cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height};
+  ai.depth = &pm;
+  return "";
+}
+
 }  // namespace
 
 resample::PoseRefiner alignment_refiner(const AlignConfig& config) {
   return [config](physics::PlacedShape& pred, const resample::RefineInput& in) -> std::string {
     const physics::Camera& cam = *in.camera;
-    if (in.pointmap->width != cam.width || in.pointmap->height != cam.height || in.modal->width != cam.width ||
-        in.modal->height != cam.height)
-      return fmt::format("{}: point map {}x{} or mask {}x{} is not the camera's {}x{}", in.id, in.pointmap->width,
-                         in.pointmap->height, in.modal->width, in.modal->height, cam.width, cam.height);
     const PointMap pm = to_points(*in.pointmap);
     AlignInput ai;
-    ai.id = in.id;
-    ai.canonical = pred.canonical.V;
-    ai.faces = pred.canonical.F;
-    ai.s_init = pred.scale.maxCoeff();
-    ai.shape = pred.scale / ai.s_init;
-    // Camera frame: p_cam = R_wc^T (p_world - t_wc).
-    ai.R_init = cam.R_world_cam.transpose() * pred.R;
-    ai.t_init = cam.R_world_cam.transpose() * (pred.t - cam.t_world_cam);
-    ai.mask = to_mask(*in.modal);
-    ai.observed = masked_points(pm, ai.mask, in.id);
-    ai.K = Pinhole{cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height};
-    ai.depth = &pm;
+    if (std::string why = align_input(pred, in, pm, ai); !why.empty()) return why;
     const AlignResult r = align_translation_scale(ai, config);
     if (!r.ok) return r.message.empty() ? in.id + ": not aligned" : r.message;
     pred.scale = r.s * ai.shape;
     pred.t = cam.R_world_cam * r.t + cam.t_world_cam;
+    return "";
+  };
+}
+
+resample::PoseRefiner icp_refiner(const AlignConfig& align, const IcpConfig& icp) {
+  return [align, icp](physics::PlacedShape& pred, const resample::RefineInput& in) -> std::string {
+    const physics::Camera& cam = *in.camera;
+    const PointMap pm = to_points(*in.pointmap);
+    AlignInput ai;
+    if (std::string why = align_input(pred, in, pm, ai); !why.empty()) return why;
+    const AlignResult r = align_translation_scale(ai, align);
+    if (!r.ok) return r.message.empty() ? in.id + ": not aligned" : r.message;
+    pred.scale = r.s * ai.shape;
+    pred.t = cam.R_world_cam * r.t + cam.t_world_cam;
+    // The rotation refined from the aligned pose; up = -gravity in the camera frame.
+    ai.s_init = r.s;
+    ai.t_init = r.t;
+    const Vec3 up = -(cam.R_world_cam.transpose() * in.gravity);
+    const IcpResult q = refine_rotation_icp(ai, up, icp);
+    if (!q.changed) return q.message.empty() ? in.id + ": icp kept the aligned pose" : q.message;
+    pred.R = cam.R_world_cam * q.R;
+    pred.scale = q.s * ai.shape;
+    pred.t = cam.R_world_cam * q.t + cam.t_world_cam;
     return "";
   };
 }

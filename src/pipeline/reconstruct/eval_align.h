@@ -8,6 +8,7 @@
 #pragma once
 
 #include "pipeline/reconstruct/align.h"
+#include "pipeline/reconstruct/icp_refine.h"
 #include "pipeline/resample/eval_lift.h"
 
 namespace simu::reconstruct {
@@ -18,5 +19,11 @@ namespace simu::reconstruct {
 // isotropic scale factor and translation back in the world frame. Not aligned (the pose kept, the
 // reason returned): too few points, no visible vertex, a point map or mask of another size.
 resample::PoseRefiner alignment_refiner(const AlignConfig& config);
+
+// eval_lift --align icp: the alignment above, then refine_rotation_icp (icp_refine.h) from the aligned
+// pose, with up = -RefineInput::gravity (the image's up when unknown). Returns "" when the ICP's pose
+// was taken (rotation, scale and translation changed); else the note says why not, with the aligned
+// pose kept when the alignment ran, the lifted pose when it did not.
+resample::PoseRefiner icp_refiner(const AlignConfig& align, const IcpConfig& icp);
 
 }  // namespace simu::reconstruct

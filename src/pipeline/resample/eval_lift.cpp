@@ -362,6 +362,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
             ri.pointmap = &pm;
             ri.modal = &scene.objects[chosen[i % nk]].modal;
             ri.id = obj.id;
+            ri.gravity = scene.gravity;
             row.refine_note = opt.refine(preds[i], ri);
             row.refined = row.refine_note.empty();
           }

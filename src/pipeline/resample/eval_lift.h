@@ -39,6 +39,7 @@ struct RefineInput {
   const world::PointMap* pointmap = nullptr;
   const physics::BinaryMask* modal = nullptr;
   std::string id;  // the object, for messages
+  physics::Vec3 gravity = physics::Vec3::Zero();  // the scene's gravity, world frame (zero: unknown)
 };
 // A pose refinement run on every lifted prediction before it is scored (eval_lift --align: the
 // SimuScene alignment of src/pipeline/reconstruct, set by the program since that library sits above
