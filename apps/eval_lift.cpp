@@ -91,6 +91,13 @@ int main(int argc, char** argv) {
   // Testing only (hidden): each prediction replaced by its ground truth, no model run; every metric is
   // then at its ideal value (the CI check of the metric path).
   app.add_flag("--gt-as-prediction", opt.gt_as_prediction, "")->group("");
+  app.add_option("--oracle", opt.oracle, "diagnostic upper bounds, not model results: none | grid (no model runs: "
+                                         "the truth's occupancy at the model's grid side, meshed as decoder outputs "
+                                         "are, at the true pose) | pose (the model's shape at the true pose); "
+                                         "--align still runs after it (docs/eval_lift.md)")
+      ->default_str("none")
+      ->check(CLI::IsMember({"none", "grid", "pose"}))
+      ->group("Evaluation");
   simu::resample::ModelOptionFlags flags;
   flags.seed = false;  // --seed above drives the noise too
   simu::resample::add_model_options(app, model, flags);

@@ -16,42 +16,44 @@ PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 cd "$ROOT"
 export BUILD
 B="${2:-50}"
+T="${TAG:-v3}"   # TAG=v4: the same steps for the fourth base (data/pairs_v4.h5, runs/fmdpo_v4_*, runs/eval_v4)
 source "$ROOT/scripts/eval_adapter_lib.sh"   # ev OUT ADAPTER WORLD COUNT [args]; OCC
-mkdir -p runs/eval_v3
+mkdir -p runs/eval_$T
 case "${1:-}" in
   pairs)
     # The rendered candidates of scripts/fmdpo_miniature.sh step 1 (world pairs --completion 1000
     # --preservation 1000 --seed 0 --resolution 16 --out data/pairs_cpu), sampled by the shipped base.
     [ -f data/pairs_cpu/manifest.jsonl ] || "$BUILD/world" pairs --completion 1000 --preservation 1000 --seed 0 \
       --resolution 16 --out data/pairs_cpu --threads 2 --overwrite
-    OMP_NUM_THREADS=1 "$BUILD/build_pairs" --manifest data/pairs_cpu/manifest.jsonl --out data/pairs_v3.h5 --overwrite \
-      --device cpu --filter-gt --report data/pairs_v3.report.json --batch 32 --seed 0 ;;
+    OMP_NUM_THREADS=1 "$BUILD/build_pairs" --manifest data/pairs_cpu/manifest.jsonl --out data/pairs_$T.h5 --overwrite \
+      --device cpu --filter-gt --report data/pairs_$T.report.json --batch 32 --seed 0 ;;
   train)
-    for s in 0 1; do echo "$B $s"; done | xargs -P 2 -L 1 bash -c 'OMP_NUM_THREADS=1 "$0/train_fmdpo" \
-      --config configs/miniature_cpu/lora.yaml --set data.cache=data/pairs_v3.h5 --set objective.beta=$1.0 \
-      --set train.seed=$2 --set data.seed=$2 --set run.out_dir=runs/fmdpo_v3_beta$1_s$2 --set run.progress=false \
-      --overwrite >runs/fmdpo_v3_beta$1_s$2.log 2>&1' "$BUILD" ;;
+    for s in 0 1; do echo "$B $s $T"; done | xargs -P 2 -L 1 bash -c 'OMP_NUM_THREADS=1 "$0/train_fmdpo" \
+      --config configs/miniature_cpu/lora.yaml --set data.cache=data/pairs_$3.h5 --set objective.beta=$1.0 \
+      --set train.seed=$2 --set data.seed=$2 --set run.out_dir=runs/fmdpo_$3_beta$1_s$2 --set run.progress=false \
+      --overwrite >runs/fmdpo_$3_beta$1_s$2.log 2>&1' "$BUILD" ;;
   val)
     for s in 0 1; do
-      a="runs/fmdpo_v3_beta${B}_s$s/adapter"
-      echo "runs/eval_v3/val_b${B}_s${s}_40_70 $a val 200 $OCC"
-      echo "runs/eval_v3/val_b${B}_s${s}_all $a val 200"
+      a="runs/fmdpo_${T}_beta${B}_s$s/adapter"
+      echo "runs/eval_$T/val_b${B}_s${s}_40_70 $a val 200 $OCC"
+      echo "runs/eval_$T/val_b${B}_s${s}_all $a val 200"
     done | xargs -P 2 -L 1 bash -c 'ev "$@"' _ ;;
   table)
-    "$PY" - <<'PYEOF'
+    TAG="$T" "$PY" - <<'PYEOF'
 import glob, json, os, re
+T = os.environ["TAG"]
 def d(path, bucket):
     x = json.load(open(path + "/summary.json"))["deltas"]["clean"][bucket]
     return x["iou_mean"]["delta"], x["iou_mean"]["ci95"]
 print("| beta | 40-70% seed 0 | seed 1 | mean | unoccluded seed 0 | seed 1 | mean | rule |")
 print("|---:|---:|---:|---:|---:|---:|---:|---|")
-betas = sorted({int(re.search(r"val_b(\d+)_", p).group(1)) for p in glob.glob("runs/eval_v3/val_b*_s0_all")})
+betas = sorted({int(re.search(r"val_b(\d+)_", p).group(1)) for p in glob.glob(f"runs/eval_{T}/val_b*_s0_all")})
 for b in betas:
-    paths = [f"runs/eval_v3/val_b{b}_s{s}_{k}" for k in ("40_70", "all") for s in (0, 1)]
+    paths = [f"runs/eval_{T}/val_b{b}_s{s}_{k}" for k in ("40_70", "all") for s in (0, 1)]
     if not all(os.path.exists(p + "/summary.json") for p in paths):
         print(f"| {b} | (missing) |"); continue
-    occ = [d(f"runs/eval_v3/val_b{b}_s{s}_40_70", "40-70%") for s in (0, 1)]
-    unc = [d(f"runs/eval_v3/val_b{b}_s{s}_all", "unoccluded") for s in (0, 1)]
+    occ = [d(f"runs/eval_{T}/val_b{b}_s{s}_40_70", "40-70%") for s in (0, 1)]
+    unc = [d(f"runs/eval_{T}/val_b{b}_s{s}_all", "unoccluded") for s in (0, 1)]
     fmt = lambda r: f"{r[0]:+.4f} [{r[1][0]:+.4f}, {r[1][1]:+.4f}]"
     mo = sum(r[0] for r in occ) / 2; mu = sum(r[0] for r in unc) / 2
     print(f"| {b} | {fmt(occ[0])} | {fmt(occ[1])} | {mo:+.4f} | {fmt(unc[0])} | {fmt(unc[1])} | {mu:+.4f} | "
@@ -60,10 +62,10 @@ PYEOF
     ;;
   test)
     for s in 0 1; do
-      a="runs/fmdpo_v3_beta${B}_s$s/adapter"
-      echo "runs/eval_v3/test_b${B}_s${s}_40_70 $a test 500 $OCC"
-      echo "runs/eval_v3/test_b${B}_s${s}_all $a test 500"
-      echo "runs/eval_v3/heldout_b${B}_s${s} $a heldout 100"
+      a="runs/fmdpo_${T}_beta${B}_s$s/adapter"
+      echo "runs/eval_$T/test_b${B}_s${s}_40_70 $a test 500 $OCC"
+      echo "runs/eval_$T/test_b${B}_s${s}_all $a test 500"
+      echo "runs/eval_$T/heldout_b${B}_s${s} $a heldout 100"
     done | xargs -P 2 -L 1 bash -c 'ev "$@"' _ ;;
   *) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
 esac

@@ -1,5 +1,6 @@
 #include "pipeline/resample/default_model.h"
 
+#include <cmath>
 #include <cstdlib>
 #include <filesystem>
 
@@ -47,6 +48,14 @@ ModelFolder ModelFolder::load(const std::string& dir) {
     m.encoder_config = file("encoder_config");
     m.encoder_weights = file("encoder_weights");
   }
+  // Optional: the meshing's inward surface offset in voxels (ResamplerConfig::surface_offset).
+  if (j.contains("mesh")) {
+    SIMU_CHECK(j["mesh"].is_object() && j["mesh"].contains("surface_offset_voxels") && j["mesh"]["surface_offset_voxels"].is_number(),
+               "{}: \"mesh\" must be an object with a number surface_offset_voxels", path);
+    m.surface_offset = j["mesh"]["surface_offset_voxels"].get<double>();
+    SIMU_CHECK(m.surface_offset >= 0 && m.surface_offset <= 2, "{}: mesh.surface_offset_voxels {} is outside [0, 2]", path,
+               m.surface_offset);
+  }
   if (f.contains("resample_adapter")) {
     m.resample_adapter = file("resample_adapter");
     SIMU_CHECK(std::filesystem::exists(m.resample_adapter + "/adapter_config.json"),
@@ -75,6 +84,7 @@ std::string apply_shipped_model(ResamplerConfig& c) {
   c.decoder_config = m.decoder_config;
   c.decoder_weights = m.decoder_weights;
   if (c.preprocess.empty()) c.preprocess = m.preprocess;
+  if (std::isnan(c.surface_offset)) c.surface_offset = m.surface_offset;
   std::string with_adapter;
   if (c.shipped_resample_adapter && c.adapter_dir.empty() && !m.resample_adapter.empty()) {
     c.adapter_dir = m.resample_adapter;

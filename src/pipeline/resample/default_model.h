@@ -23,6 +23,8 @@ struct ModelFolder {
   // Optional (files.encoder_config / encoder_weights, together): the sparse-structure encoder whose
   // latents the model was trained on (build_pairs --preferred gt-latent).
   std::string encoder_config, encoder_weights;
+  // Optional (mesh.surface_offset_voxels, default 0): ResamplerConfig::surface_offset for this model.
+  double surface_offset = 0.0;
   // Reads dir/manifest.json; every file must exist (simu::Error naming the manifest and the key).
   static ModelFolder load(const std::string& dir);
 };

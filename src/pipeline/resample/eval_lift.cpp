@@ -196,6 +196,8 @@ void validate_eval_options(const EvalLiftOptions& opt) {
   SIMU_CHECK(opt.count >= 0, "--count {} must not be negative", opt.count);
   SIMU_CHECK(opt.object_size >= 0, "--object-size {} must not be negative", opt.object_size);
   SIMU_CHECK(opt.attempts >= 1, "eval_lift: attempts {} must be >= 1", opt.attempts);
+  if (!(opt.oracle.empty() || opt.oracle == "none" || opt.oracle == "grid" || opt.oracle == "pose"))
+    fail_hint("--oracle none | grid | pose", "--oracle: unknown value '{}'", opt.oracle);
   SIMU_CHECK(opt.bootstrap_resamples >= 1, "--bootstrap {} must be >= 1", opt.bootstrap_resamples);
   SIMU_CHECK(opt.metrics.fscore_thresholds == std::vector<double>({0.01, 0.02}),
              "eval_lift: the F-score thresholds are 1 and 2 cm (summary keys fscore_1cm, fscore_2cm)");
@@ -204,10 +206,13 @@ void validate_eval_options(const EvalLiftOptions& opt) {
 EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& models, const std::string& out_dir) {
   validate_eval_options(opt);
   SIMU_CHECK(opt.gt_as_prediction || models.base, "eval_lift: no model to lift with");
+  const bool oracle_grid = opt.oracle == "grid", oracle_pose = opt.oracle == "pose";
+  SIMU_CHECK(!oracle_grid || models.base, "eval_lift --oracle grid: the base model gives the grid side");
+  const bool no_lift = opt.gt_as_prediction || oracle_grid;
   EvalLiftResult res;
   res.depths = depth_kinds(opt.depth);
   res.models = {"base"};
-  if (models.compare && !opt.gt_as_prediction) res.models.push_back("compare");
+  if (models.compare && !no_lift) res.models.push_back("compare");
 
   Source src;
   if (!opt.objects_dir.empty()) {
@@ -315,7 +320,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
       std::vector<physics::Mesh> pred_world(nm * nk);  // for the picture
       for (size_t m = 0; m < nm; ++m) {
         LiftResult lifted;
-        if (!opt.gt_as_prediction) {
+        if (!no_lift) {
           const auto t0 = Clock::now();
           LiftOptions lo;
           lo.seed = noise;
@@ -332,6 +337,22 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
             preds[m * nk + k] = obj.gt;
             row.ok = true;
             row.shape_iou = 1.0;
+          } else if (oracle_grid) {
+            // The truth's occupancy at the model's grid side, meshed like a decoder output, at the true pose.
+            const int64_t R = occupancy_resolution(*models.base);
+            auto& gt = gt_grids[{row.object, R}];
+            if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(R));
+            const auto logits = torch::from_blob(gt.data(), {R, R, R}, torch::kUInt8).to(torch::kFloat32).mul(2).sub(1);
+            ResampledShape rs;
+            mesh_from_logits(logits, rs, models.base->config().surface_offset);
+            row.ok = rs.ok;
+            if (rs.ok) {
+              preds[m * nk + k] = obj.gt;
+              preds[m * nk + k].canonical = rs.mesh;
+              row.shape_iou = occupancy_iou(rs.coords, gt, R);
+            } else {
+              row.error = fmt::format("object {}: --oracle grid: {}", obj.id, rs.message);
+            }
           } else {
             size_t sample = 0;
             row.ok = prediction(lifted.objects[k], preds[m * nk + k], &sample);
@@ -340,6 +361,8 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
               auto& gt = gt_grids[{row.object, R}];
               if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(R));
               row.shape_iou = occupancy_iou(lifted.objects[k].samples[sample].coords, gt, R);
+              // The sampled shape at the true pose.
+              if (oracle_pose) preds[m * nk + k].scale = obj.gt.scale, preds[m * nk + k].R = obj.gt.R, preds[m * nk + k].t = obj.gt.t;
             }
             if (!row.ok)
               row.error = lifted.objects[k].error.empty() ? fmt::format("object {}: no usable sample", obj.id)

@@ -63,6 +63,13 @@ struct EvalLiftOptions {
   bool pictures = true;          // pictures/<object>_<depth>.png
   bool gt_as_prediction = false; // testing: each prediction replaced by its ground truth (no model runs;
                                  // `refine`, when set, still runs on it)
+  // Diagnostic upper bounds (eval_lift --oracle; docs/eval_lift.md), not results of the model:
+  //   "grid": no model runs; each prediction is the ground truth's filled occupancy at the base model's
+  //           grid side R, meshed as decoder outputs are (mesh_from_logits), at the true pose: what a
+  //           perfect Stage 1 could score at this resolution;
+  //   "pose": the model's sampled shape at the true rotation, scale and translation.
+  // `refine`, when set, still runs after it. "" or "none": off.
+  std::string oracle;
   // The resampling input of the paper (probe --resample): the crop box and background removal from the
   // object's amodal mask (here the ground truth's, an ideal OBB-guided crop) instead of its modal mask.
   bool amodal_crop = false;

@@ -530,4 +530,19 @@ void write_mesh_ply(const Mesh& mesh, const std::string& path) {
   simu::fs::atomic_write(path, out);
 }
 
+void offset_surface(Mesh& mesh, double distance) {
+  if (distance == 0 || mesh.empty()) return;
+  // Area-weighted vertex normals: each triangle adds its (unnormalised) cross product to its corners.
+  Eigen::Matrix<double, -1, 3, Eigen::RowMajor> N = Eigen::Matrix<double, -1, 3, Eigen::RowMajor>::Zero(mesh.V.rows(), 3);
+  for (int64_t f = 0; f < mesh.F.rows(); ++f) {
+    const Eigen::Vector3d a = mesh.V.row(mesh.F(f, 0)), b = mesh.V.row(mesh.F(f, 1)), c = mesh.V.row(mesh.F(f, 2));
+    const Eigen::RowVector3d n = (b - a).cross(c - a).transpose();
+    for (int j = 0; j < 3; ++j) N.row(mesh.F(f, j)) += n;
+  }
+  for (int64_t v = 0; v < mesh.V.rows(); ++v) {
+    const double l = N.row(v).norm();
+    if (l > 0) mesh.V.row(v) -= (distance / l) * N.row(v);
+  }
+}
+
 }  // namespace simu::resample

@@ -58,6 +58,13 @@ struct CanonicalTransform {
 };
 CanonicalTransform canonicalize_mesh(Mesh& mesh);
 
+// Moves every vertex by `distance` against its normal (the area-weighted mean of its triangles' outward
+// normals): inward for distance > 0, in the mesh's own units. Vertices without area are left. The
+// occupancy Stage 1 learns marks every voxel the surface touches (a conservative voxelisation:
+// world::voxelize_filled, TRELLIS's sparse structure), so an iso-0 surface of its logits sits up to one
+// voxel outside the true surface; the resampler moves it back by ResamplerConfig::surface_offset voxels.
+void offset_surface(Mesh& mesh, double distance);
+
 // Mesh checks used by the tests and the resampler: volume by the divergence theorem (positive when
 // outward-oriented), and a description of the first closedness/orientation defect ("" when every
 // undirected edge is used by exactly two triangles in opposite directions and no face is degenerate

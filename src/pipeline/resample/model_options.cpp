@@ -43,6 +43,11 @@ void add_model_options(CLI::App& app, ModelOptions& o, const ModelOptionFlags& f
       ->capture_default_str()
       ->check(CLI::NonNegativeNumber)
       ->group(group);
+  app.add_option("--surface-offset", c.surface_offset,
+                 "voxels the meshes' surface is moved inward after marching cubes (the learnt occupancy sits outside "
+                 "the object; docs/lift.md). Default: the model's (the shipped miniature's manifest, else 0)")
+      ->check(CLI::Range(0.0, 2.0))
+      ->group(group);
   if (flags.samples)
     app.add_option("--samples", c.num_samples, "shapes drawn per object")
         ->capture_default_str()

@@ -11,6 +11,7 @@
 #include <fmt/ranges.h>
 
 #include <chrono>
+#include <cmath>
 #include <map>
 
 #include "common/error.h"
@@ -50,6 +51,7 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
   r.field("steps", c.steps);
   r.field("rescale_t", c.rescale_t);
   r.field("cfg_strength", c.cfg_strength);
+  r.field("surface_offset", c.surface_offset);
   if (r.has("cfg_interval")) {
     const auto v = r.require<std::vector<double>>("cfg_interval");
     SIMU_CHECK(v.size() == 2, "{}: cfg_interval must be [lo, hi], got {} values", r.file(), v.size());
@@ -121,6 +123,9 @@ Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
     : config_(std::move(config)), device_(pick_device(config_.device)) {
   // No weights at all: the shipped miniature (default_model.h), unless --random-weights.
   shipped_note_ = apply_shipped_model(config_);
+  if (std::isnan(config_.surface_offset)) config_.surface_offset = 0.0;  // not the shipped model: none
+  SIMU_CHECK(config_.surface_offset >= 0 && config_.surface_offset <= 2,
+             "resampler: surface_offset {} voxels is outside [0, 2]", config_.surface_offset);
   precision_ = models::parse_precision(config_.precision, device_, "resampler precision");
   models::check_precision(precision_, device_, "resampler precision");
   // Weights: a missing file is an error naming its flag, unless random weights were asked for.
@@ -176,9 +181,9 @@ Resampler::Resampler(ResamplerConfig config, AdapterLoader adapter_loader)
   SIMU_CHECK(shape.in_channels == decoder_->config().latent_channels,
              "resampler: generator shape latent has {} channels, decoder {} expects {}", shape.in_channels,
              config_.decoder_config, decoder_->config().latent_channels);
-  simu::log::info("resampler ready on {} in {} (generator {}, decoder {}{})", device_.str(),
+  simu::log::info("resampler ready on {} in {} (generator {}, decoder {}{}; meshes moved {} voxels inward)", device_.str(),
                   models::precision_name(precision_), config_.generator_config, config_.decoder_config,
-                  has_adapter_ ? ", adapter " + config_.adapter_dir : "");
+                  has_adapter_ ? ", adapter " + config_.adapter_dir : "", config_.surface_offset);
   simu::log::info("resampler sampler: {}; step caching {}",
                   models::describe_sampler(sample_options(), generator_->config(), sampler_overrides()),
                   config_.step_cache.describe());
@@ -226,7 +231,7 @@ torch::Tensor Resampler::decode_logits(const torch::Tensor& shape_latent) {
   return torch::cat(out, 0);  // [B, 1, R, R, R]
 }
 
-void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out) {
+void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out, double surface_offset) {
   auto logits = logits_in.detach().to(torch::kCPU, torch::kFloat32);
   if (logits.dim() == 3) logits = logits.unsqueeze(0).unsqueeze(0);
   SIMU_CHECK(logits.dim() == 5 && logits.size(0) == 1 && logits.size(1) == 1,
@@ -269,6 +274,8 @@ void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out) {
   }
   // Surface at iso 0 in grid units -> official voxel frame -> canonical frame.
   out.mesh = marching_cubes(logits);
+  // Moved inward by the learnt occupancy's outward bias (offset_surface), in grid units = voxels.
+  offset_surface(out.mesh, surface_offset);
   grid_to_voxel_frame(out.mesh, resolution);
   out.canonical = canonicalize_mesh(out.mesh);
   out.ok = !out.mesh.empty();
@@ -303,13 +310,13 @@ void decode_poses(const models::Latents& latents, const std::vector<const Resamp
   }
 }
 
-void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs) {
+void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs, double surface_offset) {
   // With at least as many rows as threads the rows run in parallel (each single-threaded); otherwise
   // one row at a time, each marching cubes parallel inside. The meshes are the same either way.
   const int64_t n_rows = static_cast<int64_t>(outs.size());
   auto mesh_row = [&](int64_t k) {
     ResampledShape& out = *outs[static_cast<size_t>(k)];
-    mesh_from_logits(logits.slice(0, k, k + 1), out);
+    mesh_from_logits(logits.slice(0, k, k + 1), out, surface_offset);
     out.scale_canonical = out.scale / out.canonical.factor;
     out.translation_canonical = out.translation + out.rotation * out.scale.cwiseProduct(out.canonical.centre);
   };
@@ -413,7 +420,7 @@ ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests,
       reqs.push_back(&requests[r]);
     }
     decode_poses(latents, reqs, outs, config_.pose_convention);
-    mesh_rows(logits, outs);
+    mesh_rows(logits, outs, config_.surface_offset);
     for (size_t k = 0; k < rows.size(); ++k) {
       const int64_t r = members[k / static_cast<size_t>(S)], s = static_cast<int64_t>(k) % S;
       if (!result.objects[r][s].ok) simu::log::warn("resampler: request {} sample {}: {}", r, s, result.objects[r][s].message);

@@ -25,6 +25,7 @@
 #include <array>
 #include <functional>
 #include <map>
+#include <limits>
 #include <string>
 #include <utility>
 #include <vector>
@@ -100,6 +101,11 @@ struct ResamplerConfig {
   // off by default. Keys under `step_cache:` (enabled, interval, order, warmup, tail,
   // pose_momentum, tolerance).
   models::StepCacheOptions step_cache;
+  // The meshes' surface moved inward by this many voxels of the occupancy grid after marching cubes
+  // (offset_surface: the learnt occupancy marks every voxel the surface touches, so its iso-0 surface sits
+  // outside the object). NaN = the model's: the shipped model's manifest (mesh.surface_offset_voxels,
+  // chosen on the validation split, docs/miniature.md), else 0. The occupied voxels (coords) do not move.
+  double surface_offset = std::numeric_limits<double>::quiet_NaN();
   int num_samples = 1;    // shapes drawn per object
   int decode_batch = 8;   // objects per decoder forward
   std::string pose_convention = "ScaleShiftInvariant";  // see models::PoseDecodeOptions
@@ -207,10 +213,11 @@ void decode_poses(const models::Latents& latents, const std::vector<const Resamp
 // Per batch row k of logits [rows, 1, R, R, R]: outs[k]'s mesh (mesh_from_logits) and its pose carried
 // over to the canonical frame (scale_canonical, translation_canonical); rows in parallel when there are
 // at least as many as threads.
-void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs);
+void mesh_rows(const torch::Tensor& logits, const std::vector<ResampledShape*>& outs, double surface_offset = 0.0);
 
-// Meshes one occupancy logit grid [R, R, R] (or [1, 1, R, R, R]): marching cubes at iso 0, official
+// Meshes one occupancy logit grid [R, R, R] (or [1, 1, R, R, R]): marching cubes at iso 0, the surface
+// moved inward by `surface_offset` voxels (offset_surface; ResamplerConfig::surface_offset), official
 // voxel frame, then the canonical frame. Fills mesh, canonical, coords, ok/message of `out`.
-void mesh_from_logits(const torch::Tensor& logits, ResampledShape& out);
+void mesh_from_logits(const torch::Tensor& logits, ResampledShape& out, double surface_offset = 0.0);
 
 }  // namespace simu::resample

@@ -7,6 +7,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include <cmath>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -63,6 +64,34 @@ TEST(ModelFolder, RefusesMissingKeysAndFiles) {
   const auto e2 = simu::testing::error_of([&] { sr::ModelFolder::load(gone); });
   EXPECT_NE(e2.find("files.decoder_weights"), std::string::npos) << e2;
   EXPECT_NE(e2.find("not found"), std::string::npos) << e2;
+}
+
+// The manifest's optional mesh.surface_offset_voxels reaches the config through the shipped model (0
+// without it), unless the user set an offset; a value that is not a number in [0, 2] is refused by key.
+TEST(ModelFolder, SurfaceOffset) {
+  const auto plain = fake_folder("mf_off0", kFiles);
+  EXPECT_EQ(sr::ModelFolder::load(plain).surface_offset, 0.0);
+  const auto dir = fake_folder("mf_off", kFiles);
+  write(dir + "/manifest.json", R"({"name": "fake", "files": )" + kFiles + R"(, "mesh": {"surface_offset_voxels": 0.5}})");
+  EXPECT_EQ(sr::ModelFolder::load(dir).surface_offset, 0.5);
+  {
+    DefaultModelEnv env(dir);
+    sr::ResamplerConfig c;
+    EXPECT_TRUE(std::isnan(c.surface_offset));
+    sr::apply_shipped_model(c);
+    EXPECT_EQ(c.surface_offset, 0.5);
+    sr::ResamplerConfig mine;
+    mine.surface_offset = 0.0;
+    sr::apply_shipped_model(mine);
+    EXPECT_EQ(mine.surface_offset, 0.0);
+  }
+  for (const char* bad : {R"("half")", "3.0", "-0.1"}) {
+    write(dir + "/manifest.json", R"({"name": "fake", "files": )" + kFiles + R"(, "mesh": {"surface_offset_voxels": )" + bad + "}}");
+    const auto e = simu::testing::error_of([&] { sr::ModelFolder::load(dir); });
+    EXPECT_NE(e.find("surface_offset_voxels"), std::string::npos) << bad << ": " << e;
+  }
+  simu::fs::remove_tree(plain);
+  simu::fs::remove_tree(dir);
 }
 
 // The shipped folder fills a config with no weights and default configs; anything the user chose wins.

@@ -208,6 +208,31 @@ TEST(EvalLiftCli, ObjectsFolderDepthsAndCompareAdapter) {
   }
   EXPECT_EQ(sources.size(), 5u);
 
+  // --oracle grid: no lift; the truth's occupancy at the fixture decoder's grid side, at the true pose.
+  // Its shape IoU is 1 (the same voxels), its pose errors 0, its world IoU below 1 (a voxel
+  // approximation of the mesh) yet well above chance (the committed meshes are boxes, cones, cylinders).
+  // Moved inward by half a voxel (--surface-offset 0.5) the world IoU changes; the settings record it.
+  for (const char* off : {"0", "0.5"}) {
+    auto [st_o, out_o] = run(eval_cmd(std::string("--oracle grid --surface-offset ") + off +
+                                      " --surface-samples 2000 --no-pictures --out " + tmp + "/oracle" + off),
+                             tmp + "/oracle" + off + ".log");
+    ASSERT_EQ(st_o, 0) << out_o;
+    EXPECT_NE(out_o.find(std::string("meshes moved ") + off + " voxels inward"), std::string::npos) << out_o;
+    const json o = read_json(tmp + "/oracle" + off + "/summary.json");
+    EXPECT_EQ(o["settings"]["oracle"], "grid");
+    ASSERT_EQ(o["objects"].size(), 5u);
+    for (const json& row : o["objects"]) {
+      ASSERT_TRUE(row["ok"].get<bool>()) << row.dump();
+      EXPECT_EQ(row["shape_iou"].get<double>(), 1.0) << row["object"];
+      EXPECT_LT(row["rot_err_deg"].get<double>(), 1e-5);
+      EXPECT_EQ(row["trans_err"].get<double>(), 0.0);
+      EXPECT_GT(row["iou"].get<double>(), 0.3) << row["object"];
+      EXPECT_LT(row["iou"].get<double>(), 1.0) << row["object"];
+    }
+  }
+  EXPECT_NE(read_json(tmp + "/oracle0/summary.json")["buckets"]["clean"]["base"]["all"]["iou_mean"],
+            read_json(tmp + "/oracle0.5/summary.json")["buckets"]["clean"]["base"]["all"]["iou_mean"]);
+
   // Two objects lifted from clean and corrupted depth with the small fixture models.
   auto [st, out] = run(eval_cmd("--count 2 --depth both --seed 3 --surface-samples 2000 --out " + tmp + "/a"),
                        tmp + "/a.log");
