@@ -232,6 +232,23 @@ TEST(EvalLiftCli, ObjectsFolderDepthsAndCompareAdapter) {
   }
   EXPECT_NE(read_json(tmp + "/oracle0/summary.json")["buckets"]["clean"]["base"]["all"]["iou_mean"],
             read_json(tmp + "/oracle0.5/summary.json")["buckets"]["clean"]["base"]["all"]["iou_mean"]);
+  // --oracle pose: the fixture model's sampled shapes at the true pose (rotation and translation errors 0;
+  // the scale error 0 up to rounding: both canonical meshes have longest side 1 and share the true scale).
+  auto [st_p, out_p] = run(eval_cmd("--oracle pose --count 2 --seed 3 --surface-samples 2000 --no-pictures --out " + tmp +
+                                    "/oracle_pose"),
+                           tmp + "/oracle_pose.log");
+  ASSERT_EQ(st_p, 0) << out_p;
+  const json op = read_json(tmp + "/oracle_pose/summary.json");
+  EXPECT_EQ(op["settings"]["oracle"], "pose");
+  int scored = 0;
+  for (const json& row : op["objects"]) {
+    if (!row["ok"].get<bool>()) continue;
+    ++scored;
+    EXPECT_LT(row["rot_err_deg"].get<double>(), 1e-5) << row["object"];
+    EXPECT_EQ(row["trans_err"].get<double>(), 0.0) << row["object"];
+    EXPECT_LT(row["scale_err_pct"].get<double>(), 1e-9) << row["object"];
+  }
+  EXPECT_GT(scored, 0);  // both fixture lifts decode to a shape (seed 3)
 
   // Two objects lifted from clean and corrupted depth with the small fixture models.
   auto [st, out] = run(eval_cmd("--count 2 --depth both --seed 3 --surface-samples 2000 --out " + tmp + "/a"),
