@@ -52,9 +52,16 @@ import json, math, sys
 d = sys.argv[1]
 rows = [json.loads(l) for l in open(d + "/metrics.jsonl") if l.strip()]
 assert len(rows) == 3 and all(math.isfinite(r["loss"]) for r in rows), rows
-# Step 1: LoRA's B starts at zero, so policy == reference and the DPO loss is -log sigmoid(0) = log 2
-# (fp32 flow losses of one pair: far below the 1e-4 allowed).
-assert abs(rows[0]["loss"] - math.log(2)) < 1e-4, rows[0]
+# Step 1: LoRA's B starts at zero, so policy == reference and the DPO loss is -log sigmoid(0) = log 2,
+# times the weight of the step's one pair (its kind from the per-kind metrics; the weights from the config
+# trained with) (fp32 flow losses of one pair: far below the 1e-4 allowed).
+import re
+kinds = {k.split("/")[0] for k in rows[0] if k.startswith(("completion/", "preservation/"))}
+assert len(kinds) == 1, rows[0]
+kind = kinds.pop()
+cfg_text = open("configs/miniature_cpu/lora.yaml").read()
+w = float(re.search(r"^\s*weight_%s:\s*([0-9.eE+-]+)" % kind, cfg_text, re.M).group(1))
+assert abs(rows[0]["loss"] - w * math.log(2)) < 1e-4, (kind, w, rows[0])
 cfg = json.load(open(d + "/adapter/adapter_config.json"))
 assert cfg["r"] == 8 and cfg["lora_alpha"] == 16, cfg
 print("fmdpo ok: losses", [round(r["loss"], 4) for r in rows])
