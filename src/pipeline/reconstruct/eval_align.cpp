@@ -52,19 +52,26 @@ std::string align_input(const physics::PlacedShape& pred, const resample::Refine
   return "";
 }
 
+// The translation-scale alignment of one prediction: fills ai (from pm) and r, sets pred's scale and
+// translation. Returns "" when aligned, else why not (pred unchanged).
+std::string align_prediction(physics::PlacedShape& pred, const resample::RefineInput& in, const PointMap& pm,
+                             const AlignConfig& config, AlignInput& ai, AlignResult& r) {
+  if (std::string why = align_input(pred, in, pm, ai); !why.empty()) return why;
+  r = align_translation_scale(ai, config);
+  if (!r.ok) return r.message.empty() ? in.id + ": not aligned" : r.message;
+  pred.scale = r.s * ai.shape;
+  pred.t = in.camera->R_world_cam * r.t + in.camera->t_world_cam;
+  return "";
+}
+
 }  // namespace
 
 resample::PoseRefiner alignment_refiner(const AlignConfig& config) {
   return [config](physics::PlacedShape& pred, const resample::RefineInput& in) -> std::string {
-    const physics::Camera& cam = *in.camera;
     const PointMap pm = to_points(*in.pointmap);
     AlignInput ai;
-    if (std::string why = align_input(pred, in, pm, ai); !why.empty()) return why;
-    const AlignResult r = align_translation_scale(ai, config);
-    if (!r.ok) return r.message.empty() ? in.id + ": not aligned" : r.message;
-    pred.scale = r.s * ai.shape;
-    pred.t = cam.R_world_cam * r.t + cam.t_world_cam;
-    return "";
+    AlignResult r;
+    return align_prediction(pred, in, pm, config, ai, r);
   };
 }
 
@@ -73,11 +80,8 @@ resample::PoseRefiner icp_refiner(const AlignConfig& align, const IcpConfig& icp
     const physics::Camera& cam = *in.camera;
     const PointMap pm = to_points(*in.pointmap);
     AlignInput ai;
-    if (std::string why = align_input(pred, in, pm, ai); !why.empty()) return why;
-    const AlignResult r = align_translation_scale(ai, align);
-    if (!r.ok) return r.message.empty() ? in.id + ": not aligned" : r.message;
-    pred.scale = r.s * ai.shape;
-    pred.t = cam.R_world_cam * r.t + cam.t_world_cam;
+    AlignResult r;
+    if (std::string why = align_prediction(pred, in, pm, align, ai, r); !why.empty()) return why;
     // The rotation refined from the aligned pose; up = -gravity in the camera frame.
     ai.s_init = r.s;
     ai.t_init = r.t;
