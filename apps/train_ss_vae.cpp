@@ -48,6 +48,12 @@ std::shared_ptr<ShapeSet> world_shapes(const SsVaeConfig& cfg) {
                cfg.file, f);
   }
   set->occupancy = [R](const ShapeKey& k) { return world::voxelize_filled(world::make_shape(k.family, k.seed).mesh, R); };
+  // The encoder's own grid of the same shape when it reads another side (data.encoder_resolution).
+  const int Ri = static_cast<int>(cfg.encoder_resolution());
+  if (Ri != R) {
+    set->input_resolution = Ri;
+    set->input_occupancy = [Ri](const ShapeKey& k) { return world::voxelize_filled(world::make_shape(k.family, k.seed).mesh, Ri); };
+  }
   const uint64_t data_seed = simu::splitmix64(cfg.data.seed);
   const int64_t F = static_cast<int64_t>(families.size());
   if (cfg.data.train_instances > 0) {
@@ -64,6 +70,7 @@ std::shared_ptr<ShapeSet> world_shapes(const SsVaeConfig& cfg) {
       return ShapeKey{families[index % F], seeds[simu::splitmix64(data_seed ^ static_cast<uint64_t>(index)) % seeds.size()]};
     };
     set->occupancy = cached_occupancy(set->occupancy, R);
+    if (set->input_occupancy) set->input_occupancy = cached_occupancy(set->input_occupancy, Ri);
   } else {
     set->train = [families, data_seed, F](int64_t index) {
       const auto& f = families[index % F];

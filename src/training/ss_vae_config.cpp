@@ -37,6 +37,7 @@ SsVaeModelConfig SsVaeModelConfig::from(simu::config::Reader& r) {
   auto dec = r.child("decoder");
   c.decoder = models::SSDecoderConfig::from(dec);
   choice_field(r, "export_dtype", c.export_dtype, {"float32", "float16"});
+  r.field("frozen_encoder", c.frozen_encoder);
   return c;
 }
 
@@ -53,6 +54,7 @@ SsVaeLossConfig SsVaeLossConfig::from(simu::config::Reader& r) {
 SsVaeDataConfig SsVaeDataConfig::from(simu::config::Reader& r) {
   SsVaeDataConfig c;
   int_field(r, "resolution", c.resolution, 2, 512);
+  int_field(r, "encoder_resolution", c.encoder_resolution, 0, 512);
   int_field(r, "global_batch", c.global_batch, 1);
   int_field(r, "train_instances", c.train_instances, 0);
   r.field("families", c.families);
@@ -107,12 +109,17 @@ SsVaeConfig SsVaeConfig::from(simu::config::Reader& r) {
   SIMU_CHECK(enc.latent_channels == dec.latent_channels,
              "{}: model.encoder.latent_channels {} differs from model.decoder.latent_channels {}", c.file,
              enc.latent_channels, dec.latent_channels);
-  SIMU_CHECK(enc.downsample_factor() == dec.upsample_factor(),
-             "{}: the encoder down-samples by {} ({} levels) but the decoder up-samples by {} ({} levels)", c.file,
-             enc.downsample_factor(), enc.channels.size(), dec.upsample_factor(), dec.channels.size());
-  SIMU_CHECK(c.data.resolution % enc.downsample_factor() == 0,
-             "{}: data.resolution {} is not divisible by the encoder's down-sampling factor {}", c.file, c.data.resolution,
-             enc.downsample_factor());
+  const int64_t er = c.encoder_resolution();
+  SIMU_CHECK(er % enc.downsample_factor() == 0,
+             "{}: the encoder's input side {} (data.encoder_resolution, or data.resolution when 0) is not divisible by "
+             "its down-sampling factor {} ({} levels)",
+             c.file, er, enc.downsample_factor(), enc.channels.size());
+  SIMU_CHECK(c.latent_resolution() * dec.upsample_factor() == c.data.resolution,
+             "{}: the encoder maps {}^3 (data.encoder_resolution, or data.resolution when 0) to a {}^3 latent "
+             "(down-sampling {}, {} levels), which the decoder (up-sampling "
+             "{}, {} levels) decodes to {}^3, but data.resolution is {}",
+             c.file, er, c.latent_resolution(), enc.downsample_factor(), enc.channels.size(), dec.upsample_factor(),
+             dec.channels.size(), c.latent_resolution() * dec.upsample_factor(), c.data.resolution);
   SIMU_CHECK(!dec.reshape_input_to_cube, "{}: model.decoder.reshape_input_to_cube must be false: the VAE decodes the "
              "encoder's [B, C, r, r, r] latent", c.file);
   SIMU_CHECK(!enc.use_fp16 && !dec.use_fp16,

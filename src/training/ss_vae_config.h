@@ -23,6 +23,10 @@ struct SsVaeModelConfig {
   models::SSEncoderConfig encoder;
   models::SSDecoderConfig decoder;
   std::string export_dtype = "float32";  // "float32" or "float16" (the loaders convert to the parameters' dtype)
+  // "" = train the encoder with the decoder. A folder holding ss_encoder.json / ss_encoder.safetensors =
+  // load that encoder (its config must equal model.encoder) and keep it frozen: only the decoder trains,
+  // on the fixed latent space a Stage 1 was trained on (docs/ss_vae.md, "A decoder for a frozen encoder").
+  std::string frozen_encoder;
   static SsVaeModelConfig from(simu::config::Reader& r);
 };
 
@@ -41,7 +45,11 @@ struct SsVaeLossConfig {
 
 // data: the training shapes (the app draws them from the shape world; data/ss_vae_data.h) and batches.
 struct SsVaeDataConfig {
-  int64_t resolution = 32;    // occupancy grid R (the encoder's input R^3; divisible by its down-sampling)
+  int64_t resolution = 32;    // occupancy grid R of the decoder's target R^3
+  // The encoder's input grid side (0 = resolution). A smaller one (e.g. 16 with resolution 32) trains a
+  // decoder with more up-sampling levels than the encoder has down-sampling levels: the latent of the
+  // coarse grid decoded to the fine one. resolution = encoder_resolution / down-sampling x up-sampling.
+  int64_t encoder_resolution = 0;
   int64_t global_batch = 64;  // shapes per optimizer step over all ranks
   // Training shapes: 0 = a fresh world instance for every sample (an endless stream, nothing repeats);
   // N > 0 = N fixed instances per family, cycled (their grids are cached in memory after first use).
@@ -91,8 +99,10 @@ struct SsVaeConfig {
   // and so are sections that do not fit together (latent channels, grid sizes).
   static SsVaeConfig load(const std::string& path, const std::vector<std::string>& overrides = {});
   static SsVaeConfig from(simu::config::Reader& r);
-  // The latent grid side: resolution / the encoder's down-sampling factor.
-  int64_t latent_resolution() const { return data.resolution / model.encoder.downsample_factor(); }
+  // The encoder's input grid side (data.encoder_resolution, or data.resolution when 0).
+  int64_t encoder_resolution() const { return data.encoder_resolution > 0 ? data.encoder_resolution : data.resolution; }
+  // The latent grid side: the encoder's input side / its down-sampling factor.
+  int64_t latent_resolution() const { return encoder_resolution() / model.encoder.downsample_factor(); }
 };
 
 // What a train_ss_vae run writes under run.out_dir (a fresh run refuses them without --overwrite).

@@ -110,6 +110,9 @@ VaeBatch BatchLoader::make(const ShapeSet& shapes, const LoaderOptions& o, int64
   noise_shape.insert(noise_shape.end(), o.latent_shape.begin(), o.latent_shape.end());
   batch.occupancy = torch::empty({b, 1, R, R, R}, torch::TensorOptions().dtype(torch::kUInt8).pinned_memory(o.pin_memory));
   batch.noise = torch::empty(noise_shape, torch::TensorOptions().dtype(torch::kFloat32).pinned_memory(o.pin_memory));
+  const int64_t Ri = shapes.input_resolution;
+  if (shapes.input_occupancy)
+    batch.input = torch::empty({b, 1, Ri, Ri, Ri}, torch::TensorOptions().dtype(torch::kUInt8).pinned_memory(o.pin_memory));
   // Each sample writes its own rows: [j] of the grid and of the noise.
   parallel_for_each(b, o.workers, [&](int64_t j) {
     const int64_t i = batch.index[j];
@@ -118,6 +121,13 @@ VaeBatch BatchLoader::make(const ShapeSet& shapes, const LoaderOptions& o, int64
     SIMU_CHECK(static_cast<int64_t>(grid.size()) == R * R * R, "shape {} seed {} (sample {}): occupancy of {} voxels, {} expected",
                key.family, key.seed, i, grid.size(), R * R * R);
     std::memcpy(batch.occupancy[j].data_ptr<uint8_t>(), grid.data(), grid.size());
+    if (shapes.input_occupancy) {
+      const auto in = shapes.input_occupancy(key);
+      SIMU_CHECK(static_cast<int64_t>(in.size()) == Ri * Ri * Ri,
+                 "shape {} seed {} (sample {}): encoder input of {} voxels, {} expected", key.family, key.seed, i,
+                 in.size(), Ri * Ri * Ri);
+      std::memcpy(batch.input[j].data_ptr<uint8_t>(), in.data(), in.size());
+    }
     batch.noise[j].copy_(sample_noise(o.noise_seed, i, o.latent_shape));
   });
   return batch;

@@ -33,8 +33,12 @@ using OccupancyFn = std::function<std::vector<uint8_t>(const ShapeKey&)>;
 // Where the VAE's shapes come from.
 struct ShapeSet {
   int64_t resolution = 32;
-  // The occupancy of a shape; called from several threads at once.
+  // The occupancy of a shape (the decoder's target); called from several threads at once.
   OccupancyFn occupancy;
+  // The encoder's input when it reads another grid than the target (a coarser one: a decoder trained to
+  // up-sample a frozen encoder's latent); unset = the encoder reads `occupancy`.
+  int64_t input_resolution = 0;
+  OccupancyFn input_occupancy;
   // The index-th shape of the training stream (any index >= 0; deterministic in index).
   std::function<ShapeKey(int64_t index)> train;
   // Fixed evaluation lists, decided before training: validation (tuning, logged during training) and
@@ -56,6 +60,7 @@ struct VaeBatch {
   int64_t step = 0;
   std::vector<int64_t> index;  // the samples' stream indices
   torch::Tensor occupancy;     // uint8 [b, 1, R, R, R] (pinned host memory when the loader pins)
+  torch::Tensor input;         // uint8 [b, 1, Ri, Ri, Ri]: the encoder's grid when the set has input_occupancy, else undefined
   torch::Tensor noise;         // float32 [b, C, r, r, r] (pinned likewise)
 };
 

@@ -53,20 +53,28 @@ std::vector<double> reconstruction_iou(models::SparseStructureEncoderImpl& encod
   torch::NoGradGuard no_grad;
   for (int64_t start = 0; start < n; start += batch) {
     const int64_t b = std::min(batch, n - start);
-    // The chunk's grids, made in parallel, one row each.
+    // The chunk's grids (and the encoder's, when it reads another), made in parallel, one row each.
+    const int64_t Ri = shapes.input_occupancy ? shapes.input_resolution : R;
     auto grids = torch::empty({b, 1, R, R, R}, torch::kUInt8);
+    auto inputs = shapes.input_occupancy ? torch::empty({b, 1, Ri, Ri, Ri}, torch::kUInt8) : grids;
     parallel_for_each(b, workers, [&](int64_t j) {
       const auto& key = keys[start + j];
       const auto g = shapes.occupancy(key);
       SIMU_CHECK(static_cast<int64_t>(g.size()) == R * R * R, "shape {} seed {}: occupancy of {} voxels, {} expected",
                  key.family, key.seed, g.size(), R * R * R);
       std::memcpy(grids[j].data_ptr<uint8_t>(), g.data(), g.size());
+      if (!shapes.input_occupancy) return;
+      const auto in = shapes.input_occupancy(key);
+      SIMU_CHECK(static_cast<int64_t>(in.size()) == Ri * Ri * Ri, "shape {} seed {}: encoder input of {} voxels, {} expected",
+                 key.family, key.seed, in.size(), Ri * Ri * Ri);
+      std::memcpy(inputs[j].data_ptr<uint8_t>(), in.data(), in.size());
     });
-    const auto occ = (grids > 0).to(device, torch::kFloat32);  // [b, 1, R, R, R]
+    const auto occ = (grids > 0).to(device, torch::kFloat32);   // [b, 1, R, R, R]
+    const auto in = (inputs > 0).to(device, torch::kFloat32);   // [b, 1, Ri, Ri, Ri]
     torch::Tensor logits;
     {
       models::Autocast ac(models::Precision::kBf16, bf16 && device.is_cuda());
-      const auto mean = encoder.posterior(occ).first;
+      const auto mean = encoder.posterior(in).first;
       logits = decoder.forward(mean).to(torch::kFloat32);
     }
     const auto iou = occupancy_iou(logits, occ).to(torch::kCPU, torch::kFloat64);

@@ -65,6 +65,9 @@ SsVaeTrainer::SsVaeTrainer(SsVaeConfig cfg, std::shared_ptr<const ShapeSet> shap
   SIMU_CHECK(shapes_ && shapes_->resolution == cfg_.data.resolution,
              "{}: data.resolution {} but the shape set makes {}^3 grids", cfg_.file, cfg_.data.resolution,
              shapes_ ? shapes_->resolution : 0);
+  const int64_t input_side = shapes_->input_occupancy ? shapes_->input_resolution : shapes_->resolution;
+  SIMU_CHECK(input_side == cfg_.encoder_resolution(), "{}: the encoder reads {}^3 grids but the shape set makes {}^3 ones for it",
+             cfg_.file, cfg_.encoder_resolution(), input_side);
   if (cfg_.data.global_batch % comm_.world_size() != 0)
     fail_hint("choose data.global_batch as a multiple of the number of ranks",
               "{}: data.global_batch {} is not divisible by the world size {}", cfg_.file, cfg_.data.global_batch,
@@ -76,9 +79,10 @@ SsVaeTrainer::SsVaeTrainer(SsVaeConfig cfg, std::shared_ptr<const ShapeSet> shap
   decoder_ = models::SparseStructureDecoder(cfg_.model.decoder);
   zero_residual_convs(*encoder_);
   zero_residual_convs(*decoder_);
+  if (frozen_encoder()) load_frozen_encoder();
   encoder_->to(device_);
   decoder_->to(device_);
-  encoder_->train();
+  encoder_->train(!frozen_encoder());
   decoder_->train();
   opt_ = std::make_unique<AdamW>(named_weights(), cfg_.optim);
   if (cfg_.train.ema_rate > 0) {
@@ -106,9 +110,23 @@ LoaderOptions SsVaeTrainer::loader_options(int64_t start_step) const {
   return o;
 }
 
+void SsVaeTrainer::load_frozen_encoder() {
+  const std::string dir = cfg_.model.frozen_encoder;
+  auto loaded = models::load_ss_encoder(dir + "/ss_encoder.json", dir + "/ss_encoder.safetensors", torch::kCPU);
+  // The loaded encoder must be the one the config describes (the latent the decoder learns to read).
+  const auto got = encoder_json(loaded->config()), want = encoder_json(cfg_.model.encoder);
+  if (got != want)
+    fail_hint("copy model.encoder from " + dir + "/ss_encoder.json",
+              "{}: model.frozen_encoder {}: its ss_encoder.json is {} but model.encoder says {}", cfg_.file, dir,
+              got.dump(), want.dump());
+  encoder_ = loaded;
+  for (auto& p : encoder_->parameters()) p.set_requires_grad(false);
+}
+
 std::vector<std::pair<std::string, torch::Tensor>> SsVaeTrainer::named_weights() const {
   std::vector<std::pair<std::string, torch::Tensor>> out;
-  for (const auto& p : encoder_->named_parameters()) out.emplace_back("encoder." + p.key(), p.value());
+  if (!frozen_encoder())
+    for (const auto& p : encoder_->named_parameters()) out.emplace_back("encoder." + p.key(), p.value());
   for (const auto& p : decoder_->named_parameters()) out.emplace_back("decoder." + p.key(), p.value());
   return out;
 }
@@ -123,13 +141,19 @@ SsVaeTrainer::Pending SsVaeTrainer::issue_step() {
   const bool cuda = device_.is_cuda();
   // Pinned batches copy asynchronously on CUDA (the host does not wait for the device here).
   const auto occ = (batch.occupancy.to(device_, /*non_blocking=*/cuda) > 0).to(torch::kFloat32);  // [b, 1, R, R, R]
+  const auto input = batch.input.defined() ? (batch.input.to(device_, /*non_blocking=*/cuda) > 0).to(torch::kFloat32)
+                                           : occ;                                               // [b, 1, Ri, Ri, Ri]
   const auto noise = batch.noise.to(device_, /*non_blocking=*/cuda);                              // [b, C, r, r, r]
   opt_->zero_grad();
-  // Forward: the posterior, a sample of it with the batch's noise, its decode (bf16 autocast on CUDA).
+  // Forward: the posterior (no graph when the encoder is frozen), a sample of it with the batch's
+  // noise, its decode (bf16 autocast on CUDA).
   torch::Tensor mean, logvar, logits;
   {
     models::Autocast ac(models::Precision::kBf16, cfg_.train.precision == "bf16" && cuda);
-    std::tie(mean, logvar) = encoder_->posterior(occ);  // float32
+    {
+      torch::AutoGradMode grad(!frozen_encoder());
+      std::tie(mean, logvar) = encoder_->posterior(input);  // float32
+    }
     logits = decoder_->forward(models::sample_posterior(mean, logvar, noise));
   }
   const auto terms = ss_vae_terms(logits.to(torch::kFloat32), occ, mean, logvar, cfg_.loss);
@@ -222,6 +246,7 @@ CheckpointData SsVaeTrainer::checkpoint_data() const {
   for (const auto& [name, e] : ema_) d.optimizer[name] = e.to(torch::kCPU).clone();
   std::ostringstream cfg;
   cfg << cfg_.resolved;
+  // A frozen encoder is not in the checkpoint: resume reloads it from model.frozen_encoder.
   // The data stream restarts at the step: its samples are a function of the step alone.
   d.state = {{"data_position", {{"epoch", 0}, {"step", step_}}},
              {"seed", cfg_.train.seed},
@@ -313,6 +338,8 @@ void SsVaeTrainer::export_weights(const std::string& dir) const {
   const auto dtype = cfg_.model.export_dtype == "float16" ? torch::kFloat16 : torch::kFloat32;
   // The EMA weights when kept, else the live ones; names without the encoder./decoder. prefix.
   std::map<std::string, torch::Tensor> enc, dec;
+  if (frozen_encoder())
+    for (const auto& p : encoder_->named_parameters()) enc[p.key()] = p.value().detach().to(torch::kCPU, dtype).contiguous();
   const auto weights = named_weights();
   for (size_t i = 0; i < weights.size(); ++i) {
     const auto& [name, p] = weights[i];
@@ -354,9 +381,12 @@ void SsVaeTrainer::run() {
                                                    "iou", "shapes");
     int64_t params = 0;
     for (const auto& [name, p] : named_weights()) params += p.numel();
-    simu::log::info("SS-VAE: {} steps from step {}, global batch {} over {} rank(s), {}^3 -> {} x {}^3, {:.2f} M parameters, {}",
-                    cfg_.train.steps, step_, cfg_.data.global_batch, comm_.world_size(), cfg_.data.resolution,
-                    cfg_.model.encoder.latent_channels, cfg_.latent_resolution(), params / 1e6, device_.str());
+    simu::log::info("SS-VAE: {} steps from step {}, global batch {} over {} rank(s), {}^3 -> {} x {}^3 -> {}^3, {:.2f} M "
+                    "trained parameters{}, {}",
+                    cfg_.train.steps, step_, cfg_.data.global_batch, comm_.world_size(), cfg_.encoder_resolution(),
+                    cfg_.model.encoder.latent_channels, cfg_.latent_resolution(), cfg_.data.resolution, params / 1e6,
+                    frozen_encoder() ? " (the decoder; encoder frozen from " + cfg_.model.frozen_encoder + ")" : "",
+                    device_.str());
   }
   // A step's metrics are read after the next step is issued (the device never idles for the host),
   // except before a checkpoint, a validation and the end.
@@ -368,12 +398,20 @@ void SsVaeTrainer::run() {
     log_scalars(m.step, m.scalars());
     if (lead && logs_->progress) logs_->progress->update(m.step, m.loss, m.iou, m.lr, m.shapes_per_s);
   };
-  while (step_ < cfg_.train.steps) {
+  // This run's end: train.steps, or earlier (run.stop_at_step, run.stop_after_s: a checkpoint, no export).
+  const int64_t end = cfg_.run.stop_at_step > 0 ? std::min(cfg_.run.stop_at_step, cfg_.train.steps) : cfg_.train.steps;
+  const auto began = Clock::now();
+  bool stopped = false;
+  while (step_ < end && !stopped) {
     auto p = issue_step();
     drain();
     pending = p;
-    const bool last = step_ == cfg_.train.steps;
-    const bool checkpoint = last || (cfg_.run.checkpoint_every > 0 && step_ % cfg_.run.checkpoint_every == 0);
+    // Every rank takes rank 0's decision to stop on time (the clocks differ).
+    if (cfg_.run.stop_after_s > 0)
+      stopped = comm_.all_reduce_sum({lead && seconds_since(began) > cfg_.run.stop_after_s ? 1.0 : 0.0})[0] > 0;
+    const bool last = step_ == cfg_.train.steps, pause = !last && (step_ == end || stopped);
+    const bool checkpoint =
+        last || pause || (cfg_.run.checkpoint_every > 0 && step_ % cfg_.run.checkpoint_every == 0);
     const bool validate = cfg_.eval.every > 0 && step_ % cfg_.eval.every == 0 && !shapes_->val.empty();
     if (checkpoint || validate || !device_.is_cuda()) drain();
     if (validate && lead) {
@@ -384,6 +422,15 @@ void SsVaeTrainer::run() {
   }
   drain();
   if (lead && logs_->progress) logs_->progress->finish();
+  if (step_ < cfg_.train.steps) {
+    if (lead)
+      simu::log::info("stopped at step {} of {} ({}); checkpoint in {}/checkpoints: continue with --resume latest", step_,
+                      cfg_.train.steps,
+                      stopped ? fmt::format("run.stop_after_s {}", cfg_.run.stop_after_s) : "run.stop_at_step", out);
+    comm_.barrier();
+    logs_.reset();
+    return;
+  }
   // The end: the exported weights and the test split's table (rank 0), then every rank leaves together.
   if (lead) {
     export_weights(out + "/weights");

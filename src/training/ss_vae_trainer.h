@@ -16,6 +16,10 @@
 // Checkpoint layout (checkpoint.h): adapter.safetensors holds the trained weights under
 // "encoder.<official name>" / "decoder.<official name>", optimizer.safetensors the AdamW state of
 // those names plus the EMA weights "ema.<name>" when train.ema_rate > 0.
+//
+// With model.frozen_encoder the encoder is loaded from that folder and never changes (no gradient, no
+// AdamW state, no EMA, not in checkpoints; the export copies it): only the decoder trains, e.g. a
+// decoder with one more up-sampling level that reads a shipped encoder's latent of a coarser grid.
 #pragma once
 
 #include <torch/torch.h>
@@ -90,8 +94,11 @@ class SsVaeTrainer {
   };
   Pending issue_step();
   SsVaeStepMetrics finish(const Pending& p);
-  // Weights as named tensors: "encoder.<name>", "decoder.<name>" (the live parameters).
+  // The trained weights as named tensors: "encoder.<name>" (unless frozen), "decoder.<name>" (live).
   std::vector<std::pair<std::string, torch::Tensor>> named_weights() const;
+  bool frozen_encoder() const { return !cfg_.model.frozen_encoder.empty(); }
+  // Replaces encoder_ by model.frozen_encoder's (strict names and shapes), without gradients.
+  void load_frozen_encoder();
   void update_ema(const torch::Tensor& skip);
   // Swaps the EMA weights into the networks (and back: call twice) for evaluation and export.
   void swap_ema();

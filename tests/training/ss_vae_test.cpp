@@ -17,8 +17,9 @@ namespace {
 
 constexpr int64_t R = 16;
 
-// A ball or a box of seeded size and centre in an R^3 grid (x-major flat index).
-std::vector<uint8_t> synthetic_occupancy(const ShapeKey& key) {
+// A ball or a box of seeded size and centre in a side^3 grid (x-major flat index), in units of the
+// 16^3 grid (a 32^3 grid holds the same shape at twice the detail).
+std::vector<uint8_t> synthetic_occupancy_at(const ShapeKey& key, int64_t side) {
   uint64_t h = simu::splitmix64(key.seed);
   auto uniform = [&](double lo, double hi) {
     h = simu::splitmix64(h);
@@ -27,17 +28,20 @@ std::vector<uint8_t> synthetic_occupancy(const ShapeKey& key) {
   const double cx = uniform(6, 10), cy = uniform(6, 10), cz = uniform(6, 10);
   const double a = uniform(2, 5), b = uniform(2, 5), c = uniform(2, 5);
   SIMU_CHECK(key.family == "ball" || key.family == "box", "no synthetic family '{}'", key.family);
-  std::vector<uint8_t> g(R * R * R, 0);
-  for (int64_t x = 0; x < R; ++x)
-    for (int64_t y = 0; y < R; ++y)
-      for (int64_t z = 0; z < R; ++z) {
-        const double dx = (x + 0.5 - cx) / a, dy = (y + 0.5 - cy) / b, dz = (z + 0.5 - cz) / c;
+  const double u = static_cast<double>(R) / static_cast<double>(side);  // 16^3 units per voxel
+  std::vector<uint8_t> g(side * side * side, 0);
+  for (int64_t x = 0; x < side; ++x)
+    for (int64_t y = 0; y < side; ++y)
+      for (int64_t z = 0; z < side; ++z) {
+        const double dx = ((x + 0.5) * u - cx) / a, dy = ((y + 0.5) * u - cy) / b, dz = ((z + 0.5) * u - cz) / c;
         const bool in = key.family == "ball" ? dx * dx + dy * dy + dz * dz <= 1
                                              : std::abs(dx) <= 1 && std::abs(dy) <= 1 && std::abs(dz) <= 1;
-        g[(x * R + y) * R + z] = in ? 1 : 0;
+        g[(x * side + y) * side + z] = in ? 1 : 0;
       }
   return g;
 }
+
+std::vector<uint8_t> synthetic_occupancy(const ShapeKey& key) { return synthetic_occupancy_at(key, R); }
 
 std::shared_ptr<ShapeSet> synthetic_set() {
   auto s = std::make_shared<ShapeSet>();
@@ -365,7 +369,8 @@ TEST(SsVae, MiniatureConfig) {
   EXPECT_EQ(cfg.model.decoder.upsample_factor(), 4);
   for (const auto& [set, key] : std::vector<std::pair<std::string, std::string>>{
            {"model.decoder.latent_channels=4", "latent_channels"},
-           {"model.decoder.channels=[64, 32]", "up-samples"},
+           {"model.decoder.channels=[64, 32]", "up-sampling"},
+           {"data.encoder_resolution=20", "encoder_resolution"},
            {"data.resolution=30", "resolution"},
            {"loss.dice=0", "loss"},
            {"train.ema_rate=1", "ema_rate"},
@@ -374,4 +379,95 @@ TEST(SsVae, MiniatureConfig) {
     EXPECT_NE(msg.find(key), std::string::npos) << set << ": " << msg;
     EXPECT_NE(msg.find("ss_vae.yaml"), std::string::npos) << set << ": " << msg;
   }
+}
+
+// A decoder trained on a frozen encoder's latent of a coarser grid (model.frozen_encoder,
+// data.encoder_resolution): the encoder reads 8^3, the decoder learns the same shapes at 16^3; the
+// encoder's weights never change, only the decoder is checkpointed and trained, the export carries the
+// frozen encoder unchanged, and an encoder that differs from model.encoder is refused by name.
+TEST(SsVae, FrozenEncoderDecoderLearnsAFinerGrid) {
+  auto comm = make_solo_communicator();
+  constexpr int64_t C = R / 2;  // the coarse side
+  const auto two_shapes = [](int64_t i) { return ShapeKey{i % 2 ? "box" : "ball", static_cast<uint64_t>(i % 2)}; };
+  // A small VAE at 8^3 (4 x 4^3 latent) fitted to the two shapes and exported: the frozen encoder.
+  auto coarse = std::make_shared<ShapeSet>(*synthetic_set());
+  coarse->resolution = C;
+  coarse->occupancy = [](const ShapeKey& k) { return synthetic_occupancy_at(k, C); };
+  coarse->train = two_shapes;
+  const auto first = simu::testing::temp_dir("ss_vae_frozen_first");
+  const std::vector<std::string> vae = {"data.resolution=8", "model.encoder.channels=[8, 16]",
+                                        "model.decoder.channels=[16, 8]", "loss.lambda_kl=0.001", "optim.lr=0.01"};
+  {
+    SsVaeTrainer t(tiny_config(first, 60, 2, 0.0, vae), coarse, *comm, torch::kCPU);
+    t.run();
+  }
+  auto enc8 = simu::models::load_ss_encoder(first + "/weights/ss_encoder.json", first + "/weights/ss_encoder.safetensors");
+  // The fine set: 16^3 targets, the encoder's 8^3 grid of the same shape.
+  auto set = std::make_shared<ShapeSet>(*synthetic_set());
+  set->input_resolution = C;
+  set->input_occupancy = [](const ShapeKey& k) { return synthetic_occupancy_at(k, C); };
+  set->train = two_shapes;
+  const int steps = 40;
+  const auto out = simu::testing::temp_dir("ss_vae_frozen");
+  const std::vector<std::string> fine = {"model.frozen_encoder=" + first + "/weights", "data.encoder_resolution=8",
+                                         "model.encoder.channels=[8, 16]", "model.decoder.channels=[16, 8, 8]",
+                                         "loss.lambda_kl=0.001", "optim.lr=0.01"};
+  auto cfg = tiny_config(out, steps, 2, 0.0, fine);
+  EXPECT_EQ(cfg.latent_resolution(), 4);
+  SsVaeTrainer t(cfg, set, *comm, torch::kCPU);
+  std::vector<SsVaeStepMetrics> m;
+  for (int s = 0; s < steps; ++s) m.push_back(t.step());
+  std::printf("frozen encoder: loss %.4f -> %.4f, 16^3 train IoU %.3f -> %.3f\n", m[0].loss, m.back().loss, m[0].iou,
+              m.back().iou);
+  EXPECT_LT(m.back().loss, 0.5 * m[0].loss);
+  EXPECT_GT(m.back().iou, 0.6);
+  // The encoder is the exported one, bit for bit, and nothing of it is trained or checkpointed.
+  const auto live_enc = t.encoder()->named_parameters();
+  for (const auto& p : enc8->named_parameters()) EXPECT_TRUE(torch::equal(live_enc[p.key()], p.value())) << p.key();
+  for (const auto& [k, v] : t.checkpoint_data().adapter) EXPECT_EQ(k.rfind("decoder.", 0), 0u) << k;
+  // The decoder maps the 4^3 latent to 16^3 logits.
+  const auto latent = t.encoder()->posterior(torch::zeros({1, 1, C, C, C})).first;
+  EXPECT_EQ(t.decoder()->forward(latent).sizes(), (std::vector<int64_t>{1, 1, R, R, R}));
+  // The test table reads 8^3 inputs against 16^3 targets; the export carries the frozen encoder
+  // unchanged (float32 export: the same bits) and the new decoder.
+  const auto test = t.evaluate(set->test);
+  EXPECT_EQ(test.n_seen + test.n_held_out, 4);
+  t.export_weights(out + "/weights");
+  auto enc = simu::models::load_ss_encoder(out + "/weights/ss_encoder.json", out + "/weights/ss_encoder.safetensors");
+  for (const auto& p : enc8->named_parameters()) EXPECT_TRUE(torch::equal(enc->named_parameters()[p.key()], p.value())) << p.key();
+  auto dec = simu::models::load_ss_decoder(out + "/weights/ss_decoder.json", out + "/weights/ss_decoder.safetensors");
+  EXPECT_EQ(dec->config().upsample_factor(), 4);
+  // An encoder config that is not the frozen one's is refused, naming the key and the folder.
+  auto bad_sets = fine;
+  bad_sets.push_back("model.encoder.channels=[8, 12]");
+  auto bad = tiny_config(out + "_bad", 1, 2, 0.0, bad_sets);
+  const auto msg = simu::testing::error_of([&] { SsVaeTrainer b(bad, set, *comm, torch::kCPU); });
+  EXPECT_NE(msg.find("model.frozen_encoder"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("channels"), std::string::npos) << msg;
+}
+
+// run.stop_at_step ends a run early with a checkpoint and no export (as the FM-DPO trainer's), and a
+// resumed run finishes it; run.stop_after_s takes the same path on time.
+TEST(SsVae, RunStopsEarlyAndResumes) {
+  auto comm = make_solo_communicator();
+  const auto out = simu::testing::temp_dir("ss_vae_stop");
+  {
+    SsVaeTrainer t(tiny_config(out, 4, 4, 0.9, {"run.stop_at_step=2"}), synthetic_set(), *comm, torch::kCPU);
+    t.run();
+    EXPECT_EQ(t.steps_done(), 2);
+  }
+  EXPECT_FALSE(std::filesystem::exists(out + "/weights"));
+  EXPECT_FALSE(std::filesystem::exists(out + "/eval.json"));
+  SsVaeTrainer t(tiny_config(out, 4), synthetic_set(), *comm, torch::kCPU);
+  t.resume(latest_checkpoint(out + "/checkpoints").value());
+  EXPECT_EQ(t.steps_done(), 2);
+  t.run();
+  EXPECT_EQ(t.steps_done(), 4);
+  EXPECT_TRUE(std::filesystem::exists(out + "/weights/ss_decoder.safetensors"));
+  // A time limit reached after the first step stops there.
+  const auto out2 = simu::testing::temp_dir("ss_vae_stop_s");
+  SsVaeTrainer u(tiny_config(out2, 4, 4, 0.9, {"run.stop_after_s=1e-9"}), synthetic_set(), *comm, torch::kCPU);
+  u.run();
+  EXPECT_EQ(u.steps_done(), 1);
+  EXPECT_FALSE(std::filesystem::exists(out2 + "/weights"));
 }
