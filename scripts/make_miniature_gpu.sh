@@ -45,5 +45,12 @@ case "${1:-}" in
       INIT=runs/gpu_pair_back/stage1_cpu/model/ss_generator.safetensors CACHE_SEED=7000000 FMDPO=0 \
       EXTRA="--set optim.lr=4e-4 --set optim.warmup_steps=200 --set train.seed=1 --set data.seed=1" \
       DEADLINE_S="${DEADLINE_S:-565}" bash scripts/gpu_stage1_pair.sh ;;
+  continue5)
+    # The fifth Stage 1 (docs/rules/stage1_v5.md): the fourth's EMA export trained on again, on fresh scenes.
+    # Carry runs/gpu_v4_back/stage1_cont/model/ss_generator.safetensors and runs/ss_vae_cpu/weights.
+    STATE_DIR=runs/gpu_v5 VARIANTS="cont5:configs/miniature_cpu" RANKS=2 STEPS="${STEPS:-6500}" \
+      INIT=runs/gpu_v4_back/stage1_cont/model/ss_generator.safetensors CACHE_SEED=8000000 FMDPO=0 \
+      EXTRA="--set optim.lr=4e-4 --set optim.warmup_steps=200 --set train.seed=2 --set data.seed=2" \
+      DEADLINE_S="${DEADLINE_S:-565}" bash scripts/gpu_stage1_pair.sh ;;
   *) sed -n '2,32p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
 esac
