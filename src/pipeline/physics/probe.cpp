@@ -161,8 +161,9 @@ void stretch_object(Ctx& c, int i, const Diagnostics& d, const CorrectionConfig&
 // its pre-simulation OBB and the diagnostic displacements (gravity-most-aligned axis, rho, eta), the
 // desired OBB B_str and the branch: wall-anchored objects keep their geometry and constrained pose,
 // rho >= threshold asks for a resample (the object stays where the diagnostic left it until then),
-// else the stretch is applied now. Returns whether the object needs resampling. A degenerate OBB or
-// non-finite numbers keep the diagnostic pose, flagged, without a correction.
+// as does an id of ProbeConfig::force_resample (flagged "forced_resample"; diagnosis.branch keeps what
+// the rule said), else the stretch is applied now. Returns whether the object needs resampling. A
+// degenerate OBB or non-finite numbers keep the diagnostic pose, flagged, without a correction.
 bool decide_and_stretch(Ctx& c, int i, Diagnostics& d) {
   try {
     const CorrectionConfig cc = correction_config(c.cfg);
@@ -170,10 +171,16 @@ bool decide_and_stretch(Ctx& c, int i, Diagnostics& d) {
     d.diagnosis.obb_pre = obb_pre;  // kept when diagnose() throws
     d.diagnosis = diagnose(obb_pre, c.scene.gravity, d.dt_pen, d.dt_grv, cc);
     d.obb_target = stretched_obb(d.diagnosis, cc);
+    const auto& forced = c.cfg.force_resample;
+    const bool force = std::find(forced.begin(), forced.end(), c.scene.objects[i].id) != forced.end();
     if (c.scene.objects[i].dof != PoseDof::Free) {
       d.branch = ProbeBranch::Anchored;
-    } else if (d.diagnosis.branch == Branch::Resample) {
+      if (force) add_flag(d, "forced_resample_ignored", "decision.force_resample: anchored objects keep their geometry");
+    } else if (d.diagnosis.branch == Branch::Resample || force) {
       d.branch = ProbeBranch::Resample;
+      if (d.diagnosis.branch != Branch::Resample)
+        add_flag(d, "forced_resample", fmt::format("decision.force_resample: resampled although rho {:.3f} < {}",
+                                                   d.diagnosis.rho, c.cfg.rho_threshold));
       return true;
     } else {
       d.branch = ProbeBranch::Stretch;
@@ -534,6 +541,15 @@ ProbeResult run_probe(const Scene& scene_in, const ProbeConfig& cfg, const std::
   Ctx c{res.scene, cfg, objs, {}, {}};
   if (!out_dir.empty() && cfg.write_outputs && !cfg.overwrite && stdfs::exists(out_dir))
     fail_hint("pass --overwrite (probe) or choose another --out", "output folder {} already exists; not overwritten", out_dir);
+  for (const auto& id : cfg.force_resample) {
+    const bool known = std::any_of(res.scene.objects.begin(), res.scene.objects.end(),
+                                   [&](const SceneObject& o) { return o.id == id; });
+    if (!known) {
+      std::vector<std::string> ids;
+      for (const auto& o : res.scene.objects) ids.push_back(o.id);
+      fail("key 'decision.force_resample': no object '{}' in the scene (objects: {})", id, fmt::join(ids, ", "));
+    }
+  }
 
   load_inputs(c, res.diagnostics);
   if (cfg.evaluate_input && cfg.metrics_settle_time > 0) evaluate_input_scene(c, res);

@@ -10,7 +10,8 @@
 //     normal; <= 200 iterations; > 0.3 m in total or a surviving contact -> physics-disabled);
 //     gravity diagnostics (free: fall until first contact -> dt_grv; point/line anchored: connect
 //     constraints at the top-back pins, simulated until settled -> dR_grv, dt_grv);
-//     decision (rho >= 0.15 -> resample, else gravity-axis stretch; anchored keep their geometry);
+//     decision (rho >= 0.15 -> resample, else gravity-axis stretch; anchored keep their geometry;
+//     ProbeConfig::force_resample names objects resampled regardless of rho);
 //  4. hands every object needing resampling to the ResampleFn in one call (or writes the hand-off);
 //  5. final composition: sequential penetration resolution on the corrected objects, then one
 //     joint settle (free objects 6-DoF, anchored ones on their pins) for T_settle; objects moving
@@ -64,7 +65,7 @@ struct Diagnostics {
   bool physics_disabled = false;
   std::vector<std::string> flags; // e.g. "bad_input", "mesh_error", "outside_room", "physics_disabled",
                                   // "no_support", "solver_reset", "needs_resample", "resample_failed",
-                                  // "reverted", "not_canonical"
+                                  // "reverted", "not_canonical", "forced_resample"
   std::string message;            // human-readable reasons
   // Pre-simulation pose (as read).
   Vec3 t_pre = Vec3::Zero();
@@ -155,6 +156,12 @@ struct ProbeConfig {
   PhysicsConfig physics;
   CollisionConfig collision;
   double rho_threshold = 0.15;     // rho >= this selects resampling
+  // Object ids resampled whatever their rho (not in the paper; to show or study the resampling branch on
+  // objects the rule stretches, e.g. the demo's showcase). Only free objects that reach the decision
+  // (simulated, gravity diagnostics on) are affected; each gets the flag "forced_resample" and the same
+  // hand-off as a triggered one (target OBB B_str from its rho/eta, crop mask M'). An id that names no
+  // object of the scene is an error (run_probe). Empty: the paper's rule alone.
+  std::vector<std::string> force_resample;
   double push_extra = 0.007;       // m added to the deepest contact per push
   int max_pen_iterations = 200;
   double max_pen_total = 0.3;      // m
@@ -255,7 +262,8 @@ struct ProbeResult {
 };
 
 // Runs the whole probe on a scene. out_dir may be "" (nothing written). Never throws for a bad
-// object (it is flagged); throws simu::Error only when the scene as a whole is unusable.
+// object (it is flagged); throws simu::Error only when the scene as a whole is unusable or
+// cfg.force_resample names an object the scene does not have.
 ProbeResult run_probe(const Scene& scene, const ProbeConfig& cfg, const std::string& out_dir,
                       const ResampleFn& resampler = nullptr, const ProbeProgress& progress = nullptr);
 

@@ -4,6 +4,8 @@
 #include <functional>
 #include <optional>
 
+#include <fmt/ranges.h>
+
 #include "common/config.h"
 #include "common/error.h"
 #include "pipeline/physics/probe.h"
@@ -85,6 +87,16 @@ const std::vector<Key>& keys() {
     v.push_back(PK(double, "diagnostics", "pin_region", c.pin_region, "top-back pin region, fraction of the extent (supp. Wall-anchoring)"));
     // decision: Sec. 3.5.
     v.push_back(PK(double, "decision", "rho_threshold", c.rho_threshold, "rho >= this resamples, else stretch; paper: 0.15 (Sec. 3.5)"));
+    v.push_back(Key{"decision", "force_resample",
+                    "object ids resampled whatever their rho (not in the paper; flag forced_resample): [id, ...] or one id",
+                    [](config::Reader& r, ProbeConfig& c) {
+                      if (!r.has("force_resample")) return;
+                      if (r.node()["force_resample"].IsScalar())
+                        c.force_resample = {r.get<std::string>("force_resample", "")};
+                      else
+                        c.force_resample = r.get<std::vector<std::string>>("force_resample", {});
+                    },
+                    [](const ProbeConfig& c) { return fmt::format("[{}]", fmt::join(c.force_resample, ", ")); }});
     // final: final-pass full settling.
     v.push_back(PK(double, "final", "settle_time", c.final_settle_time, "s; T_settle (supp. Final-pass full settling; value not given)"));
     v.push_back(PK(double, "final", "settle_window", c.settle_window, "s; settles stop early once at rest over one window"));
@@ -174,6 +186,8 @@ void ProbeConfig::validate() const {
   nonneg("diagnostics.settle_hold_time", settle_hold_time);
   SIMU_CHECK(pin_region > 0 && pin_region <= 1, "key 'diagnostics.pin_region': expected (0, 1], got {}", pin_region);
   positive("decision.rho_threshold", rho_threshold);
+  for (const auto& id : force_resample)
+    SIMU_CHECK(!id.empty(), "key 'decision.force_resample': an empty object id");
   nonneg("final.settle_time", final_settle_time);
   positive("final.settle_window", settle_window);
   nonneg("final.rest_distance", settle_rest_distance);

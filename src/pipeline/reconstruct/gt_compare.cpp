@@ -178,6 +178,8 @@ std::map<std::string, ProbeOutcome> probe_outcomes(const json& report) {
     p.branch = o.value("branch", std::string());
     if (o.contains("resample") && o["resample"].is_object()) p.resampled = o["resample"].value("resampled", false);
     p.reverted = o.value("reverted", false);
+    if (o.contains("flags") && o["flags"].is_array())
+      for (const json& f : o["flags"]) p.forced = p.forced || f == "forced_resample";
     out[o["id"].get<std::string>()] = p;
   }
   return out;
@@ -225,6 +227,7 @@ json gt_rows_json(const std::vector<GtIouRow>& rows, const std::string& gt_path)
                     {"visible_fraction", r.visible_fraction},
                     {"branch", r.probe.branch},
                     {"resampled", r.probe.resampled},
+                    {"forced_resample", r.probe.forced},
                     {"reverted", r.probe.reverted},
                     {"gt_iou_before", r.before ? json(*r.before) : json(nullptr)},
                     {"gt_iou_after", r.after ? json(*r.after) : json(nullptr)},
@@ -243,6 +246,7 @@ std::string format_gt_table(const std::vector<GtIouRow>& rows) {
   for (const auto& r : rows) {
     // What the probe did, in words.
     std::string did = r.probe.branch.empty() ? "-" : r.probe.branch;
+    if (r.probe.forced) did += ", forced";
     if (r.probe.branch == "resample") did += r.probe.resampled ? " (replaced)" : " (kept input)";
     if (r.probe.reverted) did += ", reverted";
     const std::string change = r.before && r.after ? fmt::format("{:+.3f}", *r.after - *r.before) : "-";

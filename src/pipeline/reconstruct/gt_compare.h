@@ -65,6 +65,7 @@ struct ProbeOutcome {
   std::string branch;        // stretch | resample | anchored | disabled | ...
   bool resampled = false;    // the shape was replaced by a resampled candidate
   bool reverted = false;     // the final settle's motion was reverted
+  bool forced = false;       // resampled only because decision.force_resample named it (flag forced_resample)
 };
 // By object id, from the probe's report.json content (objects without an id are left out).
 std::map<std::string, ProbeOutcome> probe_outcomes(const nlohmann::json& probe_report);

@@ -490,6 +490,8 @@ json write_lift_object(const LiftedObject& o, const torch::Tensor& mask, const s
     sfs::create_directories(sdir);
     json js = {{"sample", s}, {"ok", sh.ok}, {"dir", "objects/" + dir_name + "/" + sname}};
     if (!sh.ok) js["error"] = sh.message;
+    if (sh.retries > 0) js["retries"] = sh.retries;  // empty decodes drawn again (ResamplerConfig::empty_retries)
+    if (sh.ok && sh.retries > 0) js["note"] = sh.message;
     data::write_npy((sdir / "occupancy.npy").string(), occupancy_grid(sh.coords, resolution));
     js["occupied_voxels"] = sh.coords.defined() ? sh.coords.size(0) : 0;
     if (sh.ok) {

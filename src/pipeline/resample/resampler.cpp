@@ -16,6 +16,7 @@
 
 #include "common/error.h"
 #include "common/log.h"
+#include "common/random.h"
 #include "common/timing.h"
 #include "lora/lora.h"
 #include "models/weights.h"
@@ -23,6 +24,10 @@
 namespace simu::resample {
 
 namespace {
+// A sanity bound on ResamplerConfig::empty_retries: each retry is one more sampling of the empty rows.
+constexpr int kMaxEmptyRetries = 100;
+constexpr const char* kNoOccupiedVoxel = "no occupied voxel (every logit <= 0)";
+
 void sync(const torch::Device& d) {
   if (d.is_cuda()) torch::cuda::synchronize(d.index() < 0 ? 0 : d.index());
 }
@@ -75,11 +80,14 @@ ResamplerConfig ResamplerConfig::from(simu::config::Reader& r) {
     o.validate(r.file() + ": step_cache.");
   }
   r.field("num_samples", c.num_samples);
+  r.field("empty_retries", c.empty_retries);
   r.field("decode_batch", c.decode_batch);
   r.field("pose_convention", c.pose_convention);
   r.finish();
   SIMU_CHECK(c.steps > 0 && c.num_samples > 0 && c.decode_batch > 0,
              "{}: steps, num_samples and decode_batch must be positive", r.file());
+  SIMU_CHECK(c.empty_retries >= 0 && c.empty_retries <= kMaxEmptyRetries,
+             "{}: empty_retries must be in [0, {}], got {}", r.file(), kMaxEmptyRetries, c.empty_retries);
   return c;
 }
 
@@ -269,7 +277,7 @@ void mesh_from_logits(const torch::Tensor& logits_in, ResampledShape& out, doubl
   }
   if (out.coords.size(0) == 0) {
     out.ok = false;
-    out.message = "no occupied voxel (every logit <= 0)";
+    out.message = kNoOccupiedVoxel;
     return;
   }
   // Surface at iso 0 in grid units -> official voxel frame -> canonical frame.
@@ -361,6 +369,45 @@ std::vector<torch::Tensor> Resampler::conditions(const std::vector<ResampleReque
   return conds;
 }
 
+uint64_t retry_noise_seed(uint64_t seed, int attempt) {
+  if (attempt <= 0) return seed;
+  // splitmix64(x) is one step of the SplitMix64 generator from state x: its k-th output from state
+  // `seed` is splitmix64(seed + (k - 1) * golden gamma).
+  return splitmix64(seed + static_cast<uint64_t>(attempt - 1) * 0x9E3779B97F4A7C15ULL);
+}
+
+bool empty_occupancy(const ResampledShape& shape) {
+  return !shape.ok && shape.coords.defined() && shape.coords.size(0) == 0;
+}
+
+void sample_with_retries(const std::vector<ResampledShape*>& outs, uint64_t seed, int max_retries,
+                         const SampleAttempt& attempt) {
+  std::vector<size_t> rows(outs.size());
+  for (size_t k = 0; k < rows.size(); ++k) rows[k] = k;
+  attempt(rows, seed);
+  for (int retry = 1; retry <= max_retries; ++retry) {
+    rows.clear();
+    for (size_t k = 0; k < outs.size(); ++k)
+      if (empty_occupancy(*outs[k])) rows.push_back(k);
+    if (rows.empty()) break;
+    for (size_t k : rows) *outs[k] = ResampledShape{};
+    attempt(rows, retry_noise_seed(seed, retry));
+    for (size_t k : rows) outs[k]->retries = retry;
+  }
+  const auto times = [](int n) { return fmt::format("{} time{}", n, n == 1 ? "" : "s"); };
+  for (ResampledShape* out : outs) {
+    if (out->retries == 0) continue;
+    const std::string empties = out->retries == 1 ? "an empty decode" : fmt::format("{} empty decodes", out->retries);
+    if (out->ok)
+      out->message = fmt::format("retried {} with fresh noise after {} (every logit <= 0)", times(out->retries), empties);
+    else if (empty_occupancy(*out))
+      out->message = fmt::format("{} in {} attempts (retried {} with fresh noise)", kNoOccupiedVoxel,
+                                 out->retries + 1, times(out->retries));
+    else
+      out->message = fmt::format("{} (retried {} with fresh noise after {})", out->message, times(out->retries), empties);
+  }
+}
+
 ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests, uint64_t seed) {
   torch::NoGradGuard no_grad;
   ResampleResult result;
@@ -369,63 +416,69 @@ ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests,
   result.objects.assign(requests.size(), std::vector<ResampledShape>(static_cast<size_t>(S)));
   if (n == 0) return result;
   const auto& mc = generator_->config().backbone;
-  // Condition tokens (embedding where needed); check them; group by condition length.
+  // Condition tokens (embedding where needed); check them.
   auto t_embed = std::chrono::steady_clock::now();
   const auto conds_all = conditions(requests);
   result.seconds_embed = seconds_since(t_embed);
-  std::map<int64_t, std::vector<int64_t>> groups;
   for (int64_t i = 0; i < n; ++i) {
     const auto& c = conds_all[i];
     SIMU_CHECK(c.defined() && c.dim() == 2 && c.size(1) == mc.cond_channels,
                "resampler: request {} condition must be [L, {}], got {}", i, mc.cond_channels,
                c.defined() ? fmt::format("{}", c.sizes()) : std::string("nothing"));
-    groups[c.size(0)].push_back(i);
   }
-  // Noise for every (request, sample) row, in request order, from one seeded CPU generator.
-  auto rng = at::make_generator<at::CPUGeneratorImpl>(seed);
-  const models::Latents noise = generator_->noise(n * S, rng, torch::kCPU);
+  // Row k = r * S + s is request r's sample s.
+  std::vector<ResampledShape*> outs;
+  for (auto& samples : result.objects)
+    for (auto& shape : samples) outs.push_back(&shape);
   const auto options = sample_options();
 
-  for (const auto& [L, members] : groups) {
-    // Rows of this group: request r's samples are rows r*S .. r*S+S-1 of the noise.
-    std::vector<int64_t> rows;
-    for (int64_t r : members)
-      for (int64_t s = 0; s < S; ++s) rows.push_back(r * S + s);
-    const auto row_index = torch::tensor(rows, torch::kLong);
-    std::vector<torch::Tensor> conds;
-    for (int64_t r : members) conds.push_back(conds_all[r].to(torch::kFloat32).unsqueeze(0).expand({S, L, mc.cond_channels}));
-    const auto cond = torch::cat(conds, 0).to(device_);  // [rows, L, C]
-    models::Latents x0;
-    for (const auto& [name, v] : noise) x0[name] = v.index_select(0, row_index).to(device_);
+  // One attempt on some rows: noise for every (request, sample) row, in request order, from one CPU
+  // generator seeded with noise_seed; the given rows grouped by condition length (one batched sampling
+  // per length), decoded, posed and meshed.
+  auto attempt = [&](const std::vector<size_t>& rows_in, uint64_t noise_seed) {
+    auto rng = at::make_generator<at::CPUGeneratorImpl>(noise_seed);
+    const models::Latents noise = generator_->noise(n * S, rng, torch::kCPU);
+    std::map<int64_t, std::vector<int64_t>> groups;  // condition length -> rows (ascending)
+    for (size_t k : rows_in) groups[conds_all[static_cast<int64_t>(k) / S].size(0)].push_back(static_cast<int64_t>(k));
+    for (const auto& [L, rows] : groups) {
+      const auto row_index = torch::tensor(rows, torch::kLong);
+      std::vector<torch::Tensor> conds;
+      for (int64_t k : rows) conds.push_back(conds_all[static_cast<size_t>(k / S)].to(torch::kFloat32).unsqueeze(0));
+      const auto cond = torch::cat(conds, 0).to(device_);  // [rows, L, C]
+      models::Latents x0;
+      for (const auto& [name, v] : noise) x0[name] = v.index_select(0, row_index).to(device_);
 
-    // One batched Stage-1 sampling for every object and sample of the group.
-    auto t0 = std::chrono::steady_clock::now();
-    const models::Latents latents = generator_->sample(cond, x0, options);
-    sync(device_);
-    result.seconds_sample += seconds_since(t0);
-    ++result.sampling_calls;
+      // One batched Stage-1 sampling for every row of the group.
+      auto t0 = std::chrono::steady_clock::now();
+      const models::Latents latents = generator_->sample(cond, x0, options);
+      sync(device_);
+      result.seconds_sample += seconds_since(t0);
+      ++result.sampling_calls;
 
-    // Shape -> occupancy logits (batched decoder).
-    t0 = std::chrono::steady_clock::now();
-    const auto logits = decode_logits(latents.at("shape")).to(torch::kCPU);  // [rows, 1, R, R, R]
-    result.seconds_decode += seconds_since(t0);
+      // Shape -> occupancy logits (batched decoder).
+      t0 = std::chrono::steady_clock::now();
+      const auto logits = decode_logits(latents.at("shape")).to(torch::kCPU);  // [rows, 1, R, R, R]
+      result.seconds_decode += seconds_since(t0);
 
-    // Per row: latents and pose, then mesh.
-    t0 = std::chrono::steady_clock::now();
-    std::vector<ResampledShape*> outs;
-    std::vector<const ResampleRequest*> reqs;
-    for (size_t k = 0; k < rows.size(); ++k) {
-      const int64_t r = members[k / static_cast<size_t>(S)], s = static_cast<int64_t>(k) % S;
-      outs.push_back(&result.objects[r][s]);
-      reqs.push_back(&requests[r]);
+      // Per row: latents and pose, then mesh.
+      t0 = std::chrono::steady_clock::now();
+      std::vector<ResampledShape*> group_outs;
+      std::vector<const ResampleRequest*> reqs;
+      for (int64_t k : rows) {
+        group_outs.push_back(outs[static_cast<size_t>(k)]);
+        reqs.push_back(&requests[static_cast<size_t>(k / S)]);
+      }
+      decode_poses(latents, reqs, group_outs, config_.pose_convention);
+      mesh_rows(logits, group_outs, config_.surface_offset);
+      result.seconds_mesh += seconds_since(t0);
     }
-    decode_poses(latents, reqs, outs, config_.pose_convention);
-    mesh_rows(logits, outs, config_.surface_offset);
-    for (size_t k = 0; k < rows.size(); ++k) {
-      const int64_t r = members[k / static_cast<size_t>(S)], s = static_cast<int64_t>(k) % S;
-      if (!result.objects[r][s].ok) simu::log::warn("resampler: request {} sample {}: {}", r, s, result.objects[r][s].message);
-    }
-    result.seconds_mesh += seconds_since(t0);
+  };
+  sample_with_retries(outs, seed, config_.empty_retries, attempt);
+  for (size_t k = 0; k < outs.size(); ++k) {
+    const ResampledShape& out = *outs[k];
+    if (!out.ok || out.retries > 0)
+      simu::log::warn("resampler: request {} sample {}: {}", k / static_cast<size_t>(S), k % static_cast<size_t>(S),
+                      out.message);
   }
   return result;
 }

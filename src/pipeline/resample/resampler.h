@@ -107,6 +107,12 @@ struct ResamplerConfig {
   // chosen on the validation split, docs/miniature.md), else 0. The occupied voxels (coords) do not move.
   double surface_offset = std::numeric_limits<double>::quiet_NaN();
   int num_samples = 1;    // shapes drawn per object
+  // A sample whose decoded occupancy is empty (no logit > 0: no occupied voxel) is drawn again with
+  // fresh noise, at most this many more times (0 = off): retry k draws the noise of every row from a CPU
+  // generator seeded with retry_noise_seed(seed, k) and keeps the empty rows' (so a retry does not
+  // depend on which other rows were empty). Such a sample's `retries` counts the redraws and its message
+  // says "retried N times"; only when every attempt is empty does it fail (ok false), as without retries.
+  int empty_retries = 2;
   int decode_batch = 8;   // objects per decoder forward
   std::string pose_convention = "ScaleShiftInvariant";  // see models::PoseDecodeOptions
 
@@ -125,7 +131,8 @@ struct ResampleRequest {
 // One sampled shape of one object.
 struct ResampledShape {
   bool ok = false;      // false when no voxel is occupied (then mesh is empty)
-  std::string message;  // why not ok
+  std::string message;  // why not ok; for an ok sample drawn again after empty decodes, "retried N times ..."
+  int retries = 0;      // fresh-noise redraws after empty decodes (ResamplerConfig::empty_retries)
   Mesh mesh;              // canonical frame: AABB centred, longest side 1
   CanonicalTransform canonical;   // official voxel frame ([-0.5, 0.5]^3) -> canonical
   torch::Tensor coords;           // [N, 3] int32 occupied voxels (x, y, z) of the 64^3 grid
@@ -158,7 +165,8 @@ class Resampler {
 
   // Samples num_samples shapes per request in one batched call per condition length, decodes them.
   // Noise: drawn for all (request, sample) rows in request order from a CPU generator seeded with
-  // `seed`, so results do not depend on the device or on the batch composition's grouping.
+  // `seed`, so results do not depend on the device or on the batch composition's grouping. Rows whose
+  // occupancy came out empty are sampled again (ResamplerConfig::empty_retries; sample_with_retries).
   ResampleResult resample(const std::vector<ResampleRequest>& requests, uint64_t seed);
 
   // Decodes shape latents [B, T, 8] -> occupancy logits [B, 1, R, R, R] (decoder batched by decode_batch).
@@ -204,6 +212,23 @@ class Resampler {
   bool has_adapter_ = false;
   std::string random_banner_, shipped_note_;
 };
+
+// The noise seed of retry `attempt` (1, 2, ...) of a resample() call seeded with `seed`: the attempt-th
+// output of the SplitMix64 generator started at state `seed` (common/random.h); attempt 0 is `seed`.
+uint64_t retry_noise_seed(uint64_t seed, int attempt);
+
+// True when a sample failed because its decoded occupancy has no occupied voxel (mesh_from_logits).
+bool empty_occupancy(const ResampledShape& shape);
+
+// One sampling attempt: fills *outs[k] for each k of `rows` from noise drawn with `noise_seed`.
+using SampleAttempt = std::function<void(const std::vector<size_t>& rows, uint64_t noise_seed)>;
+
+// Runs `attempt` on every row with `seed`, then, while some rows are empty (empty_occupancy) and at most
+// `max_retries` times, on those rows alone with retry_noise_seed(seed, k) (each reset before its redraw).
+// A row drawn again gets `retries` and, when a redraw succeeds, the message "retried N times: ..."; a row
+// empty after every attempt keeps ok false with a message naming the attempts. resample() runs through it.
+void sample_with_retries(const std::vector<ResampledShape*>& outs, uint64_t seed, int max_retries,
+                         const SampleAttempt& attempt);
 
 // Per batch row k: outs[k]'s latents (row k of `latents`, on the CPU) and its pose decoded in
 // `convention` with requests[k]'s scene scale and shift (models::decode_pose).

@@ -116,6 +116,12 @@ TEST(ProbeConfig, EveryKeyTakesSetAndRejectsTheWrongType) {
   EXPECT_FALSE(c.collision.use_coacd);
   EXPECT_EQ(c.max_pen_iterations, 50);
   EXPECT_EQ(c.collision.cache_dir, "/tmp/x");
+  EXPECT_TRUE(c.force_resample.empty());
+  // decision.force_resample takes a list of ids or one id.
+  EXPECT_EQ(ProbeConfig::load("configs/probe.yaml", {"decision.force_resample=[a, b_2]"}).force_resample,
+            (std::vector<std::string>{"a", "b_2"}));
+  EXPECT_EQ(ProbeConfig::load("", {"decision.force_resample=obj02_wedge"}).force_resample,
+            std::vector<std::string>{"obj02_wedge"});
   // An integer key given a fraction, a bool key given a number.
   EXPECT_NE(error_of([] { ProbeConfig::load("", {"penetration.max_iterations=2.5"}); }).find("penetration.max_iterations"),
             std::string::npos);

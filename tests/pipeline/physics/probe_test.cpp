@@ -311,6 +311,51 @@ TEST(Probe, LargeDropSelectsResampleAndHandsOff) {
   EXPECT_NEAR(r2.scene.objects[0].scale.z(), 0.26, simu::testing::kFp64Chain);
 }
 
+// decision.force_resample: of two boxes that fall 3 cm (rho 0.1 < 0.15: the rule stretches both), the
+// named one is resampled (flagged, its rule's branch and rho kept in the diagnosis) and is the only one
+// handed to the resampler; the other is stretched as without the key. An id the scene lacks is an error
+// naming the key and the id.
+TEST(Probe, ForceResampleResamplesTheNamedObjectWhateverItsRho) {
+  const auto dir = physics_temp_dir("force_resample");
+  Scene s = room();
+  const auto mesh = write_box(dir, "cube", Vec3::Constant(0.5));
+  s.objects.push_back(cube("a", mesh, 0.3, Vec3(-0.4, 0.5, 0.15 + 0.03)));
+  s.objects.push_back(cube("b", mesh, 0.3, Vec3(0.4, 0.5, 0.15 + 0.03)));
+  ProbeConfig cfg = quick();
+  cfg.force_resample = {"b"};
+  std::vector<std::string> handed;
+  ResampleFn rs = [&](const std::vector<ProbeResampleRequest>& reqs) {
+    for (const auto& q : reqs) handed.push_back(q.object_id);
+    return std::vector<ProbeResampleResult>(reqs.size());  // not ok: the object keeps its input shape
+  };
+  const auto r = run_probe(s, cfg, "", rs);
+  const auto &a = r.diagnostics[0], &b = r.diagnostics[1];
+  EXPECT_LT(a.diagnosis.rho, cfg.rho_threshold);
+  EXPECT_LT(b.diagnosis.rho, cfg.rho_threshold);
+  EXPECT_EQ(a.branch, ProbeBranch::Stretch);
+  EXPECT_FALSE(has_flag(a, "forced_resample"));
+  EXPECT_EQ(b.branch, ProbeBranch::Resample);
+  EXPECT_EQ(b.diagnosis.branch, Branch::Stretch);  // what the rule said
+  EXPECT_TRUE(has_flag(b, "forced_resample")) << b.message;
+  EXPECT_EQ(handed, std::vector<std::string>{"b"});
+  ASSERT_EQ(r.resample_requests.size(), 1u);
+  EXPECT_EQ(r.resample_requests[0].object_id, "b");
+  // Without the key both are stretched and nothing is handed over.
+  handed.clear();
+  const auto plain = run_probe(s, quick(), "", rs);
+  EXPECT_EQ(plain.diagnostics[1].branch, ProbeBranch::Stretch);
+  EXPECT_TRUE(handed.empty());
+  // A misspelt id stops the run, naming the key and the id.
+  cfg.force_resample = {"c"};
+  try {
+    (void)run_probe(s, cfg, "", rs);
+    ADD_FAILURE() << "no error for an unknown id";
+  } catch (const std::exception& e) {
+    EXPECT_NE(std::string(e.what()).find("decision.force_resample"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("'c'"), std::string::npos) << e.what();
+  }
+}
+
 // Two pins on a coarse, slightly tilted frame: the top region holds one corner, but the pins must
 // still be the frame's top-left and top-right (apart by most of its width), not one point twice.
 TEST(Probe, TwoPinsOnATiltedCoarseFrameAreApart) {

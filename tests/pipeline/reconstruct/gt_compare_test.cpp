@@ -102,6 +102,12 @@ TEST(GtCompare, ShiftedCopyScoresTheOffsetBoxesIou) {
   EXPECT_EQ(j["objects"][0]["branch"], "resample");
   EXPECT_NEAR(j["mean_after"].get<double>(), 39.0 / 63.0, 1e-9);
   EXPECT_NE(format_gt_table(rows).find("resample (replaced)"), std::string::npos);
+  EXPECT_FALSE(j["objects"][0]["forced_resample"].get<bool>());
+  // Resampled because decision.force_resample named it: the table and the JSON say so.
+  auto forced = rows;
+  forced[0].probe.forced = true;
+  EXPECT_NE(format_gt_table(forced).find("resample, forced (replaced)"), std::string::npos);
+  EXPECT_TRUE(gt_rows_json(forced, "gt.json")["objects"][0]["forced_resample"].get<bool>());
   simu::fs::remove_tree(dir);
 }
 
@@ -167,11 +173,14 @@ TEST(GtCompare, MissingObjectAndProbeReport) {
   EXPECT_NE(rows[0].note.find("not in the final scene"), std::string::npos);
   EXPECT_EQ(gt_rows_json(rows, "gt.json")["mean_after"].get<double>(), 0.0);
   const json report = {{"objects", {{{"id", "a"}, {"branch", "stretch"}, {"reverted", true}},
-                                    {{"id", "b"}, {"branch", "resample"}, {"resample", {{"resampled", false}}}}}}};
+                                    {{"id", "b"}, {"branch", "resample"}, {"resample", {{"resampled", false}}}},
+                                    {{"id", "c"}, {"branch", "resample"}, {"flags", json::array({"forced_resample"})}}}}};
   const auto out = probe_outcomes(report);
   EXPECT_EQ(out.at("a").branch, "stretch");
   EXPECT_TRUE(out.at("a").reverted);
   EXPECT_FALSE(out.at("b").resampled);
+  EXPECT_FALSE(out.at("b").forced);
+  EXPECT_TRUE(out.at("c").forced);
   EXPECT_NE(simu::testing::error_of([&] { load_world_gt(dir + "/nope.json"); }).find("nope.json"), std::string::npos);
   simu::fs::remove_tree(dir);
 }

@@ -49,7 +49,9 @@ std::vector<ResampleRequest> small_requests() {
 // Every (object, sample) equals an unbatched sampling of that object with the same noise row, then the
 // decoder, the official threshold, and the pose decode; meshes are closed and canonical.
 TEST(Resampler, BatchedMatchesPerObjectChain) {
-  Resampler rs(small_config());
+  auto cfg = small_config();
+  cfg.empty_retries = 0;  // the first draw's chain for every row (retries: the EmptyDecode tests below)
+  Resampler rs(cfg);
   EXPECT_EQ(rs.config().rescale_t, 3.0);
   EXPECT_EQ(rs.config().cfg_strength, 7.0);
   const auto reqs = small_requests();
@@ -261,4 +263,126 @@ TEST(Resampler, MissingWeightsNameTheFlag) {
   EXPECT_NE(rs.random_weights_banner().find("RANDOM WEIGHTS"), std::string::npos);
   EXPECT_NE(rs.random_weights_banner().find("--decoder-weights"), std::string::npos);
   EXPECT_TRUE(Resampler(small_config()).random_weights_banner().empty());
+}
+
+namespace {
+// Lowers every occupancy logit of the resampler's decoder by `shift`: the decoder ends in a convolution
+// (out_layer.2) whose bias is added to every output voxel.
+void lower_logits(Resampler& rs, double shift) {
+  torch::NoGradGuard ng;
+  auto params = rs.decoder()->named_parameters();
+  ASSERT_TRUE(params.contains("out_layer.2.bias"));
+  params["out_layer.2.bias"].sub_(shift);
+}
+}  // namespace
+
+// The retry loop on a scripted attempt: only the rows that came out empty are drawn again, with the
+// seeds of retry_noise_seed; a redraw that succeeds says "retried N times"; a row empty every time
+// fails naming its attempts; 0 retries is one attempt, as before.
+TEST(ResamplerRetry, RedrawsOnlyEmptyRowsWithDerivedSeeds) {
+  // Row 0 is never empty, row 1 only on its first draw, row 2 on every draw.
+  std::vector<ResampledShape> shapes(3);
+  const std::vector<ResampledShape*> outs{&shapes[0], &shapes[1], &shapes[2]};
+  std::vector<std::pair<std::vector<size_t>, uint64_t>> calls;
+  auto attempt = [&](const std::vector<size_t>& rows, uint64_t noise_seed) {
+    const size_t a = calls.size();
+    calls.push_back({rows, noise_seed});
+    for (size_t k : rows) {
+      const bool empty = k == 2 || (k == 1 && a == 0);
+      shapes[k].ok = !empty;
+      shapes[k].coords = torch::zeros({empty ? 0 : 4, 3}, torch::kInt32);
+    }
+  };
+  const uint64_t seed = 42;
+  sample_with_retries(outs, seed, 2, attempt);
+  ASSERT_EQ(calls.size(), 3u);
+  EXPECT_EQ(calls[0].first, (std::vector<size_t>{0, 1, 2}));
+  EXPECT_EQ(calls[1].first, (std::vector<size_t>{1, 2}));
+  EXPECT_EQ(calls[2].first, (std::vector<size_t>{2}));
+  EXPECT_EQ(calls[0].second, seed);
+  EXPECT_EQ(calls[1].second, retry_noise_seed(seed, 1));
+  EXPECT_EQ(calls[2].second, retry_noise_seed(seed, 2));
+  EXPECT_NE(calls[1].second, seed);
+  EXPECT_NE(calls[2].second, calls[1].second);
+  EXPECT_TRUE(shapes[0].ok);
+  EXPECT_EQ(shapes[0].retries, 0);
+  EXPECT_EQ(shapes[0].message, "");
+  EXPECT_TRUE(shapes[1].ok);
+  EXPECT_EQ(shapes[1].retries, 1);
+  EXPECT_NE(shapes[1].message.find("retried 1 time"), std::string::npos) << shapes[1].message;
+  EXPECT_FALSE(shapes[2].ok);
+  EXPECT_TRUE(empty_occupancy(shapes[2]));
+  EXPECT_EQ(shapes[2].retries, 2);
+  EXPECT_NE(shapes[2].message.find("in 3 attempts (retried 2 times"), std::string::npos) << shapes[2].message;
+
+  // Retries off: one attempt, the empty rows stay failed without a retry note.
+  calls.clear();
+  shapes.assign(3, ResampledShape{});
+  sample_with_retries(outs, seed, 0, attempt);
+  EXPECT_EQ(calls.size(), 1u);
+  EXPECT_FALSE(shapes[1].ok);
+  EXPECT_EQ(shapes[1].retries, 0);
+}
+
+// Every logit far below 0 (the decoder's output bias lowered): every attempt is empty, each retry is
+// one more sampling per condition length, and every sample fails naming its attempts.
+TEST(Resampler, EmptyDecodesAreRetriedThenFail) {
+  const auto reqs = small_requests();  // two condition lengths
+  for (int retries : {0, 2}) {
+    auto cfg = small_config();
+    cfg.empty_retries = retries;
+    Resampler rs(cfg);
+    lower_logits(rs, 1e6);
+    const auto res = rs.resample(reqs, 9);
+    EXPECT_EQ(res.sampling_calls, 2 * (retries + 1)) << retries << " retries";
+    for (const auto& samples : res.objects)
+      for (const auto& got : samples) {
+        EXPECT_FALSE(got.ok);
+        EXPECT_TRUE(empty_occupancy(got));
+        EXPECT_EQ(got.retries, retries);
+        EXPECT_NE(got.message.find("no occupied voxel"), std::string::npos) << got.message;
+        if (retries > 0)
+          EXPECT_NE(got.message.find(fmt::format("in {} attempts", retries + 1)), std::string::npos) << got.message;
+      }
+  }
+}
+
+// A sample empty on its first draw and occupied on its first retry comes back ok, with retries 1, its
+// note, and exactly the sample of the retry's noise (retry_noise_seed(seed, 1)).
+TEST(Resampler, EmptyDecodeRetriedWithFreshNoiseSucceeds) {
+  auto cfg = small_config();
+  cfg.num_samples = 1;
+  cfg.empty_retries = 0;
+  const std::vector<ResampleRequest> req{small_requests()[0]};  // one row: a retry samples the same batch shape
+  Resampler probe(cfg);
+  // The first seed whose retry noise gives a larger largest logit than its own noise, by more than two
+  // evaluations' rounding of the decoder (flow_rounding.h).
+  const double edge = simu::testing::two_paths(simu::testing::decoder_chain(probe.decoder()->config()));
+  auto largest_logit = [&](uint64_t s) {
+    const auto res = probe.resample(req, s);
+    const auto logits = probe.decode_logits(res.objects[0][0].latents.at("shape"));
+    return std::make_pair(logits.max().item<double>(), logits.abs().max().item<double>());
+  };
+  uint64_t seed = 0;
+  double shift = 0;
+  for (uint64_t s = 1; s <= 20 && shift == 0; ++s) {
+    const auto [first, first_abs] = largest_logit(s);
+    const auto [retry, retry_abs] = largest_logit(retry_noise_seed(s, 1));
+    const double mid = 0.5 * (first + retry);
+    if (retry - first > 2 * edge * (std::max(first_abs, retry_abs) + std::abs(mid)) + 1e-12) seed = s, shift = mid;
+  }
+  ASSERT_NE(shift, 0.0) << "no seed in 1..20 whose retry draw decodes higher than its first draw";
+  // Every logit lowered by the midpoint: the first draw is empty, the retry's is not.
+  cfg.empty_retries = 2;
+  Resampler rs(cfg);
+  lower_logits(rs, shift);
+  const auto res = rs.resample(req, seed);
+  const auto& got = res.objects[0][0];
+  ASSERT_TRUE(got.ok) << got.message;
+  EXPECT_EQ(got.retries, 1);
+  EXPECT_EQ(res.sampling_calls, 2);
+  EXPECT_NE(got.message.find("retried 1 time"), std::string::npos) << got.message;
+  // The retry's sample: the same single-row sampling from the retry seed's noise, bit for bit.
+  const auto want = probe.resample(req, retry_noise_seed(seed, 1));
+  EXPECT_TRUE(torch::equal(got.latents.at("shape"), want.objects[0][0].latents.at("shape")));
 }
