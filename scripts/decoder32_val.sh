@@ -5,11 +5,14 @@
 #   OFFSET=X bash scripts/decoder32_val.sh compare   # 2. candidate at offset X and the shipped model, seeds 0-7
 #   OFFSET=X bash scripts/decoder32_val.sh table     # the paired table (scripts/merge_eval_shards.py)
 # Every run: eval_lift --world val --count 25 --seed K --depth clean --align simuscene, one thread.
+# The same runs for another candidate folder (the fifth Stage 1 of docs/rules/stage1_v5.md), beside these:
+#   CAND=runs/cand_v5 LABEL=v5 OFFSET=0.5 bash scripts/decoder32_val.sh compare | table
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 BUILD="${BUILD_DIR:-$ROOT/build}"
 CAND="${CAND:-runs/cand_dec32}"
+LABEL="${LABEL:-cand}"
 RUNS="${RUNS:-runs/eval_dec32}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 mkdir -p "$RUNS"
@@ -32,12 +35,12 @@ case "${1:-}" in
     : "${OFFSET:?set OFFSET to the offset chosen by the offset step}"
     for k in 0 1 2 3 4 5 6 7; do
       ev "shipped_$k" weights/miniature_cpu "$k" &
-      ev "cand_o${OFFSET}_$k" "$CAND" "$k" --surface-offset "$OFFSET" &
+      ev "${LABEL}_o${OFFSET}_$k" "$CAND" "$k" --surface-offset "$OFFSET" &
       wait
     done ;;
   table)
     : "${OFFSET:?set OFFSET}"
     "$PY" scripts/merge_eval_shards.py --model shipped "$RUNS/shipped_[0-7]/summary.json" \
-      --model dec32 "$RUNS/cand_o${OFFSET}_[0-7]/summary.json" --compare shipped dec32 ;;
+      --model "$LABEL" "$RUNS/${LABEL}_o${OFFSET}_[0-7]/summary.json" --compare shipped "$LABEL" ;;
   *) sed -n '2,8p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
 esac
