@@ -91,6 +91,13 @@ int main(int argc, char** argv) {
   // Testing only (hidden): each prediction replaced by its ground truth, no model run; every metric is
   // then at its ideal value (the CI check of the metric path).
   app.add_flag("--gt-as-prediction", opt.gt_as_prediction, "")->group("");
+  app.add_option("--shape-grid", opt.shape_grid,
+                 "grid side of the shape IoU: 0 = each model's own decoder grid; a divisor S of the decoder grid "
+                 "R pools the sample's voxels to S^3 (any occupied fine voxel marks its coarse one) against the "
+                 "truth at S^3, so that models of different R compare on one grid (docs/eval_lift.md)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber)
+      ->group("Evaluation");
   app.add_option("--oracle", opt.oracle, "diagnostic upper bounds, not model results: none | grid (no model runs: "
                                          "the truth's occupancy at the model's grid side, meshed as decoder outputs "
                                          "are, at the true pose) | pose (the model's shape at the true pose); "

@@ -4,6 +4,8 @@
 #   bash scripts/decoder32_val.sh offset     # 1. candidate, val seeds 0-3, --surface-offset 0.25 / 0.5 / 0.75
 #   OFFSET=X bash scripts/decoder32_val.sh compare   # 2. candidate at offset X and the shipped model, seeds 0-7
 #   OFFSET=X bash scripts/decoder32_val.sh table     # the paired table (scripts/merge_eval_shards.py)
+#   OFFSET=0.5 bash scripts/decoder32_val.sh second  # docs/rules/decoder32_followup.md: seeds 8-15, both
+#                                                    # models with --shape-grid 16, and its table
 # Every run: eval_lift --world val --count 25 --seed K --depth clean --align simuscene, one thread.
 # The same runs for another candidate folder (the fifth Stage 1 of docs/rules/stage1_v5.md), beside these:
 #   CAND=runs/cand_v5 LABEL=v5 OFFSET=0.5 bash scripts/decoder32_val.sh compare | table
@@ -38,6 +40,15 @@ case "${1:-}" in
       ev "${LABEL}_o${OFFSET}_$k" "$CAND" "$k" --surface-offset "$OFFSET" &
       wait
     done ;;
+  second)
+    : "${OFFSET:?set OFFSET}"
+    for k in 8 9 10 11 12 13 14 15; do
+      ev "g16_shipped_$k" weights/miniature_cpu "$k" --shape-grid 16 &
+      ev "g16_${LABEL}_o${OFFSET}_$k" "$CAND" "$k" --surface-offset "$OFFSET" --shape-grid 16 &
+      wait
+    done
+    "$PY" scripts/merge_eval_shards.py --model shipped "$RUNS/g16_shipped_*/summary.json" \
+      --model "$LABEL" "$RUNS/g16_${LABEL}_o${OFFSET}_*/summary.json" --compare shipped "$LABEL" ;;
   table)
     : "${OFFSET:?set OFFSET}"
     "$PY" scripts/merge_eval_shards.py --model shipped "$RUNS/shipped_[0-7]/summary.json" \

@@ -139,6 +139,15 @@ double occupancy_iou(const torch::Tensor& coords, const std::vector<uint8_t>& gt
   return uni == 0 ? 1.0 : double(inter) / double(uni);
 }
 
+torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S) {
+  SIMU_CHECK(S >= 1 && S <= R && R % S == 0,
+             "--shape-grid {}: a model's grid side {} is not a multiple of it (choose a divisor of every compared "
+             "model's decoder grid)", S, R);
+  const auto c = coords.to(torch::kCPU, torch::kInt64);
+  if (S == R || c.size(0) == 0) return c;
+  return std::get<0>(at::unique_dim(torch::floor_divide(c, R / S), 0));
+}
+
 std::pair<double, double> parse_visible_range(const std::string& text) {
   const auto dash = text.find('-', 1);
   double lo = 0, hi = 0;
@@ -209,6 +218,10 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
   const bool oracle_grid = opt.oracle == "grid", oracle_pose = opt.oracle == "pose";
   SIMU_CHECK(!oracle_grid || models.base, "eval_lift --oracle grid: the base model gives the grid side");
   const bool no_lift = opt.gt_as_prediction || oracle_grid;
+  // --shape-grid must divide every compared model's decoder grid (checked before any lift).
+  if (opt.shape_grid > 0)
+    for (Resampler* model : {models.base, models.compare})
+      if (model) pool_coords(torch::zeros({0, 3}, torch::kInt64), occupancy_resolution(*model), opt.shape_grid);
   EvalLiftResult res;
   res.depths = depth_kinds(opt.depth);
   res.models = {"base"};
@@ -358,9 +371,10 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
             row.ok = prediction(lifted.objects[k], preds[m * nk + k], &sample);
             if (row.ok) {
               const int64_t R = occupancy_resolution(m == 0 ? *models.base : *models.compare);
-              auto& gt = gt_grids[{row.object, R}];
-              if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(R));
-              row.shape_iou = occupancy_iou(lifted.objects[k].samples[sample].coords, gt, R);
+              const int64_t S = opt.shape_grid > 0 ? opt.shape_grid : R;  // the shape IoU's grid
+              auto& gt = gt_grids[{row.object, S}];
+              if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(S));
+              row.shape_iou = occupancy_iou(pool_coords(lifted.objects[k].samples[sample].coords, R, S), gt, S);
               // The sampled shape at the true pose.
               if (oracle_pose) preds[m * nk + k].scale = obj.gt.scale, preds[m * nk + k].R = obj.gt.R, preds[m * nk + k].t = obj.gt.t;
             }

@@ -73,6 +73,11 @@ struct EvalLiftOptions {
   // The resampling input of the paper (probe --resample): the crop box and background removal from the
   // object's amodal mask (here the ground truth's, an ideal OBB-guided crop) instead of its modal mask.
   bool amodal_crop = false;
+  // The grid side of EvalRow::shape_iou (0: each model's own decoder grid R). A side S < R that divides R
+  // compares models of different R on one grid: the sample's voxels are pooled to S (a coarse voxel is
+  // occupied when any of its (R/S)^3 fine ones is, as the conservative filled voxelisation does) against
+  // the truth's filled occupancy at S.
+  int64_t shape_grid = 0;
   int threads = 0;               // metric threads (0: every core; the lift runs on torch's threads)
   PoseRefiner refine;            // optional: run on each prediction before scoring (see PoseRefiner)
   std::string refine_name = "none";  // what `refine` is, for summary.json
@@ -88,6 +93,9 @@ std::vector<std::string> depth_kinds(const std::string& depth);
 // grid; flat index (x R + y) R + z, the decoder's [R, R, R] layout; coordinates outside the grid are
 // ignored) with a filled grid of that layout (R^3 bytes, non-zero = occupied). Two empty grids: 1.
 double occupancy_iou(const torch::Tensor& coords, const std::vector<uint8_t>& grid, int64_t R);
+// Voxel coordinates of an R^3 grid pooled to an S^3 grid (S divides R): each (x, y, z) / (R / S), duplicates
+// removed. coords [N, 3] integer -> [M, 3] int64. Throws naming --shape-grid when S does not divide R.
+torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S);
 // "LO-HI" as fractions ("0.4-0.7") or percentages ("40-70": either bound above 1 means percent).
 // Throws simu::Error naming --visible when malformed, out of [0, 1] or LO > HI.
 std::pair<double, double> parse_visible_range(const std::string& text);

@@ -154,6 +154,7 @@ json eval_summary(const EvalLiftResult& r, const EvalLiftOptions& opt, const std
                    {"object_size_m", opt.object_size},
                    {"gt_as_prediction", opt.gt_as_prediction},
                    {"oracle", opt.oracle.empty() ? "none" : opt.oracle},
+                   {"shape_grid", opt.shape_grid},
                    {"bootstrap_resamples", opt.bootstrap_resamples},
                    {"metrics",
                     {{"max_voxel_m", opt.metrics.max_voxel},

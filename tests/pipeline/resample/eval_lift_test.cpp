@@ -16,11 +16,15 @@
 #include <fstream>
 #include <map>
 #include <set>
+#include <array>
+#include <algorithm>
 
 #include "common/error.h"
 #include "common/fs.h"
 #include "pipeline/physics/mesh.h"
 #include "pipeline/resample/eval_lift.h"
+#include "pipeline/world/parts.h"
+#include "pipeline/world/voxelize.h"
 #include "test_util.h"
 
 namespace sr = simu::resample;
@@ -99,6 +103,35 @@ TEST(EvalLift, OccupancyIouInTheDecodersLayout) {
   EXPECT_DOUBLE_EQ(simu::resample::occupancy_iou(torch::zeros({0, 3}, torch::kInt32), std::vector<uint8_t>(R * R * R, 0), R), 1.0);
   EXPECT_DOUBLE_EQ(simu::resample::occupancy_iou(torch::zeros({0, 3}, torch::kInt32), gt, R), 0.0);
   EXPECT_THROW(simu::resample::occupancy_iou(coords, gt, 5), simu::Error);
+}
+
+// --shape-grid's pooling: fine voxels (R = 8) map to the coarse voxel containing them (S = 4), once each;
+// the pooled shape of the world's filled voxelisation at 2S^3 is exactly its filled voxelisation at S^3
+// for a box whose faces lie on coarse voxel boundaries (independent of the pooling code: both grids come
+// from world::voxelize_filled); a side that does not divide R is refused naming the flag.
+TEST(EvalLift, PoolCoordsToACoarserGrid) {
+  const auto fine = torch::tensor({0, 0, 0, 1, 1, 1, 2, 0, 7, 3, 1, 6, 7, 7, 7}, torch::kInt32).reshape({5, 3});
+  const auto pooled = simu::resample::pool_coords(fine, 8, 4);
+  std::set<std::array<int64_t, 3>> got;
+  for (int64_t i = 0; i < pooled.size(0); ++i) got.insert({pooled[i][0].item<int64_t>(), pooled[i][1].item<int64_t>(), pooled[i][2].item<int64_t>()});
+  const std::set<std::array<int64_t, 3>> want = {{0, 0, 0}, {1, 0, 3}, {3, 3, 3}};
+  EXPECT_EQ(got, want);
+  EXPECT_EQ(pooled.size(0), 3);
+  EXPECT_TRUE(torch::equal(simu::resample::pool_coords(fine, 8, 8), fine.to(torch::kInt64)));
+  EXPECT_NE(simu::testing::error_of([&] { simu::resample::pool_coords(fine, 8, 3); }).find("--shape-grid"), std::string::npos);
+  // A box spanning coarse voxels [1, 3) x [0, 4) x [1, 2) of a 4^3 grid over the unit cube [-0.5, 0.5]^3
+  // (shrunk by 1e-6 so that the conservative voxelisation stops at the boundaries).
+  const double e = 1e-6;
+  const auto box = simu::world::box_part({0.5 - 2 * e, 1.0 - 2 * e, 0.25 - 2 * e}, {0.0, 0.0, -0.125});
+  const auto g8 = simu::world::voxelize_filled(box, 8), g4 = simu::world::voxelize_filled(box, 4);
+  std::vector<int32_t> c8;
+  for (int x = 0; x < 8; ++x)
+    for (int y = 0; y < 8; ++y)
+      for (int z = 0; z < 8; ++z)
+        if (g8[size_t((x * 8 + y) * 8 + z)]) c8.insert(c8.end(), {x, y, z});
+  const auto coords8 = torch::tensor(c8, torch::kInt32).reshape({-1, 3});
+  EXPECT_EQ(std::count(g4.begin(), g4.end(), 1), 2 * 4 * 1);
+  EXPECT_DOUBLE_EQ(simu::resample::occupancy_iou(simu::resample::pool_coords(coords8, 8, 4), g4, 4), 1.0);
 }
 
 TEST(EvalLift, SummaryAggregatesAndPairedDeltas) {
