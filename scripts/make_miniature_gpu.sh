@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Rebuilds the shipped miniature (weights/miniature_cpu) as it was made on 2026-11-29: the CPU
+# Rebuilds the shipped miniature (weights/miniature_cpu) as it was made on 2026-11-29 and 30: the CPU
 # miniature's architecture and recipe (configs/miniature_cpu), its sparse-structure VAE trained on this
 # machine's CPU, Stage 1 trained on one GPU of a 2-GPU H200 machine (evening), then trained on on both
 # GPUs with fresh scenes (night; docs/miniature.md, "The shipped Stage 1: continued on fresh scenes").
@@ -30,6 +30,12 @@
 #          --out weights/miniature_cpu --commands scripts/make_miniature_gpu.sh
 #      the encoder and the adapter added back (docs/miniature.md), and the evaluations of docs/miniature.md
 #      (eval_lift --align simuscene, test 500 and held-out 100).
+#   6. (2026-11-30) on nvidia-h200, one call (carry .carry as in 2): bash scripts/make_miniature_gpu.sh decoder32
+#      trains the 32^3 decoder on step 5's frozen encoder (weights/miniature_cpu; train_ss_vae --config
+#      configs/miniature_cpu/ss_decoder32.yaml: bf16, batch 128, 4,000 steps, seed 0; 250 s) and returns
+#      runs/gpu_dec32/dec32/weights; here: copy its ss_decoder.{json,safetensors} into weights/miniature_cpu
+#      (docs/rules/decoder32_followup.md chose it; docs/miniature.md).
+# Tried and not shipped (docs/miniature.md): continue5 (a fifth Stage 1, docs/rules/stage1_v5.md).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -45,6 +51,8 @@ case "${1:-}" in
       INIT=runs/gpu_pair_back/stage1_cpu/model/ss_generator.safetensors CACHE_SEED=7000000 FMDPO=0 \
       EXTRA="--set optim.lr=4e-4 --set optim.warmup_steps=200 --set train.seed=1 --set data.seed=1" \
       DEADLINE_S="${DEADLINE_S:-565}" bash scripts/gpu_stage1_pair.sh ;;
+  decoder32)
+    DEADLINE_S="${DEADLINE_S:-565}" bash scripts/gpu_decoder32.sh ;;
   continue5)
     # The fifth Stage 1 (docs/rules/stage1_v5.md): the fourth's EMA export trained on again, on fresh scenes.
     # Carry runs/gpu_v4_back/stage1_cont/model/ss_generator.safetensors and runs/ss_vae_cpu/weights.
@@ -52,5 +60,5 @@ case "${1:-}" in
       INIT=runs/gpu_v4_back/stage1_cont/model/ss_generator.safetensors CACHE_SEED=8000000 FMDPO=0 \
       EXTRA="--set optim.lr=4e-4 --set optim.warmup_steps=200 --set train.seed=2 --set data.seed=2" \
       DEADLINE_S="${DEADLINE_S:-565}" bash scripts/gpu_stage1_pair.sh ;;
-  *) sed -n '2,32p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
+  *) sed -n '2,38p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
 esac
