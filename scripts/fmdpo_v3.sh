@@ -17,8 +17,10 @@ cd "$ROOT"
 export BUILD
 B="${2:-50}"
 T="${TAG:-v3}"   # TAG=v4: the same steps for the fourth base (data/pairs_v4.h5, runs/fmdpo_v4_*, runs/eval_v4)
+E="${EVAL_DIR:-runs/eval_$T}"   # where val / test / table read and write (EVAL_DIR=runs/eval_v4d32: the v4 adapters
+                                # evaluated again with the 32^3 decoder shipped on 2026-11-30)
 source "$ROOT/scripts/eval_adapter_lib.sh"   # ev OUT ADAPTER WORLD COUNT [args]; OCC
-mkdir -p runs/eval_$T
+mkdir -p "$E"
 case "${1:-}" in
   pairs)
     # The rendered candidates of scripts/fmdpo_miniature.sh step 1 (world pairs --completion 1000
@@ -35,25 +37,25 @@ case "${1:-}" in
   val)
     for s in 0 1; do
       a="runs/fmdpo_${T}_beta${B}_s$s/adapter"
-      echo "runs/eval_$T/val_b${B}_s${s}_40_70 $a val 200 $OCC"
-      echo "runs/eval_$T/val_b${B}_s${s}_all $a val 200"
+      echo "$E/val_b${B}_s${s}_40_70 $a val 200 $OCC"
+      echo "$E/val_b${B}_s${s}_all $a val 200"
     done | xargs -P 2 -L 1 bash -c 'ev "$@"' _ ;;
   table)
-    TAG="$T" "$PY" - <<'PYEOF'
+    TAG="$T" EVAL_DIR="$E" "$PY" - <<'PYEOF'
 import glob, json, os, re
-T = os.environ["TAG"]
+T = os.environ["TAG"]; E = os.environ["EVAL_DIR"]
 def d(path, bucket):
     x = json.load(open(path + "/summary.json"))["deltas"]["clean"][bucket]
     return x["iou_mean"]["delta"], x["iou_mean"]["ci95"]
 print("| beta | 40-70% seed 0 | seed 1 | mean | unoccluded seed 0 | seed 1 | mean | rule |")
 print("|---:|---:|---:|---:|---:|---:|---:|---|")
-betas = sorted({int(re.search(r"val_b(\d+)_", p).group(1)) for p in glob.glob(f"runs/eval_{T}/val_b*_s0_all")})
+betas = sorted({int(re.search(r"val_b(\d+)_", p).group(1)) for p in glob.glob(f"{E}/val_b*_s0_all")})
 for b in betas:
-    paths = [f"runs/eval_{T}/val_b{b}_s{s}_{k}" for k in ("40_70", "all") for s in (0, 1)]
+    paths = [f"{E}/val_b{b}_s{s}_{k}" for k in ("40_70", "all") for s in (0, 1)]
     if not all(os.path.exists(p + "/summary.json") for p in paths):
         print(f"| {b} | (missing) |"); continue
-    occ = [d(f"runs/eval_{T}/val_b{b}_s{s}_40_70", "40-70%") for s in (0, 1)]
-    unc = [d(f"runs/eval_{T}/val_b{b}_s{s}_all", "unoccluded") for s in (0, 1)]
+    occ = [d(f"{E}/val_b{b}_s{s}_40_70", "40-70%") for s in (0, 1)]
+    unc = [d(f"{E}/val_b{b}_s{s}_all", "unoccluded") for s in (0, 1)]
     fmt = lambda r: f"{r[0]:+.4f} [{r[1][0]:+.4f}, {r[1][1]:+.4f}]"
     mo = sum(r[0] for r in occ) / 2; mu = sum(r[0] for r in unc) / 2
     print(f"| {b} | {fmt(occ[0])} | {fmt(occ[1])} | {mo:+.4f} | {fmt(unc[0])} | {fmt(unc[1])} | {mu:+.4f} | "
@@ -63,9 +65,9 @@ PYEOF
   test)
     for s in 0 1; do
       a="runs/fmdpo_${T}_beta${B}_s$s/adapter"
-      echo "runs/eval_$T/test_b${B}_s${s}_40_70 $a test 500 $OCC"
-      echo "runs/eval_$T/test_b${B}_s${s}_all $a test 500"
-      echo "runs/eval_$T/heldout_b${B}_s${s} $a heldout 100"
+      echo "$E/test_b${B}_s${s}_40_70 $a test 500 $OCC"
+      echo "$E/test_b${B}_s${s}_all $a test 500"
+      echo "$E/heldout_b${B}_s${s} $a heldout 100"
     done | xargs -P 2 -L 1 bash -c 'ev "$@"' _ ;;
   *) sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
 esac
