@@ -16,17 +16,17 @@
 #      miniature's FM-DPO adapter, weights/miniature_cpu/adapter, docs/results.md; final
 #      settle, MJCF, report, pictures); --gt gt.json scores each object against the ground truth in
 #      the world frame (voxel IoU) before the probe's correction (lifted and aligned) and after it
-#   6. RESAMPLING SHOWCASE (not the paper's rule): the scene's most occluded object (lowest
-#      visible_fraction in gt.json) resampled regardless of rho. With the shipped models the default
-#      scene's rho stays under the paper's 0.15 for every object, so step 5 stretches them all and
-#      resamples nothing. Step 6 runs step 5 again with --set decision.force_resample=[ID]
+#   6. the scene's most occluded object (lowest visible_fraction in gt.json) resampled. With the models
+#      shipped on 2026-11-30 the probe of step 5 resamples it on its own on the default scene (the
+#      wedge: rho 0.249 >= 0.15), and step 6 shows that run. When the probe did not (the 16^3 decoder
+#      before it stretched all four), step 6 is a RESAMPLING SHOWCASE (not the paper's rule): it
+#      runs step 5 again with --set decision.force_resample=[ID]
 #      (configs/probe.yaml; flag forced_resample in the report): that one object goes through exactly
 #      what the probe does when rho triggers resampling (OBB-guided amodal crop, best of 4 candidates,
 #      the shipped adapter); the others are treated by the rule as in step 5. It prints the object's
 #      ground-truth IoU before the probe and after resampling, whatever they are, next to step 5's
 #      result, and the path of its candidates picture (scripts/demo_showcase.py). Outputs in
-#      $OUT/showcase. When step 5's probe resampled that object on its own (rho >= 0.15; e.g.
-#      DEMO_SEED=40), step 6 says so and shows step 5's run instead.
+#      $OUT/showcase.
 #   7. the pictures to look at (before_after.png, candidates_<id>.png, side_view.png)
 # Collision shapes are one convex hull per mesh (--no-coacd) to stay fast on two cores.
 # Environment: DEMO_OUT (output folder, default out/demo), DEMO_SEED (the test scene's seed),
