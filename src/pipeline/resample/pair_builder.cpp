@@ -359,16 +359,25 @@ void filter_batch(Resampler& resampler, const std::vector<PreparedPair>& batch, 
     const size_t k = judged[static_cast<size_t>(j)];
     const auto& r = batch[k].record;
     const auto& gt = gts[static_cast<size_t>(j)];
-    if (gt.size(0) != occ.size(2)) {
+    const int64_t G = gt.size(0), R = occ.size(2);
+    if (G > R || R % G != 0) {
       add_pair_issue(report, manifest_path, r.line, r.id,
-                     fmt::format("gt_occupancy {} is {}^3, the decoder makes {}^3", r.gt_occupancy, gt.size(0), occ.size(2)));
+                     fmt::format("gt_occupancy {} is {}^3, the decoder makes {}^3 (the truth's side must divide it)",
+                                 r.gt_occupancy, G, R));
       shape_pos[k] = torch::Tensor();
       continue;
     }
+    // A decoded grid on the truth's side: a coarse voxel is occupied when any of its (R/G)^3 fine ones is
+    // (as the conservative filled voxelisation marks it; eval_lift --shape-grid pools the same way).
+    auto on_gt_side = [&](const torch::Tensor& a) {  // [R, R, R] bool -> [G, G, G] bool
+      if (G == R) return a;
+      return torch::max_pool3d(a.to(torch::kFloat32).unsqueeze(0), R / G).squeeze(0).gt(0);
+    };
     // IoU of two boolean grids (two empty grids agree: 1).
     auto iou = [&](const torch::Tensor& a) {
-      const double uni = (a | gt).sum().item<double>();
-      return uni == 0 ? 1.0 : (a & gt).sum().item<double>() / uni;
+      const auto p = on_gt_side(a);
+      const double uni = (p | gt).sum().item<double>();
+      return uni == 0 ? 1.0 : (p & gt).sum().item<double>() / uni;
     };
     PairFilterRow row{r.id, r.kind, iou(occ[j][0]), iou(occ[n + j][0]), false};
     row.kept = row.iou_pos > row.iou_neg;
