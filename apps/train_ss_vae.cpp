@@ -32,6 +32,18 @@ std::vector<ShapeKey> first_instances(const std::string& family, world::Split sp
   return keys;
 }
 
+// A shape's canonical mesh. The loader asks for both grids of a sample (target, then the encoder's) on
+// one thread, so each thread keeps its last shape and makes it once.
+const simu::physics::Mesh& shape_mesh(const ShapeKey& k) {
+  thread_local ShapeKey last{"", 0};
+  thread_local simu::physics::Mesh mesh;
+  if (last.family.empty() || last.family != k.family || last.seed != k.seed) {
+    mesh = world::make_shape(k.family, k.seed).mesh;
+    last = k;
+  }
+  return mesh;
+}
+
 // The shape world as the VAE's data. Training: family index % F in turn (the world's train split's
 // families, or data.families), a Train instance drawn from (data.seed, index): a fresh one every time,
 // or one of data.train_instances fixed ones. Validation / test: the first val_per_family /
@@ -47,12 +59,12 @@ std::shared_ptr<ShapeSet> world_shapes(const SsVaeConfig& cfg) {
     SIMU_CHECK(f != world::held_out_family(), "{}: data.families: '{}' is the held-out family, never trained on",
                cfg.file, f);
   }
-  set->occupancy = [R](const ShapeKey& k) { return world::voxelize_filled(world::make_shape(k.family, k.seed).mesh, R); };
+  set->occupancy = [R](const ShapeKey& k) { return world::voxelize_filled(shape_mesh(k), R); };
   // The encoder's own grid of the same shape when it reads another side (data.encoder_resolution).
   const int Ri = static_cast<int>(cfg.encoder_resolution());
   if (Ri != R) {
     set->input_resolution = Ri;
-    set->input_occupancy = [Ri](const ShapeKey& k) { return world::voxelize_filled(world::make_shape(k.family, k.seed).mesh, Ri); };
+    set->input_occupancy = [Ri](const ShapeKey& k) { return world::voxelize_filled(shape_mesh(k), Ri); };
   }
   const uint64_t data_seed = simu::splitmix64(cfg.data.seed);
   const int64_t F = static_cast<int64_t>(families.size());

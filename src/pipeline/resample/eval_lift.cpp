@@ -139,10 +139,14 @@ double occupancy_iou(const torch::Tensor& coords, const std::vector<uint8_t>& gt
   return uni == 0 ? 1.0 : double(inter) / double(uni);
 }
 
-torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S) {
+void check_shape_grid(int64_t R, int64_t S) {
   SIMU_CHECK(S >= 1 && S <= R && R % S == 0,
              "--shape-grid {}: a model's grid side {} is not a multiple of it (choose a divisor of every compared "
              "model's decoder grid)", S, R);
+}
+
+torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S) {
+  check_shape_grid(R, S);
   const auto c = coords.to(torch::kCPU, torch::kInt64);
   if (S == R || c.size(0) == 0) return c;
   return std::get<0>(at::unique_dim(torch::floor_divide(c, R / S), 0));
@@ -221,7 +225,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
   // --shape-grid must divide every compared model's decoder grid (checked before any lift).
   if (opt.shape_grid > 0)
     for (Resampler* model : {models.base, models.compare})
-      if (model) pool_coords(torch::zeros({0, 3}, torch::kInt64), occupancy_resolution(*model), opt.shape_grid);
+      if (model) check_shape_grid(occupancy_resolution(*model), opt.shape_grid);
   EvalLiftResult res;
   res.depths = depth_kinds(opt.depth);
   res.models = {"base"};

@@ -93,8 +93,10 @@ std::vector<std::string> depth_kinds(const std::string& depth);
 // grid; flat index (x R + y) R + z, the decoder's [R, R, R] layout; coordinates outside the grid are
 // ignored) with a filled grid of that layout (R^3 bytes, non-zero = occupied). Two empty grids: 1.
 double occupancy_iou(const torch::Tensor& coords, const std::vector<uint8_t>& grid, int64_t R);
-// Voxel coordinates of an R^3 grid pooled to an S^3 grid (S divides R): each (x, y, z) / (R / S), duplicates
-// removed. coords [N, 3] integer -> [M, 3] int64. Throws naming --shape-grid when S does not divide R.
+// Throws naming --shape-grid unless 1 <= S <= R and S divides R.
+void check_shape_grid(int64_t R, int64_t S);
+// Voxel coordinates of an R^3 grid pooled to an S^3 grid (check_shape_grid): each (x, y, z) / (R / S),
+// duplicates removed. coords [N, 3] integer -> [M, 3] int64.
 torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S);
 // "LO-HI" as fractions ("0.4-0.7") or percentages ("40-70": either bound above 1 means percent).
 // Throws simu::Error naming --visible when malformed, out of [0, 1] or LO > HI.
