@@ -25,7 +25,7 @@ int main(int argc, char** argv) {
   CLI::App app{"eval_lift: lift shape-world objects (or a folder of meshes placed in world scenes) and score shape "
                "and pose against the ground truth in the world frame -> OUT/summary.json, pictures"};
   simu::resample::EvalLiftOptions opt;
-  std::string visible = "0-100", compare_adapter, out_dir, config_path, align = "none";
+  std::string visible = "0-100", shard = "0/1", compare_adapter, out_dir, config_path, align = "none", select = "render-compare";
   bool overwrite = false, no_pictures = false;
   simu::resample::ModelOptions model;
   auto* world = app.add_option("--world", opt.world, "objects from the shape world: test | val | train | heldout (the "
@@ -43,6 +43,11 @@ int main(int argc, char** argv) {
       ->check(CLI::NonNegativeNumber)
       ->group("Objects");
   app.add_option("--seed", opt.seed, "scenes, point-map corruption, sampling noise and the bootstrap")
+      ->capture_default_str()
+      ->group("Objects");
+  app.add_option("--shard", shard, "I/N: lift and score only shard I of N of the run's objects (whole scenes, dealt "
+                                    "round robin; the same objects, inputs and noise as the unsharded run); merge the "
+                                    "shards with scripts/merge_eval_shards.py")
       ->capture_default_str()
       ->group("Objects");
   app.add_option("--object-size", opt.object_size, "--objects: longest side in metres (0: the file's units guessed "
@@ -88,6 +93,13 @@ int main(int argc, char** argv) {
       ->capture_default_str()
       ->check(CLI::IsMember({"none", "simuscene", "icp"}))
       ->group("Evaluation");
+  app.add_option("--select", select, "which of an object's --samples is scored: first (the first usable) | "
+                                      "render-compare (each refined by --align, the lowest render-and-compare score "
+                                      "against the point map and the mask kept, as reconstruct's first lift does; "
+                                      "docs/eval_lift.md)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"first", "render-compare"}))
+      ->group("Evaluation");
   // Testing only (hidden): each prediction replaced by its ground truth, no model run; every metric is
   // then at its ideal value (the CI check of the metric path).
   app.add_flag("--gt-as-prediction", opt.gt_as_prediction, "")->group("");
@@ -107,14 +119,19 @@ int main(int argc, char** argv) {
       ->group("Evaluation");
   simu::resample::ModelOptionFlags flags;
   flags.seed = false;  // --seed above drives the noise too
+  // As reconstruct's first lift: kFirstLiftSamples shapes per object, the best kept (--select).
+  model.config.num_samples = simu::resample::kFirstLiftSamples;
   simu::resample::add_model_options(app, model, flags);
   simu::cli::CommonOptions common;
   return simu::cli::run(app, argc, argv, common, [&] {
     std::tie(opt.visible_lo, opt.visible_hi) = simu::resample::parse_visible_range(visible);
+    std::tie(opt.shard_index, opt.shard_count) = simu::resample::parse_shard(shard);
     opt.pictures = !no_pictures;
     opt.refine_name = align;
     if (align == "simuscene") opt.refine = simu::reconstruct::alignment_refiner({});
     if (align == "icp") opt.refine = simu::reconstruct::icp_refiner({}, {});
+    opt.select_name = select;
+    if (select == "render-compare") opt.select = simu::reconstruct::render_compare_scorer({});
     simu::resample::validate_eval_options(opt);  // before the models load
     if (!config_path.empty() || !common.sets.empty()) {
       YAML::Node node = config_path.empty() ? YAML::Node(YAML::NodeType::Map) : simu::config::load_file(config_path);

@@ -59,6 +59,14 @@ int main(int argc, char** argv) {
   app.add_option("--gt", gt_path, "ground truth of a shape-world scene (world scenes' gt.json): per object the world-frame "
                  "IoU before and after the probe's correction, in the report (gt_iou) and as a table");
   simu::resample::add_model_options(app, model);
+  int lift_samples = simu::resample::kFirstLiftSamples;
+  app.add_option("--lift-samples", lift_samples,
+                 "shapes drawn per object in the first lift; with more than one, each is aligned and the one the depth "
+                 "and mask agree with most is kept (render-and-compare, docs/reconstruct.md). 0: --samples (which "
+                 "sets the probe's resampling candidates)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber)
+      ->group("Model");
   bool base_resampling = false;
   app.add_flag("--base-resampling", base_resampling,
                "with the shipped miniature: the probe resamples with the base model, not its FM-DPO adapter (the "
@@ -81,6 +89,7 @@ int main(int argc, char** argv) {
     opt.run_probe = !no_probe;
     opt.overwrite = overwrite;
     opt.lift.seed = model.seed;
+    opt.lift.samples = lift_samples;
     simu::resample::check_output_dir(out_dir, overwrite);
     // The ground truth is read before any model loads (a bad file stops the run early).
     std::optional<simu::reconstruct::WorldGt> gt;

@@ -1,37 +1,44 @@
 #!/usr/bin/env bash
-# The validation runs of docs/rules/sample_select.md (CPU, the shipped miniature): best of K samples by the
-# render-and-compare score against the point map (eval_lift --samples K --select render-compare) paired
+# The validation runs of docs/rules/sample_select.md (the shipped miniature, CPU): best of K samples by the
+# render-and-compare score against the point map (eval_lift --samples K --select render-compare), paired
 # with the shipped one-sample lift, on val seeds 16-23 (200 objects no earlier rule used).
-#   bash scripts/sample_select_val.sh run     # K = 1, 4 (the candidate) and 8 (report only); two jobs at once
-#   bash scripts/sample_select_val.sh table   # the paired tables (scripts/merge_eval_shards.py)
-# Every run: eval_lift --world val --count 25 --seed S --depth clean --align simuscene, one thread.
+#   bash scripts/sample_select_val.sh jobs    # writes runs/select_val_jobs.txt: K = 1, 4 (the candidate), 8
+#                                             # (report only) with --align simuscene; K = 1, 4 with --align icp
+#   device run (carry .carry/prefix/usr/{include,lib/x86_64-linux-gnu,lib/libgloo.so,share,src} and the jobs file):
+#     JOBS_FILE=runs/select_val_jobs.txt bash scripts/gpu_eval_shards.sh    (here: EVAL_BUILD=build PARALLEL=2 OUT=DIR)
+#   RUNS=DIR bash scripts/sample_select_val.sh table   # the paired tables (scripts/merge_eval_shards.py)
+# Every job: eval_lift --world val --count 25 --seed S --depth clean, one thread; the model folder's files
+# with its surface offset (0.5) given explicitly.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
-BUILD="${BUILD_DIR:-$ROOT/build}"
 RUNS="${RUNS:-runs/eval_select}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 SEEDS="16 17 18 19 20 21 22 23"
-mkdir -p "$RUNS"
-ev() {  # out seed [extra]
-  local out="$1" seed="$2"; shift 2
-  [ -f "$RUNS/$out/summary.json" ] && return 0
-  OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world val --count 25 --seed "$seed" --depth clean --align simuscene \
-    --threads 1 --no-pictures --out "$RUNS/$out" "$@" >"$RUNS/$out.log" 2>&1
-}
 case "${1:-}" in
-  run)
+  jobs)
+    mkdir -p runs
+    : >runs/select_val_jobs.txt
     for s in $SEEDS; do
-      ev "k1_$s" "$s" &
-      ev "k4_$s" "$s" --samples 4 --select render-compare &
-      wait
+      base="--world val --count 25 --seed $s --depth clean --surface-offset 0.5"
+      for k in 8 4 1; do
+        sel=""; [ "$k" -gt 1 ] && sel=" --samples $k --select render-compare"
+        # (no trailing blank: xargs -L joins a line that ends in one with the next)
+        echo "k${k}_$s weights/miniature_cpu $base --align simuscene$sel" >>runs/select_val_jobs.txt
+      done
     done
-    for s in $SEEDS; do ev "k8_$s" "$s" --samples 8 --select render-compare & [ $((s % 2)) -eq 1 ] && wait; done
-    wait ;;
+    for s in $SEEDS; do
+      base="--world val --count 25 --seed $s --depth clean --surface-offset 0.5"
+      echo "icp_k1_$s weights/miniature_cpu $base --align icp" >>runs/select_val_jobs.txt
+      echo "icp_k4_$s weights/miniature_cpu $base --align icp --samples 4 --select render-compare" >>runs/select_val_jobs.txt
+    done
+    wc -l runs/select_val_jobs.txt ;;
   table)
-    "$PY" scripts/merge_eval_shards.py --model k1 "$RUNS/k1_*/summary.json" --model k4 "$RUNS/k4_*/summary.json" \
-      --compare k1 k4
-    "$PY" scripts/merge_eval_shards.py --model k1 "$RUNS/k1_*/summary.json" --model k8 "$RUNS/k8_*/summary.json" \
-      --compare k1 k8 ;;
-  *) sed -n '2,7p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
+    for pair in "k1 k4" "k1 k8" "icp_k1 icp_k4" "k1 icp_k4"; do
+      set -- $pair
+      echo "== $1 -> $2"
+      "$PY" scripts/merge_eval_shards.py --model "$1" "$RUNS/$1_[0-9]*/summary.json" --model "$2" "$RUNS/$2_[0-9]*/summary.json" \
+        --compare "$1" "$2"
+    done ;;
+  *) sed -n '2,11p' "$0" | sed 's/^# \{0,1\}//'; exit 2 ;;
 esac

@@ -281,7 +281,7 @@ class Stage1Core:
 def reconstruct(image: Any, masks: Any, *, pointmap: Any = None, depth: Any = None, K: Any = None, objects: Any = None,
                 stage1: Optional[Stage1Core] = None, out: _Path, overwrite: bool = False,
                 probe_config: Optional[_Path] = None, overrides: Optional[Dict[str, Any]] = None, run_probe: bool = True,
-                seed: int = 0) -> Dict[str, Any]: ...
+                seed: int = 0, lift_samples: int = 4) -> Dict[str, Any]: ...
 
 # ---- Pair cache and training ----
 class PairCacheWriter:

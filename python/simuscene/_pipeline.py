@@ -20,19 +20,22 @@ def reconstruct(image: ArrayLike, masks: Masks, *, out: PathLike, pointmap: Opti
                 depth: Optional[ArrayLike] = None, K: Optional[Union[ArrayLike, Mapping[str, float]]] = None,
                 objects: Optional[Union[PathLike, Sequence[Mapping[str, Any]]]] = None, stage1: Optional[Stage1] = None,
                 overwrite: bool = False, probe_config: Optional[PathLike] = None,
-                overrides: Optional[Mapping[str, Any]] = None, run_probe: bool = True, seed: int = 0) -> Dict[str, Any]:
+                overrides: Optional[Mapping[str, Any]] = None, run_probe: bool = True, seed: int = 0,
+                lift_samples: int = 4) -> Dict[str, Any]:
     """The ``reconstruct`` program's steps on arrays, with models loaded once (pass the same Stage1 each call).
 
     objects: the sidecar (a JSON file, or its entries as dicts: id / label_value, label, role, dof, pins,
     base, fit ("lift" or "box": a base fitted as a box to its depth), mesh + pose, refined_pose;
     docs/reconstruct.md). Writes into ``out`` what the program writes
     (input/scene.json, reconstruct_report.json, probe/...). Returns {"scene": Scene (pre-simulation),
-    "objects": per-object reports, "messages", "timings", "up", "probe_report", "out_dir"}.
+    "objects": per-object reports, "messages", "timings", "up", "probe_report", "out_dir"}. lift_samples:
+    shapes drawn per lifted object, each aligned and the one the depth and mask agree with most kept (0:
+    the Stage1's num_samples; docs/reconstruct.md).
     """
     return _core.reconstruct(image, masks, pointmap=pointmap, depth=depth, K=K, objects=objects,
                              stage1=None if stage1 is None else stage1._core, out=out, overwrite=overwrite,
                              probe_config=probe_config, overrides=None if overrides is None else dict(overrides),
-                             run_probe=run_probe, seed=seed)
+                             run_probe=run_probe, seed=seed, lift_samples=lift_samples)
 
 
 def validate_pair_cache(path: PathLike) -> Dict[str, Any]:

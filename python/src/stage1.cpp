@@ -387,7 +387,8 @@ void bind_stage1(py::module_& m) {
       "reconstruct",
       [](py::object image, py::object masks, py::object pointmap, py::object depth, py::object K, py::object objects,
          std::shared_ptr<Stage1> stage1, py::object out, bool overwrite, py::object probe_config, py::object overrides,
-         bool run_probe, uint64_t seed) {
+         bool run_probe, uint64_t seed, int lift_samples) {
+        if (lift_samples < 0) raise(ErrorKind::Input, "reconstruct: lift_samples must be >= 0 (got {})", lift_samples);
         reconstruct::ReconstructInputs in;
         in.lift = lift_inputs_from_py(image, masks, pointmap, depth, K, py::none());
         if (!objects.is_none()) {
@@ -409,6 +410,7 @@ void bind_stage1(py::module_& m) {
         opt.run_probe = run_probe;
         opt.overwrite = overwrite;
         opt.lift.seed = seed;
+        opt.lift.samples = lift_samples;
         const std::string out_dir = path_arg(out);
         reraise_as(ErrorKind::Input, [&] { rs::check_output_dir(out_dir, overwrite); return 0; });
         reconstruct::ReconstructResult res;
@@ -433,7 +435,7 @@ void bind_stage1(py::module_& m) {
       py::arg("image"), py::arg("masks"), py::kw_only(), py::arg("pointmap") = py::none(), py::arg("depth") = py::none(),
       py::arg("K") = py::none(), py::arg("objects") = py::none(), py::arg("stage1") = nullptr, py::arg("out"),
       py::arg("overwrite") = false, py::arg("probe_config") = py::none(), py::arg("overrides") = py::none(),
-      py::arg("run_probe") = true, py::arg("seed") = 0,
+      py::arg("run_probe") = true, py::arg("seed") = 0, py::arg("lift_samples") = rs::kFirstLiftSamples,
       "The reconstruct program's steps on arrays (simuscene.reconstruct wraps it).");
 }
 

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import simuscene as ss
 from conftest import Photo
@@ -21,6 +22,17 @@ def test_reconstruct_with_loaded_models(stage1: ss.Stage1, photo: Photo, tmp_pat
     assert ids == ["label_1", "label_2"]
     assert {o.id for o in res["scene"].objects} <= set(ids) and len(res["scene"].objects) > 0
     assert res["probe_report"] is None
+    # The first lift drew 4 shapes per lifted object and kept the one the depth and mask agree with most.
+    several = [o for o in res["objects"] if any(st.startswith("lifted (") and "usable samples of 4)" in st
+                                                for st in o["steps"])]
+    assert several, [o["steps"] for o in res["objects"]]
+    assert all(any(st.startswith("kept sample ") for st in o["steps"]) for o in several), [o["steps"] for o in several]
+
+
+def test_reconstruct_refuses_negative_lift_samples(stage1: ss.Stage1, photo: Photo, tmp_path: Path) -> None:
+    with pytest.raises(ss.InputError, match="lift_samples"):
+        ss.reconstruct(photo.rgb, photo.labels, pointmap=photo.pointmap, K=photo.K, stage1=stage1,
+                       out=tmp_path / "rec", run_probe=False, lift_samples=-1)
 
 
 def test_build_pairs_with_loaded_models(stage1: ss.Stage1, photo: Photo, tmp_path: Path) -> None:

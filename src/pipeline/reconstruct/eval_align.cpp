@@ -95,4 +95,13 @@ resample::PoseRefiner icp_refiner(const AlignConfig& align, const IcpConfig& icp
   };
 }
 
+resample::PoseScorer render_compare_scorer(const IcpConfig& icp) {
+  return [icp](const physics::PlacedShape& pred, const resample::RefineInput& in) -> double {
+    const PointMap pm = to_points(*in.pointmap);
+    AlignInput ai;
+    if (!align_input(pred, in, pm, ai).empty()) return std::numeric_limits<double>::infinity();
+    return pose_score(ai, ai.R_init, ai.s_init, ai.t_init, icp);
+  };
+}
+
 }  // namespace simu::reconstruct

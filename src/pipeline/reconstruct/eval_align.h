@@ -26,4 +26,10 @@ resample::PoseRefiner alignment_refiner(const AlignConfig& config);
 // pose kept when the alignment ran, the lifted pose when it did not.
 resample::PoseRefiner icp_refiner(const AlignConfig& align, const IcpConfig& icp);
 
+// eval_lift's choice among several samples of one object (EvalLiftOptions::select): pose_score
+// (icp_refine.h: render-and-compare against the point map and the modal mask, the ICP's tolerance) of
+// the prediction at its pose, in the camera frame. +infinity when it cannot be scored (a point map or
+// mask of another size, an empty mesh).
+resample::PoseScorer render_compare_scorer(const IcpConfig& icp);
+
 }  // namespace simu::reconstruct

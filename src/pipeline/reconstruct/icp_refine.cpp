@@ -10,6 +10,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <random>
 
 namespace simu::reconstruct {
@@ -113,6 +114,19 @@ double trimmed_icp(const Points& Y, const NearestNeighbors& tree, Mat3& R, doubl
   return residual;
 }
 
+// The canonical mesh with the prediction's shape (pose scale = s * shape).
+Points shaped_mesh(const AlignInput& in) {
+  Points V(in.canonical.rows(), 3);
+  for (Eigen::Index i = 0; i < V.rows(); ++i) V.row(i) = in.canonical.row(i).cwiseProduct(in.shape.transpose());
+  return V;
+}
+
+// The score's depth tolerance: depth_tol times the placed mesh's longest side, clamped (metres).
+double score_tau(const Points& V, double s, const IcpConfig& cfg) {
+  const double size = s * (V.colwise().maxCoeff() - V.colwise().minCoeff()).maxCoeff();
+  return std::clamp(cfg.depth_tol * size, cfg.min_tol, cfg.max_tol);
+}
+
 double angle_deg(const Mat3& A, const Mat3& B) {
   const double c = std::clamp(((A.transpose() * B).trace() - 1) / 2, -1.0, 1.0);
   return std::acos(c) * 180 / kPi;
@@ -134,6 +148,15 @@ double render_compare_score(const Points& shaped, const Faces& F, const Mat3& R,
     else if (!inside && o && o->z() > double(z[i]) + tau) cost += 1;
   }
   return cost / double(mask_n);
+}
+
+double pose_score(const AlignInput& in, const Mat3& R, double s, const Vec3& t, const IcpConfig& cfg) {
+  SIMU_CHECK(in.K.valid(), "pose score {}: invalid intrinsics", in.id);
+  SIMU_CHECK(in.mask.width == in.K.width && in.mask.height == in.K.height, "pose score {}: mask is {}x{}, the image {}x{}",
+             in.id, in.mask.width, in.mask.height, in.K.width, in.K.height);
+  if (in.canonical.rows() == 0 || in.faces.rows() == 0) return std::numeric_limits<double>::infinity();
+  const Points V = shaped_mesh(in);
+  return render_compare_score(V, in.faces, R, s, t, in, score_tau(V, s, cfg));
 }
 
 IcpResult refine_rotation_icp(const AlignInput& in, const Vec3& up_in, const IcpConfig& cfg) {
@@ -158,12 +181,10 @@ IcpResult refine_rotation_icp(const AlignInput& in, const Vec3& up_in, const Icp
     return res;
   }
   // The shaped canonical mesh (pose scale = s * shape), its surface samples and their tree.
-  Points V(in.canonical.rows(), 3);
-  for (Eigen::Index i = 0; i < V.rows(); ++i) V.row(i) = in.canonical.row(i).cwiseProduct(in.shape.transpose());
+  const Points V = shaped_mesh(in);
   const NearestNeighbors tree(surface_samples(V, in.faces, cfg.surface_samples));
   const Points Y = subsample(in.observed, cfg.max_points);
-  const double size = in.s_init * (V.colwise().maxCoeff() - V.colwise().minCoeff()).maxCoeff();
-  const double tau = std::clamp(cfg.depth_tol * size, cfg.min_tol, cfg.max_tol);
+  const double tau = score_tau(V, in.s_init, cfg);
   res.aligned_score = render_compare_score(V, in.faces, in.R_init, in.s_init, in.t_init, in, tau);
   // The vertical axis: the predicted canonical axis closest to up; the flip axis: the longer horizontal side.
   const Vec3 up = up_in.norm() > 0 ? up_in.normalized() : Vec3(0, -1, 0);

@@ -89,4 +89,10 @@ IcpResult refine_rotation_icp(const AlignInput& in, const Vec3& up, const IcpCon
 double render_compare_score(const Points& shaped, const Faces& F, const Mat3& R, double s, const Vec3& t,
                             const AlignInput& in, double tau);
 
+// The same score of in's mesh (canonical .* shape) at pose (R, s, t) with the tolerance the ICP uses:
+// tau = config.depth_tol times the placed mesh's longest side, clamped to [min_tol, max_tol]. It ranks
+// samples of one object against the point map (best of K, eval_lift / reconstruct). An empty mesh
+// scores +infinity.
+double pose_score(const AlignInput& in, const Mat3& R, double s, const Vec3& t, const IcpConfig& config = {});
+
 }  // namespace simu::reconstruct

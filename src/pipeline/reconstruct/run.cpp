@@ -9,17 +9,20 @@
 #include "common/log.h"
 #include "data/depth_io.h"
 #include "pipeline/physics/mesh.h"
+#include "pipeline/reconstruct/icp_refine.h"
 #include "pipeline/reconstruct/run_detail.h"
 #include "pipeline/reconstruct/synthetic_camera.h"
 #include "pipeline/resample/probe_resampler.h"
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 
 #include <ATen/Parallel.h>
 
 #include <chrono>
 #include <unistd.h>
 #include <filesystem>
+#include <limits>
 #include <map>
 
 namespace simu::reconstruct {
@@ -50,6 +53,16 @@ struct Work {
   Mat3 R = Mat3::Identity();
   Vec3 t = Vec3::Zero();
   Vec3 up_axis = Vec3::Zero();  // canonical up axis (zero: unknown)
+  // A lifted object's usable samples (mesh and pose each; step 2 keeps one): more than one with
+  // several samples per object.
+  struct Sample {
+    physics::Mesh mesh;
+    Vec3 scale;
+    Mat3 R;
+    Vec3 t;
+    size_t index;  // in the lift's samples
+  };
+  std::vector<Sample> samples;
   bool ok = false;
   bool hanging() const { return spec.dof != physics::PoseDof::Free; }
   Points world() const { return place(mesh.V, scale, R, t); }
@@ -197,22 +210,31 @@ struct Run {
         continue;
       }
       for (size_t sidx = 0; sidx < lo.samples.size(); ++sidx)
-        if (lo.samples[sidx].ok) {
-          w.mesh.V = lo.samples[sidx].mesh.V;
-          w.mesh.F = lo.samples[sidx].mesh.F;
-          w.R = lo.scene_poses[sidx].R;
-          w.scale = lo.scene_poses[sidx].scale;
-          w.t = lo.scene_poses[sidx].t;
-          w.up_axis = axis;
-          w.ok = true;
-          w.rep.steps.push_back(fmt::format("lifted (sample {})", sidx));
-          break;
-        }
+        if (lo.samples[sidx].ok)
+          w.samples.push_back({lo.samples[sidx].mesh, lo.scene_poses[sidx].scale, lo.scene_poses[sidx].R,
+                               lo.scene_poses[sidx].t, sidx});
+      if (w.samples.empty()) continue;
+      use_sample(w, 0);
+      w.up_axis = axis;
+      w.ok = true;
+      w.rep.steps.push_back(w.samples.size() == 1 ? fmt::format("lifted (sample {})", w.samples[0].index)
+                                                  : fmt::format("lifted ({} usable samples of {})", w.samples.size(),
+                                                                lo.samples.size()));
     }
     res.timings["lift"] = since(t0);
     res.timings["lift_stages"] = {{"preprocess", lr.seconds.preprocess}, {"embed", lr.seconds.embed},
                                   {"sample", lr.seconds.sample},         {"decode", lr.seconds.decode},
                                   {"mesh", lr.seconds.mesh},             {"pose", lr.seconds.pose}};
+  }
+
+  // Sample c of a lifted object becomes its mesh and pose.
+  static void use_sample(Work& w, size_t c) {
+    const Work::Sample& s = w.samples[c];
+    w.mesh.V = s.mesh.V;
+    w.mesh.F = s.mesh.F;
+    w.R = s.R;
+    w.scale = s.scale;
+    w.t = s.t;
   }
 
   // Refined poses (e.g. FoundationPose; scene convention in the camera frame) replace the rotation.
@@ -230,6 +252,11 @@ struct Run {
                    "{}: R is not a rotation", w.spec.refined_pose);
         w.R = R;
         if (j.contains("t")) w.t = vec3_of(j["t"], w.spec.refined_pose + ": t");
+        // Every lifted sample takes the refined pose (step 2 chooses among them).
+        for (auto& s : w.samples) {
+          s.R = w.R;
+          if (j.contains("t")) s.t = w.t;
+        }
         w.rep.steps.push_back("refined_pose");
       } catch (const std::exception& e) {
         w.rep.skipped.push_back(fmt::format("refined_pose: {}", e.what()));
@@ -237,58 +264,89 @@ struct Run {
     }
   }
 
-  // Step 2: translation-scale alignment of every object (objects in parallel on the intra-op threads:
-  // each alignment is independent and single-threaded).
+  // Step 2: translation-scale alignment of every object (objects, and the samples of an object lifted
+  // with several, in parallel on the intra-op threads: each alignment is independent and single-threaded).
+  // Of several samples, the one with the lowest pose_score at its aligned pose (its lifted pose when it
+  // could not be aligned) is kept.
   void align() {
     const auto t0 = Clock::now();
-    std::vector<AlignInput> inputs(objs.size());
-    std::vector<AlignResult> results(objs.size());
+    struct Job {
+      size_t k = 0, c = 0;  // object, sample
+      AlignInput in;
+      AlignResult r;
+      double score = std::numeric_limits<double>::infinity();
+      std::string error;
+      double seconds = 0;
+    };
+    std::vector<Job> jobs;
     for (size_t k = 0; k < objs.size(); ++k) {
       Work& w = objs[k];
       if (!w.ok) continue;
       w.rep.s_before = w.scale.maxCoeff();
       w.rep.t_before = w.t;
-      AlignInput& ai = inputs[k];
-      ai.id = w.spec.id;
-      ai.canonical = w.mesh.V;
-      ai.faces = w.mesh.F;
-      ai.shape = w.scale / w.scale.maxCoeff();
-      ai.s_init = w.scale.maxCoeff();
-      ai.R_init = w.R;
-      ai.t_init = w.t;
-      ai.observed = w.observed;
-      ai.mask = w.mask;
-      ai.K = K;
-      ai.depth = &pm;
-    }
-    if (opt.do_align) {
-      std::vector<std::string> errors(objs.size());
-      std::vector<double> seconds(objs.size(), 0.0);
-      at::parallel_for(0, int64_t(objs.size()), 1, [&](int64_t b, int64_t e) {
-        for (int64_t k = b; k < e; ++k) {
-          if (!objs[size_t(k)].ok) continue;
-          const auto tk = Clock::now();
-          try {
-            results[size_t(k)] = align_translation_scale(inputs[size_t(k)], opt.align);
-          } catch (const std::exception& ex) {
-            errors[size_t(k)] = ex.what();
-          }
-          seconds[size_t(k)] = since(tk);
-        }
-      });
-      for (size_t k = 0; k < objs.size(); ++k) {
-        Work& w = objs[k];
-        if (!w.ok) continue;
-        SIMU_CHECK(errors[k].empty(), "{}", errors[k]);
-        const AlignResult& ar = results[k];
-        if (!ar.ok) {
-          w.rep.skipped.push_back("align: " + ar.message + " (no valid depth: kept the lifted pose)");
-          continue;
-        }
-        w.scale = ar.s * inputs[k].shape;
-        w.t = ar.t;
-        w.rep.steps.push_back(fmt::format("aligned (start rho {}, {:.2f} s)", ar.candidates[size_t(ar.best)].rho, seconds[k]));
+      for (size_t c = 0; c < std::max<size_t>(1, w.samples.size()); ++c) {
+        if (!w.samples.empty()) use_sample(w, c);
+        Job j;
+        j.k = k;
+        j.c = c;
+        AlignInput& ai = j.in;
+        ai.id = w.spec.id;
+        ai.canonical = w.mesh.V;
+        ai.faces = w.mesh.F;
+        ai.shape = w.scale / w.scale.maxCoeff();
+        ai.s_init = w.scale.maxCoeff();
+        ai.R_init = w.R;
+        ai.t_init = w.t;
+        ai.observed = w.observed;
+        ai.mask = w.mask;
+        ai.K = K;
+        ai.depth = &pm;
+        jobs.push_back(std::move(j));
       }
+      if (!w.samples.empty()) use_sample(w, 0);
+    }
+    at::parallel_for(0, int64_t(jobs.size()), 1, [&](int64_t b, int64_t e) {
+      for (int64_t i = b; i < e; ++i) {
+        Job& j = jobs[size_t(i)];
+        const auto tk = Clock::now();
+        try {
+          if (opt.do_align) j.r = align_translation_scale(j.in, opt.align);
+          if (objs[j.k].samples.size() > 1)
+            j.score = j.r.ok ? pose_score(j.in, j.in.R_init, j.r.s, j.r.t) : pose_score(j.in, j.in.R_init, j.in.s_init, j.in.t_init);
+        } catch (const std::exception& ex) {
+          j.error = ex.what();
+        }
+        j.seconds = since(tk);
+      }
+    });
+    // Per object: the kept sample (the first of the lowest score) and its alignment.
+    std::map<size_t, const Job*> kept;
+    for (const Job& j : jobs) {
+      SIMU_CHECK(j.error.empty(), "{}", j.error);
+      auto it = kept.find(j.k);
+      if (it == kept.end() || j.score < it->second->score) kept[j.k] = &j;
+    }
+    for (const auto& [k, jp] : kept) {
+      const Job& j = *jp;
+      Work& w = objs[k];
+      if (w.samples.size() > 1) {
+        use_sample(w, j.c);
+        w.rep.s_before = w.scale.maxCoeff();
+        w.rep.t_before = w.t;
+        std::vector<std::string> scores;
+        for (const Job& o : jobs)
+          if (o.k == k) scores.push_back(fmt::format("{:.3f}", o.score));
+        w.rep.steps.push_back(fmt::format("kept sample {} of {} by its agreement with the depth and mask (scores {})",
+                                          w.samples[j.c].index, w.samples.size(), fmt::join(scores, ", ")));
+      }
+      if (!opt.do_align) continue;
+      if (!j.r.ok) {
+        w.rep.skipped.push_back("align: " + j.r.message + " (no valid depth: kept the lifted pose)");
+        continue;
+      }
+      w.scale = j.r.s * j.in.shape;
+      w.t = j.r.t;
+      w.rep.steps.push_back(fmt::format("aligned (start rho {}, {:.2f} s)", j.r.candidates[size_t(j.r.best)].rho, j.seconds));
     }
     res.timings["align"] = since(t0);
   }

@@ -7,7 +7,9 @@
 //             and a refined pose (e.g. FoundationPose, scene convention) replacing the rotation;
 //             depth (.npy / 16-bit PNG mm / EXR) + K JSON, or a point map .npy (OpenCV camera);
 //   steps     1 lift (the Stage-1 port, one batched call) for objects without their own mesh;
-//             2 translation-scale alignment (align.h); 3 floor / walls (planes.h, first pass, up from
+//             2 translation-scale alignment (align.h); an object lifted with several samples
+//             (lift.samples, else the model's num_samples) has each sample aligned and keeps the one
+//             the depth and mask agree with most (icp_refine.h's pose_score, lowest); 3 floor / walls (planes.h, first pass, up from
 //             walls, else floor, else the lifted meshes' up axes); 4 tabletop refinement (tabletop.h)
 //             for table / desk labels; 5 plane re-extraction with the fitted meshes (their up axes,
 //             the fallback floor without the objects' points) and the floor snap to the lowest vertex
@@ -52,7 +54,9 @@ struct ReconstructOptions {
   // scale fitted to its object's depth by step 2's alignment, started at the target OBB's centre; the
   // probe still places it at that centre. For models whose own scale is poor (the miniature).
   bool align_resampled = false;
-  resample::LiftOptions lift;
+  // The first lift: lift.samples shapes per object (kFirstLiftSamples by default; 0 = the model's
+  // num_samples); with several, step 2 keeps the best (see above).
+  resample::LiftOptions lift = resample::first_lift_options();
   physics::ProbeConfig probe;
   bool run_probe = true;
   bool overwrite = false;

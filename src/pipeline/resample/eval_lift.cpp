@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <limits>
 #include <map>
 #include <thread>
 
@@ -69,19 +70,22 @@ LiftInputs lift_inputs(const world::WorldScene& s, const world::PointMap& pm, co
   return in;
 }
 
-// The placed prediction of a lifted object: its first usable sample at its scene pose (and that sample's
-// index in *sample).
-bool prediction(const LiftedObject& o, PlacedShape& out, size_t* sample = nullptr) {
+// The usable samples of a lifted object (indices into its samples, in order).
+std::vector<int> usable_samples(const LiftedObject& o) {
+  std::vector<int> out;
   for (size_t k = 0; k < o.samples.size(); ++k)
-    if (o.samples[k].ok && k < o.scene_poses.size()) {
-      out.canonical = o.samples[k].mesh;
-      out.scale = o.scene_poses[k].scale;
-      out.R = o.scene_poses[k].R;
-      out.t = o.scene_poses[k].t;
-      if (sample) *sample = k;
-      return true;
-    }
-  return false;
+    if (o.samples[k].ok && k < o.scene_poses.size()) out.push_back(static_cast<int>(k));
+  return out;
+}
+
+// Sample k of a lifted object placed at its scene pose.
+PlacedShape placed_sample(const LiftedObject& o, int k) {
+  PlacedShape out;
+  out.canonical = o.samples[size_t(k)].mesh;
+  out.scale = o.scene_poses[size_t(k)].scale;
+  out.R = o.scene_poses[size_t(k)].R;
+  out.t = o.scene_poses[size_t(k)].t;
+  return out;
 }
 
 
@@ -152,6 +156,24 @@ torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S) {
   return std::get<0>(at::unique_dim(torch::floor_divide(c, R / S), 0));
 }
 
+std::pair<int, int> parse_shard(const std::string& text) {
+  const auto slash = text.find('/');
+  int i = -1, n = 0;
+  try {
+    SIMU_CHECK(slash != std::string::npos, "no slash");
+    size_t used = 0;
+    i = std::stoi(text.substr(0, slash), &used);
+    SIMU_CHECK(used == slash, "trailing text");
+    const std::string rest = text.substr(slash + 1);
+    n = std::stoi(rest, &used);
+    SIMU_CHECK(used == rest.size(), "trailing text");
+  } catch (const std::exception&) {
+    fail_hint("e.g. --shard 0/4 (the first of four)", "--shard '{}': expected I/N", text);
+  }
+  SIMU_CHECK(n >= 1 && i >= 0 && i < n, "--shard '{}': need 0 <= I < N", text);
+  return {i, n};
+}
+
 std::pair<double, double> parse_visible_range(const std::string& text) {
   const auto dash = text.find('-', 1);
   double lo = 0, hi = 0;
@@ -209,6 +231,8 @@ void validate_eval_options(const EvalLiftOptions& opt) {
   SIMU_CHECK(opt.count >= 0, "--count {} must not be negative", opt.count);
   SIMU_CHECK(opt.object_size >= 0, "--object-size {} must not be negative", opt.object_size);
   SIMU_CHECK(opt.attempts >= 1, "eval_lift: attempts {} must be >= 1", opt.attempts);
+  SIMU_CHECK(opt.shard_count >= 1 && opt.shard_index >= 0 && opt.shard_index < opt.shard_count,
+             "--shard {}/{}: need 0 <= I < N", opt.shard_index, opt.shard_count);
   if (!(opt.oracle.empty() || opt.oracle == "none" || opt.oracle == "grid" || opt.oracle == "pose"))
     fail_hint("--oracle none | grid | pose", "--oracle: unknown value '{}'", opt.oracle);
   SIMU_CHECK(opt.bootstrap_resamples >= 1, "--bootstrap {} must be >= 1", opt.bootstrap_resamples);
@@ -258,7 +282,9 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
   Progress progress{"eval_lift", "objects"};
   progress(0, src.target);
   int placed_k = 0;
-  while (static_cast<int>(res.objects.size()) < src.target) {
+  int taken = 0;  // objects of the whole run (every shard's) taken so far
+  int scenes_taken = 0;  // world scenes with objects taken (every shard's)
+  while (taken < src.target) {
     // One scene and the objects of it to evaluate.
     world::WorldScene scene;
     std::vector<int> chosen;
@@ -285,19 +311,24 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
         last = fmt::format("visible fraction {:.2f}{}", o.visible_fraction, o.usable ? "" : ", not usable");
       }
       chosen = {0};
-      ++placed_k;
+      ++taken;
+      // Another shard's object: its scenes were made (the next object's seeds follow them), nothing else.
+      if ((placed_k++) % opt.shard_count != opt.shard_index) continue;
     } else {
       scene = world::make_scene(cfg, take_scene_seed(src), src.split);
       ++res.scenes;
       for (size_t i = 0; i < scene.objects.size(); ++i) {
         const auto& o = scene.objects[i];
-        if (static_cast<int>(res.objects.size() + chosen.size()) >= src.target) break;
+        if (taken + static_cast<int>(chosen.size()) >= src.target) break;
         if (o.usable && o.visible_fraction >= opt.visible_lo && o.visible_fraction <= opt.visible_hi)
           chosen.push_back(static_cast<int>(i));
       }
       SIMU_CHECK(res.scenes <= 50 * src.target + 100, "--world {}: {} scenes gave only {} objects with visible fraction in "
-                 "[{:.2f}, {:.2f}]", opt.world, res.scenes, res.objects.size(), opt.visible_lo, opt.visible_hi);
+                 "[{:.2f}, {:.2f}]", opt.world, res.scenes, taken, opt.visible_lo, opt.visible_hi);
       if (chosen.empty()) continue;
+      taken += static_cast<int>(chosen.size());
+      // Another shard's scene (scenes with objects taken, in order, dealt round robin): made, not lifted.
+      if ((scenes_taken++) % opt.shard_count != opt.shard_index) continue;
     }
     // Ground truth of the chosen objects.
     const int first = static_cast<int>(res.objects.size());
@@ -335,8 +366,10 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
       const size_t nk = chosen.size(), nm = res.models.size(), row0 = res.rows.size();
       std::vector<PlacedShape> preds(nm * nk);
       std::vector<physics::Mesh> pred_world(nm * nk);  // for the picture
+      std::vector<LiftResult> lifts(nm);
+      std::vector<std::vector<int>> usable(nm * nk);  // model lifts: the usable samples of each row
       for (size_t m = 0; m < nm; ++m) {
-        LiftResult lifted;
+        LiftResult& lifted = lifts[m];
         if (!no_lift) {
           const auto t0 = Clock::now();
           LiftOptions lo;
@@ -371,20 +404,19 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
               row.error = fmt::format("object {}: --oracle grid: {}", obj.id, rs.message);
             }
           } else {
-            size_t sample = 0;
-            row.ok = prediction(lifted.objects[k], preds[m * nk + k], &sample);
+            // The first usable sample; with opt.select, the best of them (chosen in the scoring below).
+            usable[m * nk + k] = usable_samples(lifted.objects[k]);
+            row.ok = !usable[m * nk + k].empty();
             if (row.ok) {
-              const int64_t R = occupancy_resolution(m == 0 ? *models.base : *models.compare);
-              const int64_t S = opt.shape_grid > 0 ? opt.shape_grid : R;  // the shape IoU's grid
-              auto& gt = gt_grids[{row.object, S}];
+              row.sample = usable[m * nk + k].front();
+              preds[m * nk + k] = placed_sample(lifted.objects[k], row.sample);
+              const int64_t S = opt.shape_grid > 0 ? opt.shape_grid : occupancy_resolution(m == 0 ? *models.base : *models.compare);
+              auto& gt = gt_grids[{row.object, S}];  // the shape IoU's truth, made here (the map is not thread-safe)
               if (gt.empty()) gt = world::voxelize_filled(obj.gt.canonical, static_cast<int>(S));
-              row.shape_iou = occupancy_iou(pool_coords(lifted.objects[k].samples[sample].coords, R, S), gt, S);
-              // The sampled shape at the true pose.
-              if (oracle_pose) preds[m * nk + k].scale = obj.gt.scale, preds[m * nk + k].R = obj.gt.R, preds[m * nk + k].t = obj.gt.t;
-            }
-            if (!row.ok)
+            } else {
               row.error = lifted.objects[k].error.empty() ? fmt::format("object {}: no usable sample", obj.id)
                                                           : lifted.objects[k].error;
+            }
           }
           res.rows.push_back(std::move(row));
         }
@@ -395,17 +427,34 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
         if (!row.ok) return;
         const EvalObject& obj = res.objects[row.object];
         try {
-          if (opt.refine) {
-            row.lifted_t = preds[i].t;
-            row.lifted_size = preds[i].size();
-            RefineInput ri;
-            ri.camera = &obj.camera;
-            ri.pointmap = &pm;
-            ri.modal = &scene.objects[chosen[i % nk]].modal;
-            ri.id = obj.id;
-            ri.gravity = scene.gravity;
-            row.refine_note = opt.refine(preds[i], ri);
-            row.refined = row.refine_note.empty();
+          RefineInput ri;
+          ri.camera = &obj.camera;
+          ri.pointmap = &pm;
+          ri.modal = &scene.objects[chosen[i % nk]].modal;
+          ri.id = obj.id;
+          ri.gravity = scene.gravity;
+          // Each candidate sample (one without opt.select) placed, refined and, with opt.select, scored;
+          // the lowest score is kept.
+          const std::vector<int> cands = opt.select && usable[i].size() > 1 ? usable[i] : std::vector<int>{row.sample};
+          if (opt.select) row.sample_scores.assign(lifts[i / nk].objects.empty() ? 0 : lifts[i / nk].objects[i % nk].samples.size(),
+                                                   std::numeric_limits<double>::quiet_NaN());
+          double best = std::numeric_limits<double>::infinity();
+          for (size_t c = 0; c < cands.size(); ++c) {
+            PlacedShape p = no_lift ? preds[i] : placed_sample(lifts[i / nk].objects[i % nk], cands[c]);
+            if (oracle_pose) p.scale = obj.gt.scale, p.R = obj.gt.R, p.t = obj.gt.t;  // the sampled shape at the true pose
+            const physics::Vec3 lifted_t = p.t;
+            const double lifted_size = p.size();
+            const std::string note = opt.refine ? opt.refine(p, ri) : std::string();
+            const double score = opt.select ? opt.select(p, ri) : 0.0;
+            if (opt.select && !no_lift) row.sample_scores[size_t(cands[c])] = score;
+            if (c == 0 || score < best) {
+              best = score;
+              preds[i] = std::move(p);
+              row.sample = cands[c];
+              if (opt.refine) row.lifted_t = lifted_t, row.lifted_size = lifted_size;
+              row.refine_note = note;
+              row.refined = opt.refine && note.empty();
+            }
           }
           row.metrics = physics::shape_metrics(preds[i], obj.gt, obj.symmetry, opt.metrics);
           row.pred_t = preds[i].t;
@@ -417,6 +466,15 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
           row.error = fmt::format("object {}: metrics: {}", obj.id, e.what());
         }
       });
+      // The shape IoU of the kept sample, on its model's grid or opt.shape_grid.
+      for (size_t i = 0; i < nm * nk && !no_lift; ++i) {
+        EvalRow& row = res.rows[row0 + i];
+        if (!row.ok) continue;
+        const int64_t R = occupancy_resolution(i / nk == 0 ? *models.base : *models.compare);
+        const int64_t S = opt.shape_grid > 0 ? opt.shape_grid : R;
+        const auto& sample = lifts[i / nk].objects[i % nk].samples[size_t(row.sample)];
+        row.shape_iou = occupancy_iou(pool_coords(sample.coords, R, S), gt_grids.at({row.object, S}), S);
+      }
       res.seconds_metrics += since(t1);
       if (!opt.pictures) continue;
       std::vector<const physics::Mesh*> env;
@@ -439,7 +497,7 @@ EvalLiftResult run_eval_lift(const EvalLiftOptions& opt, const EvalModels& model
         for (size_t m = 0; m < res.models.size(); ++m) res.rows[row0 + m * nk + k].picture = rel;
       }
     }
-    progress(static_cast<int64_t>(res.objects.size()), src.target);
+    progress(taken, src.target);
   }
   return res;
 }

@@ -46,6 +46,11 @@ struct RefineInput {
 // this one). It may change the prediction's scale and translation (world frame). Returns "" when it
 // changed the pose, else why not (the lifted pose is then kept and the reason goes in the row).
 using PoseRefiner = std::function<std::string(physics::PlacedShape& prediction, const RefineInput& input)>;
+// How well a prediction at its pose agrees with what the image shows (lower is better): with several
+// samples per object (the model's num_samples), each usable sample is refined (`refine`, when set) and
+// scored, and the lowest is the one scored against the truth (EvalLiftOptions::select; reconstruct's
+// render_compare_scorer). It must not look at the ground truth.
+using PoseScorer = std::function<double(const physics::PlacedShape& prediction, const RefineInput& input)>;
 
 struct EvalLiftOptions {
   std::string world;             // train | val | test | heldout ("" with objects_dir)
@@ -79,12 +84,20 @@ struct EvalLiftOptions {
   // the truth's filled occupancy at S.
   int64_t shape_grid = 0;
   int threads = 0;               // metric threads (0: every core; the lift runs on torch's threads)
+  // Shard shard_index of shard_count (eval_lift --shard I/N): every scene of the whole run is made, but
+  // only the objects of world scenes with index % N == I (the scenes that have objects taken, in order),
+  // or placed objects with index % N == I, are lifted and scored here. A scene's objects stay together,
+  // so the shards' rows are the whole run's (same objects, inputs and noise); merge their summaries
+  // (scripts/merge_eval_shards.py). summary.json's aggregates are the shard's own.
+  int shard_index = 0, shard_count = 1;
   PoseRefiner refine;            // optional: run on each prediction before scoring (see PoseRefiner)
+  PoseScorer select;             // optional: best of the samples by this score (unset: the first usable)
+  std::string select_name = "first";  // what `select` is, for summary.json
   std::string refine_name = "none";  // what `refine` is, for summary.json
 };
 
 // Checks the options before any work: exactly one of world / objects_dir, a known split, a mesh folder
-// with mesh files, the visible range, --depth, --count. Throws simu::Error naming the flag or folder.
+// with mesh files, the visible range, --depth, --count, --shard. Throws simu::Error naming the flag or folder.
 void validate_eval_options(const EvalLiftOptions& options);
 // Which depth kinds the options ask for ("clean", "corrupted"); throws naming --depth otherwise.
 std::vector<std::string> depth_kinds(const std::string& depth);
@@ -98,6 +111,8 @@ void check_shape_grid(int64_t R, int64_t S);
 // Voxel coordinates of an R^3 grid pooled to an S^3 grid (check_shape_grid): each (x, y, z) / (R / S),
 // duplicates removed. coords [N, 3] integer -> [M, 3] int64.
 torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S);
+// "I/N" (0 <= I < N): eval_lift --shard. Throws simu::Error naming --shard when malformed.
+std::pair<int, int> parse_shard(const std::string& text);
 // "LO-HI" as fractions ("0.4-0.7") or percentages ("40-70": either bound above 1 means percent).
 // Throws simu::Error naming --visible when malformed, out of [0, 1] or LO > HI.
 std::pair<double, double> parse_visible_range(const std::string& text);
@@ -143,6 +158,10 @@ struct EvalRow {
   std::string refine_note;
   physics::Vec3 lifted_t = physics::Vec3::Zero();
   double lifted_size = 0;
+  // The sample scored (index into the lift's samples) and, with EvalLiftOptions::select, every
+  // sample's selection score (NaN for a sample that failed).
+  int sample = 0;
+  std::vector<double> sample_scores;
 };
 
 struct EvalLiftResult {

@@ -109,6 +109,12 @@ json object_row(const EvalLiftResult& r, const EvalRow& row) {
     j["pred_t_cam"] = {pc.x(), pc.y(), pc.z()};
     j["gt_t_cam"] = {gc.x(), gc.y(), gc.z()};
     j["pred_size_m"] = row.pred_size;
+    j["sample"] = row.sample;
+    if (!row.sample_scores.empty()) {
+      json sc = json::array();
+      for (double v : row.sample_scores) sc.push_back(number(v));
+      j["sample_scores"] = sc;
+    }
     if (!row.refine_note.empty() || row.refined) {
       const physics::Vec3 lc = cam.R_world_cam.transpose() * (row.lifted_t - cam.t_world_cam);
       j["refined"] = row.refined;
@@ -148,8 +154,10 @@ json eval_summary(const EvalLiftResult& r, const EvalLiftOptions& opt, const std
   s["settings"] = {{"visible", {opt.visible_lo, opt.visible_hi}},
                    {"count", r.objects.size()},
                    {"seed", opt.seed},
+                   {"shard", fmt::format("{}/{}", opt.shard_index, opt.shard_count)},
                    {"crop", opt.amodal_crop ? "amodal (ground truth)" : "modal"},
                    {"refine", opt.refine_name},
+                   {"select", opt.select_name},
                    {"depth", r.depths},
                    {"object_size_m", opt.object_size},
                    {"gt_as_prediction", opt.gt_as_prediction},

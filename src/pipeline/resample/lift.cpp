@@ -171,7 +171,7 @@ LiftResult lift_objects(Resampler& resampler, const LiftInputs& inputs, const Li
     }
   } adapter_off{resampler, resampler.adapter_resample_only() && !options.resampling};
   if (adapter_off.off) resampler.set_adapter_enabled(false);
-  const auto rs = resampler.resample(batch, options.seed);
+  const auto rs = resampler.resample(batch, options.seed, options.samples);
   result.seconds.embed = rs.seconds_embed;
   result.seconds.sample = rs.seconds_sample;
   result.seconds.decode = rs.seconds_decode;

@@ -408,10 +408,11 @@ void sample_with_retries(const std::vector<ResampledShape*>& outs, uint64_t seed
   }
 }
 
-ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests, uint64_t seed) {
+ResampleResult Resampler::resample(const std::vector<ResampleRequest>& requests, uint64_t seed, int samples) {
   torch::NoGradGuard no_grad;
   ResampleResult result;
-  const int64_t S = config_.num_samples;
+  SIMU_CHECK(samples >= 0, "resampler: samples {} must be >= 0 (0: num_samples)", samples);
+  const int64_t S = samples > 0 ? samples : config_.num_samples;
   const int64_t n = static_cast<int64_t>(requests.size());
   result.objects.assign(requests.size(), std::vector<ResampledShape>(static_cast<size_t>(S)));
   if (n == 0) return result;

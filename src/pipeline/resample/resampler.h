@@ -167,7 +167,8 @@ class Resampler {
   // Noise: drawn for all (request, sample) rows in request order from a CPU generator seeded with
   // `seed`, so results do not depend on the device or on the batch composition's grouping. Rows whose
   // occupancy came out empty are sampled again (ResamplerConfig::empty_retries; sample_with_retries).
-  ResampleResult resample(const std::vector<ResampleRequest>& requests, uint64_t seed);
+  // `samples` > 0 draws that many per request instead of num_samples (a first lift's best of K).
+  ResampleResult resample(const std::vector<ResampleRequest>& requests, uint64_t seed, int samples = 0);
 
   // Decodes shape latents [B, T, 8] -> occupancy logits [B, 1, R, R, R] (decoder batched by decode_batch).
   torch::Tensor decode_logits(const torch::Tensor& shape_latent);

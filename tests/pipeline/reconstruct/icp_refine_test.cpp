@@ -131,6 +131,33 @@ TEST(IcpRefine, TooFewPointsLeavesThePose) {
   EXPECT_EQ(r.t, in.t_init);
 }
 
+// pose_score (best of K samples): the render-and-compare score with the ICP's tolerance (10% of the
+// placed longest side, clamped to [5, 30] mm: 30 mm for the 30 cm L), about 0 for the truth, higher for
+// shapes the image does not show (the L shrunk to 70%, turned 90 degrees about the vertical, or its
+// bounding box), +infinity for an empty mesh.
+TEST(IcpRefine, PoseScoreRanksTheShapeTheImageShowsFirst) {
+  const Scene sc;
+  const AlignInput in = sc.input(sc.R);
+  const double truth = pose_score(in, sc.R, 1.0, sc.t);
+  EXPECT_EQ(truth, render_compare_score(sc.V, sc.F, sc.R, 1.0, sc.t, in, 0.03));
+  EXPECT_LT(truth, 0.02);
+  // At a tenth of the size the tolerance is clamped to 5 mm.
+  EXPECT_EQ(pose_score(in, sc.R, 0.1, sc.t), render_compare_score(sc.V, sc.F, sc.R, 0.1, sc.t, in, 0.005));
+  EXPECT_GT(pose_score(in, sc.R, 0.7, sc.t), truth + 0.2);
+  EXPECT_GT(pose_score(in, rot(sc.up, 90) * sc.R, 1.0, sc.t), truth + 0.05);
+  AlignInput box = in;
+  Points B;
+  Faces FB;
+  box_mesh(Vec3(0.30, 0.26, 0.12), B, FB);  // the L's bounding box: x in [-0.15, 0.15], y in [-0.16, 0.10]
+  B.rowwise() += Vec3(0, -0.03, 0).transpose();
+  box.canonical = B;
+  box.faces = FB;
+  EXPECT_GT(pose_score(box, sc.R, 1.0, sc.t), truth + 0.1);
+  AlignInput empty = in;
+  empty.canonical.resize(0, 3);
+  EXPECT_TRUE(std::isinf(pose_score(empty, sc.R, 1.0, sc.t)));
+}
+
 // eval_lift with the icp refiner, the ground truth as the prediction (the committed meshes in world
 // scenes, clean point maps): the truth fits its own depth best, so every object stays where it is
 // (eval_align_test.cpp's bounds: IoU >= 0.6, F@2cm >= 0.9).

@@ -2,11 +2,13 @@
 // (synthetic_camera.h: floor, two walls, a table with objects, a hanging object) with a label PNG, the
 // sidecar, depth as a 16-bit PNG + K; every object brings its ground-truth mesh with SAM 3D-like pose
 // errors (bring your own lift) except one, lifted by the Stage-1 port with the small fixture models
-// (random weights); plus bad input: a sidecar entry naming a label the image does not have and an
+// (random weights; three samples, the one with the lowest render-and-compare score kept); plus bad input: a sidecar entry naming a label the image does not have and an
 // object whose mesh file will not load. Checks: the run finishes, the skipped objects are listed with
 // their reason, the others are in the pre-simulation scene, up within 1 degree of the truth, gravity
 // = -up, and the probe's scene.xml loads in MuJoCo.
 #include <gtest/gtest.h>
+
+#include <cstdio>
 #include <sys/wait.h>
 
 #include <nlohmann/json.hpp>
@@ -91,7 +93,8 @@ TEST(ReconstructCli, EndToEndSmallSyntheticPhoto) {
   side["objects"].push_back({{"label_value", 99}, {"id", "ghost"}, {"label", "cup"}});
   std::ofstream(in + "/objects.json") << side.dump(2);
   const std::string out = dir + "/out";
-  const std::string cmd = fixture_command(dir, in) + " --out " + out;
+  // Three shapes for the lifted object: each aligned, the lowest render-and-compare score kept.
+  const std::string cmd = fixture_command(dir, in) + " --lift-samples 3 --out " + out;
   const auto [rc, log] = run(cmd, dir + "/reconstruct.log");
   // Exit 1: objects were skipped (the others reconstructed).
   ASSERT_EQ(rc, 1) << log;
@@ -115,11 +118,23 @@ TEST(ReconstructCli, EndToEndSmallSyntheticPhoto) {
   for (const auto& o : s.objects) n_expected += !o.is_base && o.id != broken;
   EXPECT_EQ(scene.at("objects").size(), n_expected);
   EXPECT_EQ(scene.at("bases").size(), 1u);
-  bool lifted_ok = false;
+  bool lifted_ok = false, kept_lowest = false;
   for (const auto& o : rep.at("objects"))
     if (o.at("id") == lifted)
-      for (const auto& st : o.at("steps")) lifted_ok |= st.get<std::string>().rfind("lifted", 0) == 0;
+      for (const auto& st : o.at("steps")) {
+        const std::string step = st.get<std::string>();
+        lifted_ok |= step.rfind("lifted (3 usable samples of 3)", 0) == 0;
+        // "kept sample K of 3 by ... (scores a, b, c)": sample K has the lowest score.
+        int k = -1;
+        double sc[3];
+        if (std::sscanf(step.c_str(), "kept sample %d of 3 by its agreement with the depth and mask (scores %lf, %lf, %lf)", &k,
+                        &sc[0], &sc[1], &sc[2]) == 4) {
+          ASSERT_TRUE(k >= 0 && k < 3) << step;
+          kept_lowest = sc[k] <= sc[0] && sc[k] <= sc[1] && sc[k] <= sc[2];
+        }
+      }
   EXPECT_TRUE(lifted_ok) << rep.dump(2);
+  EXPECT_TRUE(kept_lowest) << rep.dump(2);
   // The probe's MJCF loads in MuJoCo.
   ASSERT_TRUE(std::filesystem::exists(out + "/probe/scene.xml")) << log;
   char err[1000] = "";

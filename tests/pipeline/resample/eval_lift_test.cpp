@@ -3,8 +3,9 @@
 // through the scenes and the whole metric path (IoU 1, F 1, errors 0), and the program end to end on
 // the committed mesh folder tests/testdata/meshes with the small fixture models (random-weight
 // embedder): it runs, every metric is in its range, sizes follow the files' units, the base rows do not
-// change when a compare adapter is added (same objects and noise), and bad inputs are errors naming the
-// flag or the folder.
+// change when a compare adapter is added (same objects and noise), --select render-compare keeps the
+// lowest-scored of several samples, and bad inputs are errors naming the flag or the folder; --shard
+// partitions a run's objects exactly.
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
@@ -205,6 +206,41 @@ TEST(EvalLift, GroundTruthAsPredictionIsPerfect) {
   }
 }
 
+// --shard I/N: the shards of a run hold exactly its objects, each once (world scenes dealt round robin,
+// placed objects by index), with the same ground truth; the shard parser refuses malformed values.
+TEST(EvalLift, ShardsPartitionTheWholeRun) {
+  for (const char* source : {"test", "heldout"}) {
+    sr::EvalLiftOptions opt;
+    opt.world = source;
+    opt.count = 7;
+    opt.gt_as_prediction = true;
+    opt.pictures = false;
+    opt.metrics.samples = 500;
+    const auto whole = sr::run_eval_lift(opt, {}, simu::testing::temp_dir("eval_lift_shard_whole"));
+    std::map<std::string, double> seen;  // object -> GT longest side
+    for (int i = 0; i < 3; ++i) {
+      opt.shard_index = i;
+      opt.shard_count = 3;
+      const auto part = sr::run_eval_lift(opt, {}, simu::testing::temp_dir("eval_lift_shard_part"));
+      for (const auto& o : part.objects) EXPECT_TRUE(seen.emplace(o.id, o.gt.size()).second) << source << " " << o.id;
+    }
+    ASSERT_EQ(seen.size(), whole.objects.size()) << source;
+    for (const auto& o : whole.objects) {
+      ASSERT_TRUE(seen.count(o.id)) << source << " " << o.id;
+      EXPECT_EQ(seen[o.id], o.gt.size()) << o.id;
+    }
+  }
+  EXPECT_EQ(sr::parse_shard("2/5"), std::make_pair(2, 5));
+  for (const char* bad : {"5/5", "-1/2", "1", "1/0", "a/b", "1/2x"}) {
+    try {
+      sr::parse_shard(bad);
+      ADD_FAILURE() << bad << " was accepted";
+    } catch (const simu::Error& e) {
+      EXPECT_NE(std::string(e.what()).find("--shard"), std::string::npos) << e.what();
+    }
+  }
+}
+
 #ifdef SIMU_HAVE_OPENCV
 // The program on the committed meshes: the ground truth as the prediction over the whole folder (every
 // aggregate ideal; the sizes follow the files' units); two of them lifted from clean and corrupted
@@ -334,6 +370,29 @@ TEST(EvalLiftCli, ObjectsFolderDepthsAndCompareAdapter) {
       }
   }
   EXPECT_EQ(matched, 2);
+
+  // Best of 3 samples (--select render-compare after --align simuscene): every scored row lists its three
+  // samples' scores and keeps the lowest (the first of equal ones); the settings say so.
+  auto [st3, out3] = run(eval_cmd("--count 2 --seed 3 --samples 3 --select render-compare --align simuscene "
+                                  "--surface-samples 2000 --no-pictures --out " + tmp + "/sel"),
+                         tmp + "/sel.log");
+  ASSERT_EQ(st3, 0) << out3;
+  const json s3 = read_json(tmp + "/sel/summary.json");
+  EXPECT_EQ(s3["settings"]["select"], "render-compare");
+  int selected = 0;
+  for (const json& row : s3["objects"]) {
+    if (!row["ok"].get<bool>()) continue;
+    ASSERT_EQ(row["sample_scores"].size(), 3u) << row.dump();
+    const int k = row["sample"].get<int>();
+    int best = -1;
+    for (int i = 0; i < 3; ++i) {
+      const json& v = row["sample_scores"][i];
+      if (!v.is_null() && (best < 0 || v.get<double>() < row["sample_scores"][best].get<double>())) best = i;
+    }
+    EXPECT_EQ(k, best) << row.dump();
+    ++selected;
+  }
+  EXPECT_GT(selected, 0);
 
   // Errors name the flag or the folder; an existing --out is refused.
   auto [e1, o1] = run(eval_cmd("--out " + tmp + "/a"), tmp + "/e1.log");
