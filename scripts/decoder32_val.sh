@@ -6,7 +6,8 @@
 #   OFFSET=X bash scripts/decoder32_val.sh table     # the paired table (scripts/merge_eval_shards.py)
 #   OFFSET=0.5 bash scripts/decoder32_val.sh second  # docs/rules/decoder32_followup.md: seeds 8-15, both
 #                                                    # models with --shape-grid 16, and its table
-# Every run: eval_lift --world val --count 25 --seed K --depth clean --align simuscene, one thread.
+# Every run: eval_lift --world val --count 25 --seed K --depth clean --align simuscene, one thread, one
+# sample per object (--samples 1 --select first: as these runs were made, before eval_lift's best of 4).
 # The same runs for another candidate folder (the fifth Stage 1 of docs/rules/stage1_v5.md), beside these:
 #   CAND=runs/cand_v5 LABEL=v5 OFFSET=0.5 bash scripts/decoder32_val.sh compare | table
 set -euo pipefail
@@ -22,7 +23,7 @@ ev() {  # out model_dir seed [extra]
   local out="$1" model="$2" seed="$3"; shift 3
   [ -f "$RUNS/$out/summary.json" ] && return 0
   SIMU_DEFAULT_MODEL="$model" OMP_NUM_THREADS=1 "$BUILD/eval_lift" --world val --count 25 --seed "$seed" --depth clean \
-    --align simuscene --threads 1 --no-pictures --out "$RUNS/$out" "$@" >"$RUNS/$out.log" 2>&1
+    --align simuscene --threads 1 --no-pictures --samples 1 --select first --out "$RUNS/$out" "$@" >"$RUNS/$out.log" 2>&1
 }
 case "${1:-}" in
   offset)

@@ -32,7 +32,8 @@ done
 # 3. Evaluation: base vs base + adapter, same objects and noise (eval seed 0), amodal crop.
 for s in $SEEDS; do
   A="$RUNS/fmdpo_cpu_s$s/adapter"
-  common=(--seed 0 --depth clean --amodal-crop --device cpu --no-pictures --compare-adapter "$A" --overwrite)
+  common=(--seed 0 --depth clean --amodal-crop --device cpu --no-pictures --compare-adapter "$A" --overwrite
+          --samples 1 --select first)  # one sample per object, as the documented tables were made
   "$BUILD/eval_lift" --world test --count "$COUNT" "${common[@]}" --out "$RUNS/eval_fmdpo_s${s}_all"
   "$BUILD/eval_lift" --world test --visible 40-70 --count "$COUNT" "${common[@]}" --out "$RUNS/eval_fmdpo_s${s}_40_70" \
     --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7

@@ -118,7 +118,8 @@ mkdir -p "$STATE/eval"
 eval_one() {  # run rows count
   local run="$1" rows="$2" n="$3" out="$STATE/eval/$1_$2$SUFFIX"
   local common=(--world "$SPLIT" --count "$n" --seed 0 --depth clean --amodal-crop --align simuscene --no-pictures
-                --threads 1 --compare-adapter "$STATE/runs/$run/adapter" --overwrite --out "$out")
+                --threads 1 --compare-adapter "$STATE/runs/$run/adapter" --overwrite --out "$out"
+                --samples 1 --select first)  # one sample per object, as the documented tables were made
   if [ "$rows" = "40_70" ]; then
     common+=(--visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7)
   fi
