@@ -4,7 +4,8 @@ on the same objects.
 
   merge_eval_shards.py --model LABEL GLOB [--model LABEL GLOB ...] [--compare A B] [--bootstrap N] [--seed S]
 
-Each GLOB names summary.json files of one model (quote it). Per model, depth and visibility bucket
+Each GLOB names summary.json files of one model (quote it); their "base" rows, or with GLOB@compare the
+rows of the --compare-adapter model (so that base and adapter of the same shards pair up). Per model, depth and visibility bucket
 (plus "all"): n, mean IoU, F@1cm, F@2cm, Chamfer (mm), median rotation (deg), translation (cm), scale
 (%), mean shape IoU, recomputed from the per-object rows (failed lifts count as eval_lift counts them:
 left out of the means, shown as n_failed). --compare A B adds B - A paired by object (scene, object,
@@ -21,13 +22,16 @@ BUCKETS = ["unoccluded", "70-100%", "40-70%", "<40%"]
 
 
 def rows_of(pattern):
+    model = "base"
+    if pattern.endswith("@compare"):
+        pattern, model = pattern[: -len("@compare")], "compare"
     files = sorted(glob.glob(pattern))
     if not files:
         sys.exit(f"merge_eval_shards.py: no file matches {pattern}")
     rows, seen = [], set()
     for f in files:
         for r in json.load(open(f))["objects"]:
-            if r.get("model", "base") != "base":
+            if r.get("model", "base") != model:
                 continue
             key = (r["object"], r["depth"])
             if key in seen:
