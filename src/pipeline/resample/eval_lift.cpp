@@ -11,6 +11,8 @@
 #include <limits>
 #include <map>
 #include <thread>
+#include <tuple>
+#include <type_traits>
 
 #include "common/error.h"
 #include "common/parallel.h"
@@ -156,17 +158,29 @@ torch::Tensor pool_coords(const torch::Tensor& coords, int64_t R, int64_t S) {
   return std::get<0>(at::unique_dim(torch::floor_divide(c, R / S), 0));
 }
 
+namespace {
+// "A<sep>B" (the separator searched from position `from`), both parts numbers of type T with nothing
+// else; throws otherwise (the callers turn it into an error naming their flag).
+template <class T>
+std::pair<T, T> two_numbers(const std::string& text, char sep, size_t from) {
+  const auto at = text.find(sep, from);
+  SIMU_CHECK(at != std::string::npos, "no separator");
+  const auto one = [](const std::string& part) {
+    size_t used = 0;
+    T v;
+    if constexpr (std::is_integral_v<T>) v = std::stoi(part, &used);
+    else v = std::stod(part, &used);
+    SIMU_CHECK(used == part.size(), "trailing text");
+    return v;
+  };
+  return {one(text.substr(0, at)), one(text.substr(at + 1))};
+}
+}  // namespace
+
 std::pair<int, int> parse_shard(const std::string& text) {
-  const auto slash = text.find('/');
   int i = -1, n = 0;
   try {
-    SIMU_CHECK(slash != std::string::npos, "no slash");
-    size_t used = 0;
-    i = std::stoi(text.substr(0, slash), &used);
-    SIMU_CHECK(used == slash, "trailing text");
-    const std::string rest = text.substr(slash + 1);
-    n = std::stoi(rest, &used);
-    SIMU_CHECK(used == rest.size(), "trailing text");
+    std::tie(i, n) = two_numbers<int>(text, '/', 0);
   } catch (const std::exception&) {
     fail_hint("e.g. --shard 0/4 (the first of four)", "--shard '{}': expected I/N", text);
   }
@@ -175,16 +189,9 @@ std::pair<int, int> parse_shard(const std::string& text) {
 }
 
 std::pair<double, double> parse_visible_range(const std::string& text) {
-  const auto dash = text.find('-', 1);
   double lo = 0, hi = 0;
   try {
-    SIMU_CHECK(dash != std::string::npos, "no dash");
-    size_t used = 0;
-    lo = std::stod(text.substr(0, dash), &used);
-    SIMU_CHECK(used == dash, "trailing text");
-    const std::string rest = text.substr(dash + 1);
-    hi = std::stod(rest, &used);
-    SIMU_CHECK(used == rest.size(), "trailing text");
+    std::tie(lo, hi) = two_numbers<double>(text, '-', 1);
   } catch (const std::exception&) {
     fail_hint("e.g. --visible 40-70 (percent) or --visible 0.4-0.7", "--visible '{}': expected LO-HI", text);
   }
