@@ -21,6 +21,10 @@ cd "$ROOT"
 RUNS="${RUNS:-runs/eval_select}"
 PY="${SIMU_PYTHON:-$ROOT/.deps/venv/bin/python}"
 SEEDS="16 17 18 19 20 21 22 23"
+shard_jobs() {  # FILE NAME N ARGS...: N job lines "NAME_i weights/miniature_cpu ARGS --shard i/N" appended to FILE
+  local file="$1" name="$2" n="$3"; shift 3
+  for i in $(seq 0 $((n - 1))); do echo "${name}_$i weights/miniature_cpu $* --shard $i/$n" >>"$file"; done
+}
 case "${1:-}" in
   jobs)
     mkdir -p runs
@@ -42,22 +46,16 @@ case "${1:-}" in
   test)
     : >runs/select_test_jobs_a.txt
     : >runs/select_test_jobs_b.txt
+    one="--samples 1 --select first" four="--samples 4 --select render-compare"
+    test="--world test --count 500 --seed 0 --depth both --surface-offset 0.5"
+    held="--world heldout --count 100 --seed 0 --depth both --surface-offset 0.5"
     for k in 4 1; do
-      sel=""; [ "$k" -gt 1 ] && sel=" --samples 4 --select render-compare"
-      [ "$k" -eq 1 ] && sel=" --samples 1 --select first"
-      for i in $(seq 0 19); do
-        echo "t_k${k}_$i weights/miniature_cpu --world test --count 500 --seed 0 --depth both --align simuscene --surface-offset 0.5 --shard $i/20$sel" >>runs/select_test_jobs_a.txt
-      done
-      for i in 0 1 2 3; do
-        echo "h_k${k}_$i weights/miniature_cpu --world heldout --count 100 --seed 0 --depth both --align simuscene --surface-offset 0.5 --shard $i/4$sel" >>runs/select_test_jobs_a.txt
-      done
+      sel="$four"; [ "$k" -eq 1 ] && sel="$one"
+      shard_jobs runs/select_test_jobs_a.txt "t_k$k" 20 $test --align simuscene $sel
+      shard_jobs runs/select_test_jobs_a.txt "h_k$k" 4 $held --align simuscene $sel
     done
-    for i in $(seq 0 19); do
-      echo "t_icpk4_$i weights/miniature_cpu --world test --count 500 --seed 0 --depth both --align icp --surface-offset 0.5 --shard $i/20 --samples 4 --select render-compare" >>runs/select_test_jobs_b.txt
-    done
-    for i in 0 1 2 3; do
-      echo "h_icpk4_$i weights/miniature_cpu --world heldout --count 100 --seed 0 --depth both --align icp --surface-offset 0.5 --shard $i/4 --samples 4 --select render-compare" >>runs/select_test_jobs_b.txt
-    done
+    shard_jobs runs/select_test_jobs_b.txt t_icpk4 20 $test --align icp $four
+    shard_jobs runs/select_test_jobs_b.txt h_icpk4 4 $held --align icp $four
     wc -l runs/select_test_jobs_a.txt runs/select_test_jobs_b.txt ;;
   test_table)
     for w in t h; do
@@ -68,9 +66,9 @@ case "${1:-}" in
     done ;;
   adapter)
     : >runs/adapter_k4_jobs.txt
-    for i in $(seq 0 31); do
-      echo "a4070_k4_$i weights/miniature_cpu --world test --count 500 --seed 0 --depth clean --amodal-crop --visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7 --align simuscene --surface-offset 0.5 --compare-adapter weights/miniature_cpu/adapter --shard $i/32" >>runs/adapter_k4_jobs.txt
-    done
+    shard_jobs runs/adapter_k4_jobs.txt a4070_k4 32 --world test --count 500 --seed 0 --depth clean --amodal-crop \
+      --visible 40-70 --set scene.targets=1 --set scene.visible_min=0.4 --set scene.visible_max=0.7 --align simuscene \
+      --surface-offset 0.5 --compare-adapter weights/miniature_cpu/adapter
     wc -l runs/adapter_k4_jobs.txt ;;
   adapter_table)
     "$PY" scripts/merge_eval_shards.py --model base "$RUNS/a4070_k4_*/summary.json" \
